@@ -1,0 +1,1 @@
+"""One satellite's agent: measurement pipeline and full-swarm filter (see :mod:`sat_agent.node`)."""

@@ -1,0 +1,40 @@
+"""python -m sat_agent --id N --scenario FILE --run RUN [--restart] [bus flags]"""
+
+from __future__ import annotations
+
+import sys
+
+from swarm.node import bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
+
+
+def main(argv=None) -> int:
+    p = role_arg_parser("sat_agent: one satellite's measurements and full-swarm filter")
+    p.add_argument("--id", required=True, help="this satellite's id (0..n-1), or 'auto' to be given one by the world")
+    p.add_argument("--restart", action="store_true", help="initialise from a live peer's estimate")
+    a = p.parse_args(argv)
+    sc = load_role_scenario(a.scenario, a.sets)
+    from .node import Agent, claim_id
+
+    bus = bus_config_from_args(a)
+    restart = a.restart
+    if a.id == "auto":
+        setup_logging("agent-?", a.verbose)
+        sat, running = claim_id(sc, a.run, bus)
+        restart = restart or running
+    else:
+        try:
+            sat = int(a.id)
+        except ValueError:
+            p.error(f"--id {a.id!r}: expected a satellite number or 'auto'")
+    setup_logging(f"agent-{sat}", a.verbose)
+    ag = Agent(sc, sat, a.run, bus, restart=restart)
+    install_term_handler(ag.stop)
+    try:
+        ag.run_loop()
+    finally:
+        ag.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,114 @@
+"""``selector``: publishes the measurements to take at the next step.
+
+It plans step k from a reference agent's estimate — the lowest-numbered live agent —
+exactly as the in-process simulator does (:func:`swarmcore.sim.choose_pairs`): the
+agent's posterior at k−1 carried to k without its gyro (its prior at k = 0), fetched in
+full from ``cov/<ref>``. Camera health (fault commands, agents' health reports) and dead
+satellites (liveliness) remove candidates.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from swarm.bus.convert import estimate_from_full
+from swarm.bus.messages import Fault, Select
+from swarm.node import Node
+from swarmcore.scenario import Scenario
+from swarmcore.sim import choose_pairs, scenario_graph
+from swarmcore.world import filter_params
+
+NEEDS_STATE = ("greedy", "swarm_greedy", "fast_swarm_greedy", "logdet_greedy")
+
+
+class Selector(Node):
+    def __init__(self, sc: Scenario, run: str, bus):
+        super().__init__("selector", 0, run, sc.n_sats, bus)
+        self.sc = sc
+        self.G = scenario_graph(sc)
+        self.params = [filter_params(sc, i) for i in range(sc.n_sats)]
+        self.camera_ok = np.ones((sc.n_sats, 6), dtype=bool)
+        self.alive: set[int] = set()
+        self.done = False
+        self.planned: set[int] = set()
+        self.next_plan: dict[int, int] = {}  # agent → the step its latest estimate lets us plan
+        self.subscribe(self.keys.est())
+        self.subscribe(self.keys.fault())
+        self.subscribe(self.keys.health())
+        self.subscribe(self.keys.clock())
+        self.watch_liveliness(self.keys.alive("agent"))
+
+    def ref_agent(self) -> int | None:
+        return min(self.alive) if self.alive else None
+
+    def pump(self, timeout: float) -> bool:
+        ev = self.next_event(timeout)
+        if ev is None:
+            return False
+        if ev.kind == "alive" and ev.sat is not None:
+            (self.alive.add if ev.alive else self.alive.discard)(ev.sat)
+        elif ev.kind == "est":
+            m = ev.msg
+            plan_k = m.k if m.phase == "prior" else m.k + 1
+            self.next_plan[m.own] = max(plan_k, self.next_plan.get(m.own, -1))
+        elif ev.kind == "health":
+            self.camera_ok[ev.msg.sat] = ev.msg.camera_ok
+        elif ev.kind == "fault":
+            f: Fault = ev.msg
+            if f.action == "camera" and f.phase == "command" and f.target is not None and f.camera is not None:
+                self.camera_ok[f.target, f.camera] = f.state == "on"
+        elif ev.kind == "clock" and ev.msg.done:
+            self.done = True
+        return True
+
+    def plan(self, k: int, ref: int) -> None:
+        sc = self.sc
+        t0 = time.perf_counter()
+        est = None
+        if sc.selection.strategy in NEEDS_STATE:
+            msg = self.query(self.keys.cov(ref), "full_est", timeout=sc.emulator.step_timeout_s)
+            if msg is None:
+                self.log.warning("step %d: agent %d did not serve its estimate", k, ref)
+                return
+            est = estimate_from_full(msg, self.n)
+        cam_ok = self.camera_ok.copy()
+        for i in range(self.n):
+            if i not in self.alive:
+                cam_ok[i] = False
+        if est is None:
+            from swarmcore.selection import select_for_scenario
+
+            obs, tgt = select_for_scenario(sc, k, self.G, None, None, cam_ok)
+        else:
+            obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], cam_ok)
+        ms = (time.perf_counter() - t0) * 1e3
+        self.put(
+            self.keys.select(),
+            Select(
+                run=self.run,
+                sender=self.name,
+                k=k,
+                t_s=k * sc.dt_s,
+                pairs=[(int(a), int(b)) for a, b in zip(obs, tgt)],
+                strategy=sc.selection.strategy,
+                ref_agent=ref,
+                select_ms=ms,
+            ),
+        )
+        self.planned.add(k)
+
+    def run_loop(self) -> None:
+        if self.sc.selection.strategy == "none":
+            self.log.info("the scenario takes every measurement of its graph: nothing to select")
+        while not self.stop.is_set() and not self.done:
+            if self.sc.selection.strategy == "none":
+                self.pump(1.0)
+                continue
+            self.pump(0.5)
+            # Plan from the reference agent's latest estimate only (the lowest live id).
+            ref = self.ref_agent()
+            k = self.next_plan.get(ref, -1) if ref is not None else -1
+            if 0 <= k < self.sc.steps and k not in self.planned:
+                self.plan(k, ref)

@@ -1,0 +1,105 @@
+"""Benchmarks that print numbers and write JSON (never timed asserts)."""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import time
+from typing import Callable
+
+import numpy as np
+
+from swarmcore import graphs
+from swarmcore.mekf import predict, update
+from swarmcore.scenario import Scenario
+from swarmcore.world import (
+    absolute_measurements,
+    filter_params,
+    initial_estimate,
+    initial_truth,
+    relative_measurements,
+    step_truth,
+    world_params,
+)
+
+__all__ = ["bench_filter", "machine_info"]
+
+
+def machine_info() -> dict:
+    import os
+
+    return {
+        "python": platform.python_version(),
+        "numpy": np.__version__,
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "blas_threads": os.environ.get("OPENBLAS_NUM_THREADS"),
+    }
+
+
+def _inputs(n: int, graph: str, steps: int, seed: int):
+    sc = Scenario(n_sats=n, seed=seed, graph={"kind": graph}, duration_s=float(steps))
+    wp = world_params(sc)
+    G = graphs.incidence(n, graph)
+    obs, tgt = graphs.edges(G)
+    truth = initial_truth(sc)
+    est0 = initial_estimate(sc, truth, 0)
+    params = filter_params(sc, 0)
+    inputs = []
+    for _ in range(steps):
+        truth, gyro = step_truth(wp, truth)
+        inputs.append((gyro[0], absolute_measurements(wp, truth)[0], relative_measurements(wp, truth, obs, tgt).canonical()))
+    return params, est0, inputs
+
+
+def _time_filter(params, est0, inputs, method: str, warmup: int) -> list[float]:
+    est = est0
+    times = []
+    for k, (gyro, ab, rel) in enumerate(inputs):
+        t0 = time.perf_counter()
+        est = predict(est, params, gyro)
+        est, _ = update(est, params, ab, rel, method=method)
+        dt = (time.perf_counter() - t0) * 1e3
+        if k >= warmup:
+            times.append(dt)
+    return times
+
+
+def bench_filter(
+    sats: list[int],
+    graph: str = "complete",
+    steps: int | None = None,
+    stacked_max_n: int = 25,
+    seed: int = 0,
+    log: Callable[[str], None] = print,
+) -> list[dict]:
+    """Median ms per filter step (predict + update, one filter), fast vs stacked reference."""
+    rows = []
+    for n in sats:
+        k = steps or (30 if n <= 25 else 8 if n <= 60 else 5)
+        warm = 2 if k > 4 else 1
+        params, est0, inputs = _inputs(n, graph, k + warm, seed)
+        fast = _time_filter(params, est0, inputs, "auto", warm)
+        row = {
+            "n": n,
+            "graph": graph,
+            "measurements_per_step": len(inputs[0][2]),
+            "ms_per_step_median": statistics.median(fast),
+            "stacked_ms_per_step_median": None,
+            "ratio": None,
+        }
+        if n <= stacked_max_n:
+            ks = min(len(inputs), warm + (10 if n <= 12 else 3))
+            stacked = _time_filter(params, est0, inputs[:ks], "stacked", warm)
+            row["stacked_ms_per_step_median"] = statistics.median(stacked)
+            row["ratio"] = row["stacked_ms_per_step_median"] / row["ms_per_step_median"]
+        log(
+            f"n={n:4d} {graph:12s} m={row['measurements_per_step']:5d}  fast {row['ms_per_step_median']:9.3f} ms"
+            + (
+                f"  stacked {row['stacked_ms_per_step_median']:9.3f} ms  ratio {row['ratio']:7.1f}×"
+                if row["ratio"] is not None
+                else ""
+            )
+        )
+        rows.append(row)
+    return rows

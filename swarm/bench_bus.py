@@ -1,0 +1,168 @@
+"""Benchmarks of the distributed emulator: bus latency and the real-time factor of runs.
+
+Latency: a ping process and an echo process, each a Zenoh client of a router process on
+loopback (the topology of ``swarm run``); one-way latency is half the measured round trip.
+Real-time factor: simulated seconds per wall second of ``swarm run`` in lockstep, from the
+recorded clock messages (start-up excluded).
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["bench_latency", "bench_realtime"]
+
+_ECHO = """
+import sys, json, threading, zenoh
+cfg = zenoh.Config()
+cfg.insert_json5("mode", json.dumps("client"))
+cfg.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
+cfg.insert_json5("scouting/multicast/enabled", "false")
+stop = threading.Event()
+with zenoh.open(cfg) as s:
+    pub = s.declare_publisher("bench/pong", congestion_control=zenoh.CongestionControl.BLOCK)
+    def cb(sample):
+        if sample.payload.to_bytes() == b"stop":
+            stop.set()
+        else:
+            pub.put(sample.payload)
+    sub = s.declare_subscriber("bench/ping", cb)
+    print("READY", flush=True)
+    stop.wait()
+"""
+
+
+def _percentiles(x):
+    a = np.asarray(x) * 1e3
+    return {"p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "samples": int(a.size)}
+
+
+def _batch_payload(n: int = 10) -> bytes:
+    """A realistic measurement batch: one observer's n−1 relative poses with covariances."""
+    from swarm.bus.messages import MeasBatch, RelMeas, encode
+
+    meas = [
+        RelMeas(observer=0, target=j, camera=j % 6, q_BjBi=[0.1, 0.2, 0.3, 0.927], r_ij_Bi_m=[1.234567, -2.345678, 9.87654], R_Bi=list(np.eye(6).ravel() * 1e-4))
+        for j in range(1, n)
+    ]
+    return encode(MeasBatch(run="bench", sender="agent-0", k=1, t_s=1.0, observer=0, meas=meas))
+
+
+def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[dict]:
+    import zenoh
+
+    from .launch import free_port
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = subprocess.Popen([sys.executable, "-m", "swarm.router", "--listen", endpoint], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    echo = None
+    try:
+        assert b"READY" in router.stdout.readline()
+        echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint], stdout=subprocess.PIPE)
+        assert b"READY" in echo.stdout.readline()
+        cfg = zenoh.Config()
+        cfg.insert_json5("mode", json.dumps("client"))
+        cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        cfg.insert_json5("scouting/multicast/enabled", "false")
+        rows = []
+        with zenoh.open(cfg) as s:
+            got = threading.Event()
+            want = {"seq": -1}
+
+            def on_pong(smp):
+                # Count only the echo of the ping in flight (late warm-up echoes must not).
+                if int.from_bytes(smp.payload.to_bytes()[:8], "little") == want["seq"]:
+                    got.set()
+
+            sub = s.declare_subscriber("bench/pong", on_pong)
+            pub = s.declare_publisher("bench/ping", congestion_control=zenoh.CongestionControl.BLOCK)
+            # Wait until the echo's subscription has reached us through the router.
+            seq = 0
+            for _ in range(200):
+                seq += 1
+                want["seq"] = seq
+                got.clear()
+                pub.put(seq.to_bytes(8, "little") + b"warmup")
+                if got.wait(0.05):
+                    break
+            for name, payload, count in (
+                ("measurement batch (n=10)", _batch_payload(10), samples),
+                ("1 MB payload", bytes(np.random.default_rng(0).integers(0, 256, 1 << 20, dtype=np.uint8)), big_samples),
+            ):
+                rtt = []
+                for _ in range(count + 5):
+                    seq += 1
+                    want["seq"] = seq
+                    msg = seq.to_bytes(8, "little") + payload
+                    got.clear()
+                    t0 = time.perf_counter()
+                    pub.put(msg)
+                    if not got.wait(5.0):
+                        raise RuntimeError(f"no echo for {name}")
+                    rtt.append(time.perf_counter() - t0)
+                rtt = rtt[5:]
+                one_way = [r / 2 for r in rtt]
+                row = {"payload": name, "bytes": len(payload), "path": "client → router → client (loopback)", "one_way": _percentiles(one_way), "round_trip": _percentiles(rtt)}
+                log(f"{name:26s} {len(payload):8d} B  one-way p50 {row['one_way']['p50_ms']:.3f} ms  p99 {row['one_way']['p99_ms']:.3f} ms")
+                rows.append(row)
+            pub.put(b"stop")
+            sub.undeclare()
+        return rows
+    finally:
+        for p in (echo, router):
+            if p is not None:
+                p.terminate()
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+
+
+def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir: Path | None = None) -> list[dict]:
+    """Real-time factor of ``swarm run`` (lockstep, synthetic measurements, complete graph)."""
+    from swarmcore.scenario import Scenario
+
+    from .launch import LocalSwarm
+    from .mcaplog import iter_messages
+
+    rows = []
+    base = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="swarm-bench-"))
+    for n in sats:
+        sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=duration_s)
+        out = base / f"n{n}"
+        sw = LocalSwarm(sc, out, log=lambda s: None)
+        t_start = time.perf_counter()
+        try:
+            sw.start()
+            code = sw.run_to_end()
+        finally:
+            sw.stop()
+        total = time.perf_counter() - t_start
+        clocks = [lt for topic, _s, _d, lt, _p in iter_messages(out / "run.mcap") if topic.endswith("/clock")]
+        wall = (max(clocks) - min(clocks)) / 1e9
+        steps_ms = []
+        for topic, _s, data, _lt, _p in iter_messages(out / "run.mcap"):
+            if "/est/" in topic:
+                steps_ms.append(json.loads(data).get("step_ms", 0.0))
+        row = {
+            "n": n,
+            "time_mode": "lockstep",
+            "sim_seconds": duration_s,
+            "stepping_wall_s": wall,
+            "realtime_factor": duration_s / wall if wall > 0 else None,
+            "total_wall_s_with_startup": total,
+            "agent_filter_ms_median": statistics.median(steps_ms) if steps_ms else None,
+            "world_exit_code": code,
+        }
+        log(f"n={n:3d}: {duration_s:.0f} sim s in {wall:.1f} wall s → real-time factor {row['realtime_factor']:.1f}× (with start-up {total:.1f} s)")
+        rows.append(row)
+    return rows

@@ -1,0 +1,400 @@
+"""Every message on the bus and every key expression, in one place.
+
+Messages are JSON (readable in Foxglove and MCAP tools), validated by pydantic models:
+a malformed or unexpected payload raises :class:`MessageError` naming the problem, and
+the receiving process counts it, logs it and carries on. Small vectors are JSON lists
+(exact: Python writes the shortest repr that round-trips); large matrices travel as
+little-endian float64 in base64 (:class:`B64Array`), also exact. Every message carries
+the schema version ``v``, the run id, the sender, the step ``k`` and the simulation time
+``t_s``. Units and frames are in every field name.
+
+Key space (one run id per swarm, so swarms can share a router)::
+
+    swarm/<run>/clock                world → all           Clock
+    swarm/<run>/sat/<i>/sensors      world → agent i       Sensors
+    swarm/<run>/sat/<i>/cam          world → agent i       CameraOutput
+    swarm/<run>/meas/<i>             agent i → all         MeasBatch
+    swarm/<run>/est/<i>              agent i → all         Estimate
+    swarm/<run>/cov/<i>              agent i (queryable)   FullEstimate
+    swarm/<run>/init/<i>             world (queryable)     FullEstimate (the prior)
+    swarm/<run>/claim/<token>        world (queryable)     Claim (a satellite id for --id auto)
+    swarm/<run>/select               selector → all        Select
+    swarm/<run>/fault                CLI / roles → all     Fault
+    swarm/<run>/health/<i>           agent i → all         Health
+    swarm/<run>/truth                world → recorder      Truth   (agents never subscribe)
+    swarm/<run>/alive/<role>/<id>    liveliness tokens
+"""
+
+from __future__ import annotations
+
+import base64
+import re
+from typing import Annotated, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+SCHEMA_VERSION = 1
+
+__all__ = [
+    "SCHEMA_VERSION",
+    "MessageError",
+    "B64Array",
+    "Clock",
+    "Sensors",
+    "Detection",
+    "CameraOutput",
+    "RelMeas",
+    "MeasBatch",
+    "Estimate",
+    "FullEstimate",
+    "Select",
+    "Fault",
+    "Health",
+    "Truth",
+    "Claim",
+    "Keys",
+    "MODELS",
+    "encode",
+    "decode",
+    "parse_key",
+]
+
+
+class MessageError(ValueError):
+    """A payload that is not a valid message of the expected kind."""
+
+
+Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
+Vec4 = Annotated[list[float], Field(min_length=4, max_length=4)]
+SatId = Annotated[int, Field(ge=0, le=10_000)]
+
+
+class _Msg(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class B64Array(_Msg):
+    """A float64 array: little-endian bytes in base64, with its shape."""
+
+    dtype: Literal["<f8"] = "<f8"
+    shape: list[Annotated[int, Field(ge=0)]]
+    b64: str
+
+    @classmethod
+    def of(cls, a: np.ndarray) -> "B64Array":
+        a = np.ascontiguousarray(a, dtype="<f8")
+        return cls(shape=list(a.shape), b64=base64.b64encode(a.tobytes()).decode("ascii"))
+
+    def array(self) -> np.ndarray:
+        try:
+            raw = base64.b64decode(self.b64, validate=True)
+        except ValueError as exc:
+            raise MessageError(f"array payload is not base64: {exc}") from None
+        count = int(np.prod(self.shape)) if self.shape else 1
+        if len(raw) != 8 * count:
+            raise MessageError(f"array of shape {self.shape} needs {8 * count} bytes, got {len(raw)}")
+        return np.frombuffer(raw, dtype="<f8").reshape(self.shape).copy()
+
+
+class _Header(_Msg):
+    v: Literal[1] = SCHEMA_VERSION
+    run: str = Field(min_length=1, max_length=64)
+    sender: str = Field(min_length=1, max_length=64)
+    k: int = Field(ge=0, description="step index")
+    t_s: float = Field(description="simulation time (s)")
+
+
+class Clock(_Header):
+    """World → all: step k begins; who is alive; the run's mode."""
+
+    kind: Literal["clock"] = "clock"
+    live_agents: list[SatId]
+    mode: Literal["lockstep", "free"] = "lockstep"
+    done: bool = False
+
+
+class Sensors(_Header):
+    """World → agent i: its own gyro (mean rate over k−1→k), star tracker and GPS at t_k."""
+
+    kind: Literal["sensors"] = "sensors"
+    sat: SatId
+    gyro_rate_B_rad_s: Vec3 | None = None
+    q_BI_star: Vec4 | None = None
+    r_H_gps_m: Vec3 | None = None
+    sigma_star_rad: float = Field(gt=0)
+    sigma_gps_m: float = Field(gt=0)
+
+
+class Detection(_Msg):
+    """One camera output: a (synthetic or image-derived) relative pose of ``target``."""
+
+    target: SatId
+    camera: int = Field(ge=0, le=5)
+    q_BjBi: Vec4
+    r_ij_Bi_m: Vec3
+
+
+class CameraOutput(_Header):
+    """World → agent i: what its cameras produced at step k (possibly nothing)."""
+
+    kind: Literal["cam"] = "cam"
+    sat: SatId
+    detections: list[Detection] = []
+    cameras_off: list[Annotated[int, Field(ge=0, le=5)]] = []
+
+
+class RelMeas(_Msg):
+    """A relative pose measurement with its covariance R_Bi (6×6 row-major, [att rad, pos m])."""
+
+    observer: SatId
+    target: SatId
+    camera: int = Field(ge=0, le=5)
+    q_BjBi: Vec4
+    r_ij_Bi_m: Vec3
+    R_Bi: Annotated[list[float], Field(min_length=36, max_length=36)]
+
+
+class MeasBatch(_Header):
+    """Agent i → all: every relative measurement it took at step k (an empty batch too)."""
+
+    kind: Literal["meas"] = "meas"
+    observer: SatId
+    meas: list[RelMeas] = []
+
+    @field_validator("meas")
+    @classmethod
+    def _same_observer(cls, v, info):
+        obs = info.data.get("observer")
+        for m in v:
+            if m.observer != obs:
+                raise ValueError(f"measurement by {m.observer} in the batch of observer {obs}")
+            if m.target == m.observer:
+                raise ValueError(f"satellite {m.observer} cannot measure itself")
+        return v
+
+
+class Estimate(_Header):
+    """Agent i → all: its posterior (or initial prior) of the whole swarm at step k.
+
+    Carries each satellite's pose covariance block ``P_pose`` (n, 6, 6) over
+    ``[a, Δr]`` and the full diagonal; the full covariance is served on ``cov/<i>``.
+    """
+
+    kind: Literal["est"] = "est"
+    own: SatId
+    phase: Literal["prior", "posterior"] = "posterior"
+    q_BI: list[Vec4]
+    omega_BI_B_rad_s: list[Vec3]
+    r_H_m: list[Vec3]
+    v_H_m_s: list[Vec3]
+    bias_B_rad_s: Vec3
+    P_pose: B64Array
+    P_diag: B64Array
+    gate_accepted: int = 0
+    gate_rejected: int = 0
+    nis: float = 0.0
+    nis_dof: int = 0
+    iterations: int = 1
+    step_ms: float = 0.0
+    batches_used: list[SatId] = []
+    batches_missing: list[SatId] = []
+    batches_late: int = 0
+
+
+class FullEstimate(_Header):
+    """A complete filter state with the full 12n×12n covariance (prior, restart, selector)."""
+
+    kind: Literal["full_est"] = "full_est"
+    own: SatId
+    q_BI: list[Vec4]
+    omega_BI_B_rad_s: list[Vec3]
+    r_H_m: list[Vec3]
+    v_H_m_s: list[Vec3]
+    bias_B_rad_s: Vec3
+    P: B64Array
+
+
+class Select(_Header):
+    """Selector (or the world's fallback) → all: the pairs to measure at step k."""
+
+    kind: Literal["select"] = "select"
+    pairs: list[tuple[SatId, SatId]]
+    strategy: str
+    ref_agent: SatId | None = None
+    fallback: bool = False
+    select_ms: float = 0.0
+
+
+FaultAction = Literal[
+    "kill-agent",
+    "restart-agent",
+    "stop-agent",
+    "camera",
+    "kill-selector",
+    "restart-selector",
+    "drop",
+    "partition",
+    "heal",
+]
+
+
+class Fault(_Header):
+    """A fault: a command (from the CLI or the scenario) and its outcome (from the executor)."""
+
+    kind: Literal["fault"] = "fault"
+    action: FaultAction
+    phase: Literal["command", "done", "failed"] = "command"
+    target: SatId | None = None
+    camera: int | None = Field(None, ge=0, le=5)
+    state: Literal["on", "off"] | None = None
+    rate: float | None = Field(None, ge=0.0, le=1.0)
+    detail: str = ""
+
+
+class Health(_Header):
+    """Agent i → all: camera health and what it has had to cope with."""
+
+    kind: Literal["health"] = "health"
+    sat: SatId
+    camera_ok: Annotated[list[bool], Field(min_length=6, max_length=6)]
+    malformed: int = 0
+    batches_missing: int = 0
+    batches_late: int = 0
+    drop_rate: float = 0.0
+    host: str = Field("", max_length=253, description="the agent's host name (its container id under Docker)")
+
+
+class Claim(_Header):
+    """World → an agent started with ``--id auto``: the satellite it is to fly, and whether
+    the run is already under way (then it initialises from a live peer)."""
+
+    kind: Literal["claim"] = "claim"
+    sat: SatId
+    token: str = Field(min_length=1, max_length=128)
+    running: bool = False
+
+
+class Truth(_Header):
+    """World → recorder only: the true state at step k."""
+
+    kind: Literal["truth"] = "truth"
+    q_BI: list[Vec4]
+    omega_BI_B_rad_s: list[Vec3]
+    r_H_m: list[Vec3]
+    v_H_m_s: list[Vec3]
+    gyro_bias_B_rad_s: list[Vec3]
+
+
+MODELS: dict[str, type[_Header]] = {
+    "clock": Clock,
+    "sensors": Sensors,
+    "cam": CameraOutput,
+    "meas": MeasBatch,
+    "est": Estimate,
+    "full_est": FullEstimate,
+    "select": Select,
+    "fault": Fault,
+    "health": Health,
+    "truth": Truth,
+    "claim": Claim,
+}
+
+
+def encode(msg: _Header) -> bytes:
+    return msg.model_dump_json().encode("utf-8")
+
+
+def decode(kind: str, payload: bytes | bytearray | memoryview):
+    """Parse and validate a payload of the given kind; :class:`MessageError` on any defect."""
+    model = MODELS.get(kind)
+    if model is None:
+        raise MessageError(f"unknown message kind {kind!r}")
+    try:
+        return model.model_validate_json(bytes(payload))
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"]) or "(payload)"
+        raise MessageError(f"invalid {kind} message: {loc}: {first['msg']} ({exc.error_count()} error(s))") from None
+
+
+_RUN_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
+
+
+class Keys:
+    """Key expressions of one run."""
+
+    def __init__(self, run: str):
+        if not _RUN_RE.match(run):
+            raise ValueError(f"run id {run!r}: use 1-64 letters, digits, '_', '-' or '.'")
+        self.run = run
+        self.root = f"swarm/{run}"
+
+    def clock(self) -> str:
+        return f"{self.root}/clock"
+
+    def sensors(self, i: int) -> str:
+        return f"{self.root}/sat/{i}/sensors"
+
+    def cam(self, i: int) -> str:
+        return f"{self.root}/sat/{i}/cam"
+
+    def meas(self, i: int | str = "*") -> str:
+        return f"{self.root}/meas/{i}"
+
+    def est(self, i: int | str = "*") -> str:
+        return f"{self.root}/est/{i}"
+
+    def cov(self, i: int | str = "*") -> str:
+        return f"{self.root}/cov/{i}"
+
+    def init(self, i: int | str = "*") -> str:
+        return f"{self.root}/init/{i}"
+
+    def select(self) -> str:
+        return f"{self.root}/select"
+
+    def fault(self) -> str:
+        return f"{self.root}/fault"
+
+    def health(self, i: int | str = "*") -> str:
+        return f"{self.root}/health/{i}"
+
+    def truth(self) -> str:
+        return f"{self.root}/truth"
+
+    def claim(self, token: str = "*") -> str:
+        return f"{self.root}/claim/{token}"
+
+    def alive(self, role: str = "*", ident: int | str = "*") -> str:
+        return f"{self.root}/alive/{role}/{ident}"
+
+    def everything(self) -> str:
+        return f"{self.root}/**"
+
+
+_KEY_RE = re.compile(
+    r"^swarm/(?P<run>[^/]+)/(?:"
+    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)"
+    r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam)"
+    r"|(?P<idkind>meas|est|health|cov|init)/(?P<id>\d+)"
+    r"|alive/(?P<role>[^/]+)/(?P<ident>[^/]+))$"
+)
+
+
+def parse_key(key: str) -> tuple[str, str, int | None]:
+    """``(run, kind, satellite id or None)`` of a key; :class:`MessageError` if unknown."""
+    m = _KEY_RE.match(str(key))
+    if not m:
+        raise MessageError(f"unexpected key {key!r}")
+    run = m["run"]
+    for k in ("clock", "select", "fault", "truth"):
+        if m[k]:
+            return run, k, None
+    if m["satkind"]:
+        return run, m["satkind"], int(m["sat"])
+    if m["idkind"]:
+        kind = {"cov": "full_est", "init": "full_est"}.get(m["idkind"], m["idkind"])
+        return run, kind, int(m["id"])
+    ident = m["ident"]
+    return run, "alive", int(ident) if ident.isdigit() else None

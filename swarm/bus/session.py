@@ -1,0 +1,112 @@
+"""Zenoh sessions from the shared bus flags, and an inbox that hands samples to one thread.
+
+Every role accepts the same flags (as zenoh-python's examples do): ``--mode``,
+``--connect``, ``--listen``, ``--config`` and ``--no-multicast-scouting`` (scouting is
+off unless ``--multicast-scouting`` is given: it does not cross Docker networks and a
+swarm on a shared LAN should not discover strangers).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import queue
+import threading
+from dataclasses import dataclass, field
+
+import zenoh
+
+log = logging.getLogger("swarm.bus")
+
+__all__ = ["BusConfig", "add_bus_args", "bus_config_from_args", "open_session", "Inbox", "Sample"]
+
+
+@dataclass
+class BusConfig:
+    mode: str = "peer"
+    connect: list[str] = field(default_factory=list)
+    listen: list[str] = field(default_factory=list)
+    config_file: str | None = None
+    multicast_scouting: bool = False
+    connect_timeout_ms: int = 10_000
+
+    def zenoh_config(self) -> zenoh.Config:
+        cfg = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
+        cfg.insert_json5("mode", json.dumps(self.mode))
+        if self.connect:
+            cfg.insert_json5("connect/endpoints", json.dumps(self.connect))
+            cfg.insert_json5("connect/timeout_ms", json.dumps(self.connect_timeout_ms))
+            # Rejoin quickly after a partition heals (Zenoh's default backs off to 4 s).
+            cfg.insert_json5("connect/retry", json.dumps({"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}))
+        if self.listen:
+            cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
+        cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        return cfg
+
+    def as_args(self) -> list[str]:
+        """The same configuration as command-line flags (for child processes)."""
+        out = ["--mode", self.mode]
+        for e in self.connect:
+            out += ["--connect", e]
+        for e in self.listen:
+            out += ["--listen", e]
+        if self.config_file:
+            out += ["--config", self.config_file]
+        if self.multicast_scouting:
+            out.append("--multicast-scouting")
+        return out
+
+
+def add_bus_args(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("bus (Zenoh)")
+    g.add_argument("--mode", choices=["peer", "client", "router"], default=os.environ.get("SWARM_ZENOH_MODE", "peer"))
+    g.add_argument("--connect", action="append", default=None, help="endpoint to connect to, e.g. tcp/127.0.0.1:7447 (repeatable)")
+    g.add_argument("--listen", action="append", default=None, help="endpoint to listen on (repeatable)")
+    g.add_argument("--config", default=None, help="a Zenoh JSON5 configuration file")
+    g.add_argument("--multicast-scouting", action="store_true", help="enable multicast scouting (off by default)")
+    g.add_argument("--no-multicast-scouting", dest="multicast_scouting", action="store_false")
+
+
+def bus_config_from_args(a: argparse.Namespace) -> BusConfig:
+    connect = a.connect if a.connect is not None else [e for e in os.environ.get("SWARM_ZENOH_CONNECT", "").split(",") if e]
+    return BusConfig(mode=a.mode, connect=connect, listen=a.listen or [], config_file=a.config, multicast_scouting=a.multicast_scouting)
+
+
+def open_session(cfg: BusConfig) -> zenoh.Session:
+    return zenoh.open(cfg.zenoh_config())
+
+
+@dataclass(frozen=True)
+class Sample:
+    key: str
+    payload: bytes
+    kind: str  # "put" or "delete"
+
+
+class Inbox:
+    """Zenoh callbacks push here (they must never block); one worker thread pulls.
+
+    Keeping every subscriber's callback trivial means no Zenoh call and no heavy work
+    happens on Zenoh's threads, and the role's state is touched by one thread only.
+    """
+
+    def __init__(self, maxsize: int = 100_000):
+        self._q: queue.Queue[Sample] = queue.Queue(maxsize=maxsize)
+        self.dropped = 0
+        self._lock = threading.Lock()
+
+    def callback(self, sample) -> None:
+        try:
+            kind = "delete" if sample.kind == zenoh.SampleKind.DELETE else "put"
+            self._q.put_nowait(Sample(str(sample.key_expr), bytes(sample.payload.to_bytes()), kind))
+        except queue.Full:
+            with self._lock:
+                self.dropped += 1
+
+    def get(self, timeout: float | None) -> Sample | None:
+        try:
+            return self._q.get(timeout=timeout) if timeout is None or timeout > 0 else self._q.get_nowait()
+        except queue.Empty:
+            return None

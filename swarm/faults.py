@@ -1,0 +1,185 @@
+"""``swarm fault``: inject a fault into a running swarm, local or under docker compose.
+
+Local (``--run-dir``, or ``--connect`` + ``--run``): the command goes on the bus; the
+executor (the supervisor of ``swarm run`` for processes, the world for cameras, the agent
+for drops) acts and reports back. Compose (``--compose``): process and network faults are
+carried out here with the docker CLI — kill, stop or restart a satellite's container,
+disconnect it from the bus network (a partition) and reconnect it (heal) — and reported on
+the bus so they land in the recording; camera and drop faults go on the bus as usual.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import time
+from pathlib import Path
+
+from .bus.messages import Fault, Keys
+from .bus.session import BusConfig
+from .node import Node
+
+__all__ = ["send_fault", "compose_containers"]
+
+PROCESS_ACTIONS = ("kill-agent", "stop-agent", "restart-agent", "kill-selector", "restart-selector", "partition", "heal")
+
+
+def _target(run_dir, connect, run_id, compose) -> tuple[str, str, int]:
+    if run_dir is not None:
+        info_file = Path(run_dir) / "run.json"
+        if not info_file.is_file():
+            raise FileNotFoundError(f"{info_file}: not found (is `swarm run --out {run_dir}` running?)")
+        info = json.loads(info_file.read_text())
+        return info["endpoint"], info["run"], int(info["n_sats"])
+    if compose:
+        port = os.environ.get("SWARM_BUS_PORT", "7447")
+        return connect or f"tcp/127.0.0.1:{port}", run_id or os.environ.get("SWARM_RUN", "compose"), 10_000
+    if connect and run_id:
+        return connect, run_id, 10_000
+    raise ValueError("give --run-dir, or --connect and --run, or --compose")
+
+
+def _docker(*args: str, check: bool = True) -> str:
+    exe = shutil.which("docker")
+    if exe is None:
+        raise RuntimeError("the docker CLI is not installed")
+    p = subprocess.run([exe, *args], capture_output=True, text=True, timeout=120)
+    if check and p.returncode != 0:
+        raise RuntimeError(f"docker {' '.join(args)}: {p.stderr.strip() or p.stdout.strip()}")
+    return p.stdout.strip()
+
+
+def compose_containers(project: str | None = None) -> list[dict]:
+    """Containers of the compose project (labels set by docker compose and docker-compose).
+
+    Asks for the four fields it needs: ``{{json .}}`` makes the daemon compute every
+    container's disk usage, which takes minutes on a busy machine.
+    """
+    flt = ["--filter", "label=com.docker.compose.service"]
+    if project:
+        flt += ["--filter", f"label=com.docker.compose.project={project}"]
+    fmt = '{{.ID}}\t{{.State}}\t{{.Label "com.docker.compose.service"}}\t{{.Label "com.docker.compose.project"}}'
+    out = _docker("ps", "-a", "--no-trunc", *flt, "--format", fmt)
+    rows = []
+    for line in out.splitlines():
+        parts = line.split("\t")
+        if len(parts) == 4:
+            rows.append({"ID": parts[0], "State": parts[1], "service": parts[2], "project": parts[3]})
+    return rows
+
+
+def _agent_hosts(node: Node, want: int | None, timeout: float = 10.0) -> dict[int, str]:
+    """Satellite id → host name (container id) from the agents' health reports, until
+    satellite ``want`` has reported or ``timeout`` passes."""
+    hosts: dict[int, str] = {}
+    deadline = time.monotonic() + timeout
+    while want not in hosts and time.monotonic() < deadline:
+        ev = node.next_event(max(0.0, deadline - time.monotonic()))
+        if ev is not None and ev.kind == "health" and ev.msg.host:
+            hosts[ev.msg.sat] = ev.msg.host
+    return hosts
+
+
+def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | None) -> str:
+    cont = compose_containers(project)
+    if cmd.action in ("kill-selector", "restart-selector"):
+        ids = [c["ID"] for c in cont if c["service"] == "selector"]
+    elif cmd.action == "heal":
+        # Off the bus, the agent cannot report: find the agent container that is not on
+        # the bus network and whose log names the satellite.
+        net = network or _bus_network(project)
+        ids = []
+        for c in cont:
+            if c["service"] not in ("agent", "remote_agent") or c["State"] != "running":
+                continue
+            nets = json.loads(_docker("inspect", "--format", "{{json .NetworkSettings.Networks}}", c["ID"])) or {}
+            if net in nets:
+                continue
+            logs = subprocess.run(["docker", "logs", "--tail", "300", c["ID"]], capture_output=True, text=True, timeout=60)
+            if f" agent-{cmd.target} " in logs.stdout + logs.stderr:
+                ids.append(c["ID"])
+        if not ids:
+            raise RuntimeError(f"no partitioned agent container runs satellite {cmd.target}")
+    else:
+        wait = 3.0 if cmd.action == "restart-agent" else 15.0  # a dead agent never reports
+        host = _agent_hosts(node, cmd.target, wait).get(cmd.target)
+        if host is None:
+            # A dead agent reports nothing: pick a stopped agent container.
+            dead = [c["ID"] for c in cont if c["service"] in ("agent", "remote_agent") and c["State"] != "running"]
+            if cmd.action == "restart-agent" and dead:
+                ids = dead[:1]
+            else:
+                raise RuntimeError(f"no running agent reports satellite {cmd.target}")
+        else:
+            ids = [c["ID"] for c in cont if c["ID"].startswith(host)]
+            if not ids:
+                raise RuntimeError(f"satellite {cmd.target}'s host {host} is not a container of this project")
+    if not ids:
+        raise RuntimeError(f"no container for {cmd.action}")
+    cid = ids[0]
+    if cmd.action in ("kill-agent", "kill-selector"):
+        _docker("kill", cid)
+    elif cmd.action == "stop-agent":
+        _docker("stop", cid)
+    elif cmd.action in ("restart-agent", "restart-selector"):
+        _docker("restart", cid)
+    elif cmd.action in ("partition", "heal"):
+        nets = json.loads(_docker("inspect", "--format", "{{json .NetworkSettings.Networks}}", cid)) or {}
+        net = network or next((n for n in nets if n.endswith("_bus")), None)
+        if cmd.action == "partition":
+            if net is None:
+                raise RuntimeError(f"container {cid[:12]} is on no bus network ({list(nets)})")
+            _docker("network", "disconnect", net, cid)
+        else:
+            net = network or _bus_network(project)
+            _docker("network", "connect", net, cid)
+    return f"{cmd.action} on container {cid[:12]}"
+
+
+def _bus_network(project: str | None) -> str:
+    nets = _docker("network", "ls", "--format", "{{.Name}}").split()
+    cands = [n for n in nets if n.endswith("_bus") and (project is None or n.startswith(project))]
+    if not cands:
+        raise RuntimeError("no *_bus network found")
+    return cands[0]
+
+
+def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0, **fields) -> str:
+    endpoint, run, n = _target(run_dir, connect, run_id, compose)
+    node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000))
+    keys = Keys(run)
+    try:
+        node.subscribe(keys.fault())
+        node.subscribe(keys.clock())
+        node.subscribe(keys.health())
+        k, t = 0, 0.0
+        ev = node.next_event(5.0)  # learn the current step (to stamp the command)
+        while ev is not None and ev.kind != "clock":
+            ev = node.next_event(5.0)
+        if ev is not None:
+            k, t = ev.msg.k, ev.msg.t_s
+        cmd = Fault(run=run, sender="cli", k=k, t_s=t, **fields)
+        if compose and cmd.action in PROCESS_ACTIONS:
+            node.put(keys.fault(), cmd.model_copy(update={"detail": "compose"}))
+            try:
+                detail = _compose_action(node, cmd, project, network)
+            except RuntimeError as exc:
+                node.put(keys.fault(), cmd.model_copy(update={"phase": "failed", "sender": "cli", "detail": str(exc)[:200]}))
+                raise
+            node.put(keys.fault(), cmd.model_copy(update={"phase": "done", "sender": "cli", "detail": detail}))
+            return f"{cmd.action} {cmd.target if cmd.target is not None else ''}: done ({detail})"
+        if not compose and cmd.action in ("partition", "heal"):
+            raise ValueError(f"{cmd.action} needs --compose (local processes share one network)")
+        node.put(keys.fault(), cmd)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            ev = node.next_event(deadline - time.monotonic())
+            if ev is None:
+                break
+            if ev.kind == "fault" and ev.msg.phase in ("done", "failed") and ev.msg.action == cmd.action and ev.msg.target == cmd.target:
+                return f"{cmd.action} {cmd.target if cmd.target is not None else ''}: {ev.msg.phase} by {ev.msg.sender} at step {ev.msg.k} {ev.msg.detail}".strip()
+        return f"{cmd.action}: sent at step {k}; no executor reported back within {timeout:.0f} s"
+    finally:
+        node.close()

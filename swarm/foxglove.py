@@ -1,0 +1,207 @@
+"""Standard Foxglove channels derived from the bus, so a recording plays back in 3-D.
+
+Written by the recorder next to the project's own messages, protobuf-encoded with the
+official schemas (``foxglove-schemas-protobuf``), each channel carrying its
+FileDescriptorSet as the MCAP schema:
+
+* ``/foxglove/tf`` (``foxglove.FrameTransforms``): frame ``hcw`` (the HCW frame) → ``sat<i>``
+  (true body frames);
+* ``/foxglove/truth`` (``foxglove.SceneUpdate``): the satellites as 40 cm cubes, labelled;
+* ``/foxglove/est/<i>`` (``foxglove.SceneUpdate``): agent i's estimate of every satellite —
+  a translucent cube at the estimated pose and the 3σ position ellipsoid;
+* ``/foxglove/measurements`` (``foxglove.SceneUpdate``): a line per relative measurement
+  broadcast at the step, observer → target;
+* ``/foxglove/cam/<i>/<c>`` (``foxglove.RawImage``): camera images, when they travel on the bus.
+
+Frames: Foxglove quaternions are Hamilton (x, y, z, w) rotating the parent frame onto the
+child; for the body frame B in H that is exactly our Shuster ``q_BH = q_BI ⊗ q_IH``
+(the conversion is pinned in ``tests/test_foxglove.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from foxglove_schemas_protobuf.Color_pb2 import Color
+from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
+from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
+from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+from foxglove_schemas_protobuf.Point3_pb2 import Point3
+from foxglove_schemas_protobuf.Pose_pb2 import Pose
+from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
+from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
+from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
+from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
+from google.protobuf import descriptor_pb2
+from google.protobuf.duration_pb2 import Duration
+from google.protobuf.timestamp_pb2 import Timestamp
+
+from swarmcore import quat
+
+__all__ = ["FoxgloveDeriver", "file_descriptor_set", "q_BH", "CHANNELS"]
+
+CHANNELS = {
+    "/foxglove/tf": "foxglove.FrameTransforms",
+    "/foxglove/truth": "foxglove.SceneUpdate",
+    "/foxglove/est/<i>": "foxglove.SceneUpdate",
+    "/foxglove/measurements": "foxglove.SceneUpdate",
+    "/foxglove/cam/<i>/<c>": "foxglove.RawImage",
+}
+
+_PALETTE = [
+    (0.12, 0.47, 0.71),
+    (1.0, 0.5, 0.05),
+    (0.17, 0.63, 0.17),
+    (0.84, 0.15, 0.16),
+    (0.58, 0.4, 0.74),
+    (0.55, 0.34, 0.29),
+    (0.89, 0.47, 0.76),
+    (0.5, 0.5, 0.5),
+    (0.74, 0.74, 0.13),
+    (0.09, 0.75, 0.81),
+]
+
+
+def file_descriptor_set(message_class) -> bytes:
+    """The FileDescriptorSet of a protobuf message class and everything it imports."""
+    fds = descriptor_pb2.FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd):
+        if fd.name in seen:
+            return
+        seen.add(fd.name)
+        for dep in fd.dependencies:
+            add(dep)
+        proto = descriptor_pb2.FileDescriptorProto()
+        fd.CopyToProto(proto)
+        fds.file.append(proto)
+
+    add(message_class.DESCRIPTOR.file)
+    return fds.SerializeToString()
+
+
+def q_BH(q_BI: np.ndarray, mean_motion: float, t: float) -> np.ndarray:
+    """Shuster ``q_BH`` (= Foxglove's x, y, z, w of frame B in frame H)."""
+    half = -0.5 * mean_motion * t  # T_IH is a turn of +n t about z: T(q_IH) with angle −n t
+    q_IH = np.array([0.0, 0.0, np.sin(half), np.cos(half)])
+    return quat.normalize(quat.qmul(q_BI, q_IH))
+
+
+def _ts(ns: int) -> Timestamp:
+    return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
+
+
+def _color(i: int, a: float = 1.0) -> Color:
+    r, g, b = _PALETTE[i % len(_PALETTE)]
+    return Color(r=r, g=g, b=b, a=a)
+
+
+def _pose(r, q) -> Pose:
+    return Pose(position=Vector3(x=r[0], y=r[1], z=r[2]), orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3]))
+
+
+class FoxgloveDeriver:
+    """Turns decoded bus messages into Foxglove messages on the recorder's writer."""
+
+    def __init__(self, writer, mean_motion: float | None = None, half_size_m: float = 0.2):
+        self.w = writer
+        self.mean_motion = mean_motion
+        self.size = 2 * half_size_m
+        self._sids: dict[str, int] = {}
+        self._truth_r = None
+
+    def _channel(self, topic: str, cls) -> int:
+        name = cls.DESCRIPTOR.full_name
+        sid = self._sids.get(name)
+        if sid is None:
+            sid = self._sids[name] = self.w.schema(name, "protobuf", file_descriptor_set(cls))
+        return self.w.channel(topic, sid, "protobuf")
+
+    def _put(self, topic: str, msg, log_ns: int) -> None:
+        self.w.add(self._channel(topic, type(msg)), msg.SerializeToString(), log_ns, log_ns)
+
+    def on_message(self, kind: str, msg, log_ns: int) -> None:
+        if self.mean_motion is None:
+            return
+        if kind == "truth":
+            self._truth(msg, log_ns)
+        elif kind == "est" and msg.phase == "posterior":
+            self._estimate(msg, log_ns)
+        elif kind == "meas":
+            self._measurements(msg, log_ns)
+
+    def _truth(self, m, log_ns: int) -> None:
+        q = q_BH(np.asarray(m.q_BI), self.mean_motion, m.t_s)
+        r = np.asarray(m.r_H_m)
+        self._truth_r = r
+        tfs = FrameTransforms(
+            transforms=[
+                FrameTransform(
+                    timestamp=_ts(log_ns),
+                    parent_frame_id="hcw",
+                    child_frame_id=f"sat{i}",
+                    translation=Vector3(x=r[i, 0], y=r[i, 1], z=r[i, 2]),
+                    rotation=Quaternion(x=q[i, 0], y=q[i, 1], z=q[i, 2], w=q[i, 3]),
+                )
+                for i in range(r.shape[0])
+            ]
+        )
+        self._put("/foxglove/tf", tfs, log_ns)
+        ents = []
+        for i in range(r.shape[0]):
+            ents.append(
+                SceneEntity(
+                    timestamp=_ts(log_ns),
+                    frame_id="hcw",
+                    id=f"sat{i}",
+                    lifetime=Duration(seconds=0),
+                    frame_locked=False,
+                    cubes=[CubePrimitive(pose=_pose(r[i], q[i]), size=Vector3(x=self.size, y=self.size, z=self.size), color=_color(i))],
+                    texts=[TextPrimitive(pose=_pose(r[i] + [0, 0, self.size], [0, 0, 0, 1]), billboard=True, font_size=14, scale_invariant=True, color=Color(r=1, g=1, b=1, a=1), text=f"sat {i}")],
+                )
+            )
+        self._put("/foxglove/truth", SceneUpdate(entities=ents), log_ns)
+
+    def _estimate(self, m, log_ns: int) -> None:
+        q = q_BH(np.asarray(m.q_BI), self.mean_motion, m.t_s)
+        r = np.asarray(m.r_H_m)
+        P = m.P_pose.array()  # (n, 6, 6), [a_B, r_H]
+        ents = []
+        for j in range(r.shape[0]):
+            w, V = np.linalg.eigh(0.5 * (P[j, 3:, 3:] + P[j, 3:, 3:].T))
+            axes = 2 * 3 * np.sqrt(np.clip(w, 0, None))  # 3σ ellipsoid diameters
+            if np.linalg.det(V) < 0:
+                V[:, 0] = -V[:, 0]
+            q_ell = quat.normalize(quat.from_attitude_matrix(V.T))  # principal axes in H
+            ents.append(
+                SceneEntity(
+                    timestamp=_ts(log_ns),
+                    frame_id="hcw",
+                    id=f"est{m.own}-sat{j}",
+                    lifetime=Duration(seconds=0),
+                    cubes=[CubePrimitive(pose=_pose(r[j], q[j]), size=Vector3(x=self.size, y=self.size, z=self.size), color=_color(m.own, 0.35))],
+                    spheres=[SpherePrimitive(pose=_pose(r[j], q_ell), size=Vector3(x=axes[0], y=axes[1], z=axes[2]), color=_color(m.own, 0.25))],
+                )
+            )
+        self._put(f"/foxglove/est/{m.own}", SceneUpdate(entities=ents), log_ns)
+
+    def _measurements(self, m, log_ns: int) -> None:
+        if self._truth_r is None:
+            return
+        r = self._truth_r
+        lines = [
+            LinePrimitive(
+                type=LinePrimitive.LINE_LIST,
+                pose=_pose([0, 0, 0], [0, 0, 0, 1]),
+                thickness=2.0,
+                scale_invariant=True,
+                points=[Point3(x=r[x.observer, 0], y=r[x.observer, 1], z=r[x.observer, 2]), Point3(x=r[x.target, 0], y=r[x.target, 1], z=r[x.target, 2])],
+                color=_color(m.observer, 0.8),
+            )
+            for x in m.meas
+        ]
+        ent = SceneEntity(timestamp=_ts(log_ns), frame_id="hcw", id=f"meas{m.observer}", lifetime=Duration(seconds=0), lines=lines)
+        self._put("/foxglove/measurements", SceneUpdate(entities=[ent]), log_ns)

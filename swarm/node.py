@@ -1,0 +1,220 @@
+"""What every role process shares: a session, a liveliness token, an inbox, decoding
+with malformed-message accounting, and the command-line scaffolding of a role's main."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+import threading
+import time
+from dataclasses import dataclass
+
+import zenoh
+
+from swarmcore.scenario import Scenario
+
+from .bus.messages import Keys, MessageError, decode, encode, parse_key
+from .bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
+
+__all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scenario"]
+
+
+@dataclass(frozen=True)
+class Event:
+    """A decoded sample: a message (``msg``) or a liveliness change (``alive`` True/False)."""
+
+    key: str
+    kind: str
+    sat: int | None
+    msg: object | None = None
+    alive: bool | None = None
+    role: str | None = None
+
+
+def _id_fields(kind: str, msg) -> list[int]:
+    ids = []
+    for name in ("sat", "observer", "own", "target"):
+        v = getattr(msg, name, None)
+        if isinstance(v, int):
+            ids.append(v)
+    if kind == "meas":
+        ids += [m.target for m in msg.meas]
+    if kind == "cam":
+        ids += [d.target for d in msg.detections]
+    if kind == "select":
+        ids += [x for p in msg.pairs for x in p]
+    if kind == "clock":
+        ids += list(msg.live_agents)
+    return ids
+
+
+class Node:
+    """A role's bus presence. Only the thread that calls :meth:`next_event` touches state."""
+
+    def __init__(self, role: str, ident: int | str, run: str, n_sats: int, bus: BusConfig):
+        self.role = role
+        self.ident = ident
+        self.name = f"{role}-{ident}" if role in ("agent",) else role
+        self.n = n_sats
+        self.keys = Keys(run)
+        self.run = run
+        self.log = logging.getLogger(self.name)
+        self.inbox = Inbox()
+        self._handles: list = []
+        self.malformed = 0
+        self._malformed_logged = 0
+        self.stop = threading.Event()
+        self.session = open_session(bus)
+        self.token = self.session.liveliness().declare_token(self.keys.alive(role, ident))
+
+    # -- plumbing -------------------------------------------------------------
+    def subscribe(self, key: str) -> None:
+        self._handles.append(self.session.declare_subscriber(key, self.inbox.callback))
+
+    def watch_liveliness(self, pattern: str | None = None) -> None:
+        pattern = pattern or self.keys.alive()
+        self._handles.append(self.session.liveliness().declare_subscriber(pattern, self.inbox.callback, history=True))
+
+    def _undeclare_all(self) -> None:
+        for h in self._handles:
+            try:
+                h.undeclare()
+            except Exception:
+                pass
+        self._handles.clear()
+        try:
+            self.token.undeclare()
+        except Exception:
+            pass
+
+    def put(self, key: str, msg) -> None:
+        self.session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def queryable(self, key: str, handler) -> None:
+        """``handler(query_key) -> message | None``; runs on a Zenoh thread, keep it quick."""
+
+        def cb(query):
+            try:
+                reply = handler(str(query.selector.key_expr))
+            except Exception as exc:  # never let a query kill the process
+                self.log.warning("query %s failed: %s", query.selector, exc)
+                reply = None
+            with query:
+                if reply is not None:
+                    query.reply(str(query.selector.key_expr), encode(reply))
+
+        self._handles.append(self.session.declare_queryable(key, cb))
+
+    def query(self, key: str, kind: str, timeout: float):
+        """First valid reply to a query (decoded), or None after ``timeout`` seconds."""
+        try:
+            replies = self.session.get(key, timeout=timeout)
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                try:
+                    return decode(kind, reply.ok.payload.to_bytes())
+                except MessageError as exc:
+                    self.count_malformed(key, exc)
+        except zenoh.ZError as exc:
+            self.log.warning("query %s: %s", key, exc)
+        return None
+
+    def count_malformed(self, key: str, err: Exception) -> None:
+        self.malformed += 1
+        # Log the first few in full, then one line in a hundred: a flood must not become a log flood.
+        if self._malformed_logged < 20 or self.malformed % 100 == 0:
+            self._malformed_logged += 1
+            self.log.warning("dropped malformed message #%d on %s: %s", self.malformed, key, err)
+
+    def next_event(self, timeout: float | None) -> Event | None:
+        """The next decoded event, or None when ``timeout`` passes. Malformed input is
+        counted, logged and skipped (the wait continues within the same deadline)."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            remaining = None if deadline is None else max(0.0, deadline - time.monotonic())
+            s = self.inbox.get(remaining)
+            if s is None:
+                return None
+            ev = self._decode(s)
+            if ev is not None:
+                return ev
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    def _decode(self, s) -> Event | None:
+        try:
+            run, kind, sat = parse_key(s.key)
+            if run != self.run:
+                raise MessageError(f"run id {run!r} is not this swarm's ({self.run!r})")
+            if kind == "alive":
+                role = s.key.split("/")[3]
+                return Event(s.key, "alive", sat, alive=(s.kind == "put"), role=role)
+            if s.kind == "delete":
+                raise MessageError("unexpected delete")
+            msg = decode(kind, s.payload)
+            if msg.run != self.run:
+                raise MessageError(f"message run id {msg.run!r} is not this swarm's")
+            bad = [i for i in _id_fields(kind, msg) if i >= self.n]
+            if sat is not None and sat >= self.n:
+                bad.append(sat)
+            if bad:
+                raise MessageError(f"unknown satellite id(s) {sorted(set(bad))} (swarm has 0..{self.n - 1})")
+            own = getattr(msg, "sat", getattr(msg, "observer", getattr(msg, "own", None)))
+            if sat is not None and own is not None and own != sat:
+                raise MessageError(f"key says satellite {sat}, message says {own}")
+            return Event(s.key, kind, sat, msg=msg)
+        except MessageError as exc:
+            self.count_malformed(s.key, exc)
+            return None
+
+    def close(self) -> None:
+        self._undeclare_all()
+        self.session.close()
+
+
+def setup_logging(name: str, verbose: bool = False) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format=f"%(asctime)s {name} %(levelname)s %(message)s",
+        stream=sys.stderr,
+        force=True,  # a role may learn its name late (an agent with --id auto)
+    )
+
+
+def role_arg_parser(description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--scenario", required=True, help="resolved scenario YAML")
+    p.add_argument("--run", required=True, help="run id (part of every key)")
+    p.add_argument("--set", dest="sets", action="append", default=[], help="override a scenario field: dotted.key=value")
+    p.add_argument("-v", "--verbose", action="store_true")
+    add_bus_args(p)
+    return p
+
+
+def load_role_scenario(path: str, sets=()) -> Scenario:
+    """The scenario a role runs (every role of a swarm must be given the same file and sets)."""
+    import os
+
+    from .scenario_files import ScenarioError, load_scenario
+
+    env_sets = [x for x in os.environ.get("SWARM_SET", "").split() if x]
+    try:
+        return load_scenario(path, [*env_sets, *sets])
+    except ScenarioError as exc:
+        raise SystemExit(str(exc)) from None
+
+
+def install_term_handler(node_stop: threading.Event) -> None:
+    """SIGTERM / SIGINT ask the main loop to stop cleanly."""
+
+    def handler(signum, frame):
+        node_stop.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+__all__ += ["install_term_handler", "bus_config_from_args"]

@@ -1,0 +1,53 @@
+"""Run folders: ``summary.json``, ``truth.npz``, ``estimates.npz``, ``scenario.yaml``."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from swarmcore.sim import SimResult
+
+__all__ = ["write_run", "write_json", "read_json"]
+
+
+def write_json(path: Path, data) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2, allow_nan=True) + "\n")
+    tmp.replace(path)
+
+
+def read_json(path: Path):
+    return json.loads(Path(path).read_text())
+
+
+def write_run(result: SimResult, out: Path, *, arrays: bool = True, extra_summary: dict | None = None) -> dict:
+    """Write a run folder and return the summary."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = result.summary()
+    if extra_summary:
+        summary.update(extra_summary)
+    (out / "scenario.yaml").write_text(yaml.safe_dump(result.scenario.model_dump(mode="json"), sort_keys=False))
+    if arrays:
+        np.savez_compressed(out / "truth.npz", t=result.t, **result.truth)
+        np.savez_compressed(
+            out / "estimates.npz",
+            t=result.t,
+            **result.est,
+            att_err=result.att_err,
+            pos_err=result.pos_err,
+            nees=result.nees,
+            gate_accepted=result.gate_accepted,
+            gate_rejected=result.gate_rejected,
+            nis=result.nis,
+            nis_dof=result.nis_dof,
+            step_ms=result.step_ms,
+            schedule=result.schedule,
+        )
+    write_json(out / "summary.json", summary)
+    return summary

@@ -1,0 +1,193 @@
+"""The recorder: every message of a run's key space into MCAP.
+
+One channel per key expression, one JSON schema per message type (from the message
+models), log time = arrival (ns), publish time = simulation time. Liveliness changes are
+recorded on ``swarm/<run>/alive`` and messages that fail validation on
+``swarm/<run>/_malformed`` (with the reason), so the recording tells the whole story.
+Flushes at least once per ``flush_every_s`` of simulated time (and once per wall second);
+the file is readable after a SIGKILL at any instant (see :mod:`swarm.mcaplog`).
+
+python -m swarm.recorder --run RUN --out FILE.mcap [--flush-every-s 1] [bus flags]
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import json
+import logging
+import sys
+import threading
+import time
+
+from .bus.messages import MODELS, Keys, MessageError, decode, parse_key
+from .bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
+from .mcaplog import CheckpointWriter
+
+log = logging.getLogger("recorder")
+
+_ALIVE_SCHEMA = {
+    "title": "swarm.Liveliness",
+    "type": "object",
+    "properties": {"key": {"type": "string"}, "role": {"type": "string"}, "id": {"type": "string"}, "alive": {"type": "boolean"}},
+}
+_MALFORMED_SCHEMA = {
+    "title": "swarm.Malformed",
+    "type": "object",
+    "properties": {"key": {"type": "string"}, "error": {"type": "string"}, "payload_b64": {"type": "string"}},
+}
+
+
+class Recorder:
+    def __init__(self, run: str, out: str, bus, flush_every_s: float = 1.0, derive_foxglove: bool = True, scenario=None):
+        self.keys = Keys(run)
+        self.run = run
+        self.w = CheckpointWriter(out)
+        self.flush_every_s = flush_every_s
+        self.inbox = Inbox()
+        self.session = open_session(bus)
+        self.stop = threading.Event()
+        self.done = False
+        self.final: tuple[int, set[int]] | None = None  # last step and the agents still owing it
+        self.last_flush_t = None
+        self.last_flush_wall = time.monotonic()
+        self.malformed = 0
+        self._subs = [
+            self.session.declare_subscriber(self.keys.everything(), self.inbox.callback),
+            self.session.liveliness().declare_subscriber(f"{self.keys.root}/alive/**", self.inbox.callback, history=True),
+        ]
+        self.token = self.session.liveliness().declare_token(self.keys.alive("recorder", 0))
+        self._schema_ids: dict[str, int] = {}
+        self._est_at: dict[int, set[int]] = {}
+        self.foxglove = None
+        if derive_foxglove and scenario is not None:
+            from .foxglove import FoxgloveDeriver
+
+            self.foxglove = FoxgloveDeriver(self.w, scenario.orbit.mean_motion_rad_s, scenario.spacecraft.half_size_m)
+
+    def _schema(self, kind: str) -> int:
+        sid = self._schema_ids.get(kind)
+        if sid is None:
+            if kind == "alive":
+                name, data = "swarm.Liveliness", _ALIVE_SCHEMA
+            elif kind == "malformed":
+                name, data = "swarm.Malformed", _MALFORMED_SCHEMA
+            else:
+                model = MODELS[kind]
+                name, data = f"swarm.{model.__name__}", model.model_json_schema()
+            sid = self._schema_ids[kind] = self.w.schema(name, "jsonschema", json.dumps(data).encode())
+        return sid
+
+    def record(self, s) -> None:
+        now = time.time_ns()
+        try:
+            run, kind, _sat = parse_key(s.key)
+            if run != self.run:
+                raise MessageError(f"foreign run {run!r}")
+            if kind == "alive":
+                parts = s.key.split("/")
+                body = json.dumps({"key": s.key, "role": parts[3], "id": parts[4], "alive": s.kind == "put"}).encode()
+                self.w.add(self.w.channel(f"{self.keys.root}/alive", self._schema("alive")), body, now)
+                return
+            msg = decode(kind, s.payload)
+            if kind == "est":
+                self._est_at.setdefault(msg.k, set()).add(msg.own)
+                self._est_at.pop(msg.k - 3, None)
+            self.w.add(self.w.channel(s.key, self._schema(kind)), s.payload, now, int(round(msg.t_s * 1e9)))
+            if self.foxglove is not None:
+                self.foxglove.on_message(kind, msg, now)
+            if kind == "est" and self.final is not None and msg.k == self.final[0]:
+                self.final[1].discard(msg.own)
+            if kind == "clock":
+                if msg.done:
+                    self.done = True
+                    self.final = (msg.k, set(msg.live_agents) - self._seen_final(msg.k))
+                if self.last_flush_t is None or msg.t_s - self.last_flush_t >= self.flush_every_s:
+                    self.flush(msg.t_s)
+        except MessageError as exc:
+            self.malformed += 1
+            body = json.dumps({"key": s.key, "error": str(exc), "payload_b64": base64.b64encode(s.payload[:65536]).decode()}).encode()
+            self.w.add(self.w.channel(f"{self.keys.root}/_malformed", self._schema("malformed")), body, now)
+
+    def _seen_final(self, k: int) -> set[int]:
+        return self._est_at.get(k, set())
+
+    def flush(self, t_s: float | None = None) -> None:
+        self.w.flush()
+        if t_s is not None:
+            self.last_flush_t = t_s
+        self.last_flush_wall = time.monotonic()
+
+    def run_loop(self, quiet_s: float = 0.5, max_linger_s: float = 30.0) -> None:
+        """Record until the run is done (or we are asked to stop), then keep draining:
+        until every agent alive at the end has delivered its last estimate (they travel
+        independently of the world's final clock) and the bus has been quiet ``quiet_s``."""
+        while not self.stop.is_set() and not self.done:
+            s = self.inbox.get(0.2)
+            if s is not None:
+                self.record(s)
+            if time.monotonic() - self.last_flush_wall >= 1.0:
+                self.flush()
+        end_by = time.monotonic() + max_linger_s
+        while time.monotonic() < end_by:
+            owed = self.final is not None and bool(self.final[1])
+            s = self.inbox.get(min(1.0, end_by - time.monotonic()) if owed else quiet_s)
+            if s is None and not owed:
+                break
+            if s is not None:
+                self.record(s)
+
+    def close(self) -> None:
+        for h in self._subs:
+            try:
+                h.undeclare()
+            except Exception:
+                pass
+        try:
+            self.token.undeclare()
+        except Exception:
+            pass
+        self.session.close()
+        self.w.close(finalize=True)
+        log.info("recorded %d messages (%d malformed) in %d flushes", self.w.messages, self.malformed, self.w.flushes)
+
+
+def main(argv=None) -> int:
+    from .node import install_term_handler, setup_logging
+
+    p = argparse.ArgumentParser(description="recorder: every message of a run into MCAP")
+    p.add_argument("--run", required=True)
+    p.add_argument("--out", required=True, help="MCAP file to write")
+    p.add_argument("--flush-every-s", type=float, default=1.0, help="flush at least this often in simulated time")
+    p.add_argument("--no-foxglove", action="store_true", help="do not derive Foxglove channels")
+    p.add_argument("--scenario", default=None, help="scenario YAML (needed to derive Foxglove 3-D channels and the summary)")
+    p.add_argument("--set", dest="sets", action="append", default=[], help="scenario override dotted.key=value")
+    p.add_argument("--summary", default=None, help="when the run is done, write summary.json here (needs --scenario)")
+    p.add_argument("-v", "--verbose", action="store_true")
+    add_bus_args(p)
+    a = p.parse_args(argv)
+    setup_logging("recorder", a.verbose)
+    sc = None
+    if a.scenario:
+        from .node import load_role_scenario
+
+        sc = load_role_scenario(a.scenario, a.sets)
+    r = Recorder(a.run, a.out, bus_config_from_args(a), a.flush_every_s, derive_foxglove=not a.no_foxglove, scenario=sc)
+    install_term_handler(r.stop)
+    try:
+        r.run_loop()
+    finally:
+        r.close()
+    if a.summary and sc is not None:
+        from .outputs import write_json
+        from .recording import load_recording
+
+        summary = load_recording(a.out, sc.n_sats, sc.steps).summary(sc)
+        summary["run"] = a.run
+        write_json(a.summary, summary)
+        logging.getLogger("recorder").info("wrote %s", a.summary)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

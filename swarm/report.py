@@ -1,0 +1,315 @@
+"""``swarm report``: PNG figures and one self-contained HTML page for a run.
+
+Accepts a ``swarm sim`` folder (npz arrays), a ``swarm run`` folder or a bare MCAP file
+(read back from the recording), or a Monte Carlo / comparison folder (``mc.json``,
+``compare.json``). Figures follow the dissertation where it has them (Figure 4.5: each
+filter's own and others' errors against ±3σ); fault events are marked on every time axis.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from scipy.stats import chi2  # noqa: E402
+
+from swarmcore import quat  # noqa: E402
+
+__all__ = ["RunData", "load_run", "make_report"]
+
+
+@dataclass
+class RunData:
+    name: str
+    t: np.ndarray  # (K,)
+    n: int
+    err: np.ndarray  # (K, F, n, 6) [a (rad), Δr (m)]
+    sigma: np.ndarray  # (K, F, n, 6) 1σ of the same
+    nees: np.ndarray  # (K, F, n)
+    rejected: np.ndarray  # (K, F)
+    schedule: np.ndarray  # (K, n, n)
+    alive: np.ndarray  # (K, F)
+    faults: list = field(default_factory=list)
+    summary: dict = field(default_factory=dict)
+
+
+def _sim_folder(d: Path) -> RunData:
+    tr = np.load(d / "truth.npz")
+    es = np.load(d / "estimates.npz")
+    q, r = es["q_BI"], es["r_H"]
+    a = quat.local(tr["q_BI"][:, None], q)
+    dr = tr["r_H"][:, None] - r
+    K, F, n = q.shape[:3]
+    Pd = es["P_diag"].reshape(K, F, n, 12)
+    sigma = np.sqrt(np.concatenate([Pd[..., 0:3], Pd[..., 6:9]], axis=-1))
+    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else {}
+    return RunData(
+        name=summary.get("scenario", d.name),
+        t=es["t"],
+        n=n,
+        err=np.concatenate([a, dr], axis=-1),
+        sigma=sigma,
+        nees=es["nees"],
+        rejected=es["gate_rejected"],
+        schedule=es["schedule"],
+        alive=np.isfinite(q[..., 0, 0]),
+        faults=summary.get("faults", []),
+        summary=summary,
+    )
+
+
+def _recording(mcap: Path) -> RunData:
+    from .recording import load_recording
+
+    d = mcap.parent
+    sc = None
+    if (d / "scenario.yaml").exists():
+        from .scenario_files import load_scenario
+
+        sc = load_scenario(d / "scenario.yaml")
+    rec = load_recording(mcap, sc.n_sats if sc else None, sc.steps if sc else None)
+    a, dr, _att, _pos, nees = rec.errors()
+    sigma = np.sqrt(np.diagonal(rec.P_pose, axis1=-2, axis2=-1))
+    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else {}
+    return RunData(
+        name=summary.get("scenario", sc.name if sc else mcap.stem),
+        t=np.where(np.isfinite(rec.t), rec.t, np.arange(rec.K, dtype=float)),
+        n=rec.n,
+        err=np.concatenate([a, dr], axis=-1),
+        sigma=sigma,
+        nees=nees,
+        rejected=rec.gate_rejected,
+        schedule=rec.taken,
+        alive=rec.alive,
+        faults=rec.faults,
+        summary=summary,
+    )
+
+
+def load_run(path: str | Path) -> RunData:
+    p = Path(path)
+    if p.is_file() and p.suffix == ".mcap":
+        return _recording(p)
+    if (p / "estimates.npz").exists():
+        return _sim_folder(p)
+    if (p / "run.mcap").exists():
+        return _recording(p / "run.mcap")
+    raise FileNotFoundError(f"{p}: neither a run folder (estimates.npz or run.mcap) nor an MCAP file")
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def _faults(ax, data: RunData) -> None:
+    for f in data.faults:
+        if f.get("phase") not in ("done", None):
+            continue
+        t = f.get("t_s", f.get("k", 0))
+        ax.axvline(t, color="crimson", lw=0.8, ls="--", alpha=0.7)
+        label = f"{f['action']}" + (f" {f['target']}" if f.get("target") is not None else "")
+        ax.annotate(label, (t, 1.0), xycoords=("data", "axes fraction"), rotation=90, va="top", ha="right", fontsize=7, color="crimson")
+
+
+def _save(fig, path: Path) -> Path:
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def fig_filter(data: RunData, f: int, out: Path) -> Path:
+    t = data.t
+    fig, axes = plt.subplots(2, 2, figsize=(12, 7), sharex=True)
+    titles = [
+        (f"filter {f}: own attitude error [rad]", slice(0, 3), [f]),
+        (f"filter {f}: own position error [m]", slice(3, 6), [f]),
+        (f"filter {f}: other satellites' attitude errors [rad]", slice(0, 3), [j for j in range(data.n) if j != f]),
+        (f"filter {f}: other satellites' position errors [m]", slice(3, 6), [j for j in range(data.n) if j != f]),
+    ]
+    for ax, (title, sl, targets) in zip(axes.ravel(), titles):
+        for j in targets:
+            e = data.err[:, f, j, sl]
+            s = data.sigma[:, f, j, sl]
+            ax.plot(t, e, lw=0.6, alpha=0.8)
+            ax.plot(t, 3 * s, color="r", lw=0.6, alpha=0.6)
+            ax.plot(t, -3 * s, color="r", lw=0.6, alpha=0.6)
+        ax.set_title(title, fontsize=9)
+        ax.grid(alpha=0.3)
+        _faults(ax, data)
+        finite = np.abs(data.err[:, f][:, targets][..., sl])
+        finite = finite[np.isfinite(finite)]
+        if finite.size:
+            lim = np.percentile(finite, 99) * 1.5
+            ax.set_ylim(-lim, lim)
+    for ax in axes[1]:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(f"{data.name}: errors and ±3σ bounds (red), filter {f}", fontsize=10)
+    return _save(fig, out / f"errors_filter_{f}.png")
+
+
+def fig_nees(data: RunData, out: Path) -> Path:
+    fig, ax = plt.subplots(figsize=(11, 4))
+    n = data.n
+    avg = np.nanmean(data.nees, axis=2)  # (K, F) average over the n targets
+    for f in range(avg.shape[1]):
+        ax.plot(data.t, avg[:, f], lw=0.7, label=f"filter {f}")
+    lo, hi = chi2.ppf([0.025, 0.975], 6 * n) / n
+    ax.axhspan(lo, hi, color="green", alpha=0.15, label=f"95 % χ² band ({6 * n} dof / {n})")
+    ax.axhline(6, color="k", lw=0.6)
+    ax.set_yscale("log")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("NEES (6-dof pose, mean over targets)")
+    ax.grid(alpha=0.3)
+    _faults(ax, data)
+    ax.legend(fontsize=7, ncol=min(6, avg.shape[1] + 1))
+    return _save(fig, out / "nees.png")
+
+
+def fig_gate(data: RunData, out: Path) -> Path:
+    fig, ax = plt.subplots(figsize=(11, 3))
+    rej = np.nan_to_num(data.rejected.astype(float))
+    bottom = np.zeros(len(data.t))
+    for f in range(rej.shape[1]):
+        ax.bar(data.t, rej[:, f], bottom=bottom, width=(data.t[1] - data.t[0]) if len(data.t) > 1 else 1.0, label=f"filter {f}")
+        bottom += rej[:, f]
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("gate rejections")
+    ax.set_title(f"validation gate: {int(rej.sum())} rejections in all", fontsize=9)
+    ax.grid(alpha=0.3)
+    _faults(ax, data)
+    return _save(fig, out / "gate.png")
+
+
+def fig_schedule(data: RunData, out: Path) -> Path:
+    counts = data.schedule.sum(axis=0)
+    fig, ax = plt.subplots(figsize=(5.5, 4.5))
+    im = ax.imshow(counts, cmap="viridis")
+    ax.set_xlabel("target")
+    ax.set_ylabel("observer")
+    ax.set_title("measurements taken (count over the run)", fontsize=9)
+    if data.n <= 16:
+        ax.set_xticks(range(data.n))
+        ax.set_yticks(range(data.n))
+        for i in range(data.n):
+            for j in range(data.n):
+                ax.text(j, i, int(counts[i, j]), ha="center", va="center", fontsize=7, color="w")
+    fig.colorbar(im, ax=ax)
+    return _save(fig, out / "schedule.png")
+
+
+def _mc_figures(d: Path, out: Path) -> tuple[list[Path], str]:
+    """Bars and a table for a Monte Carlo folder (mc.json) or several side by side."""
+    mc = json.loads((d / "mc.json").read_text())
+    st = mc["stats"]
+    keys = ["rms.self.att_rad", "rms.self.pos_m", "rms.others.att_rad", "rms.others.pos_m", "rms_second_half.others.att_rad", "rms_second_half.others.pos_m"]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 3.5))
+    for ax, unit in zip(axes, ("att_rad", "pos_m")):
+        ks = [k for k in keys if k.endswith(unit)]
+        ax.bar(range(len(ks)), [st[k]["mean"] for k in ks], yerr=[st[k]["std"] for k in ks], capsize=4)
+        ax.set_xticks(range(len(ks)))
+        ax.set_xticklabels([k.replace(".", "\n", 1) for k in ks], fontsize=7)
+        ax.set_yscale("log")
+        ax.set_title(f"{mc['scenario']}: {mc['runs']} runs, mean ± std ({unit})", fontsize=9)
+    p = _save(fig, out / "mc_bars.png")
+    rows = "".join(
+        f"<tr><td>{r['seed']}</td>"
+        + "".join(f"<td>{r[b]['others'][u]:.4g}</td>" for b in ("rms", "rms_second_half") for u in ("att_rad", "pos_m"))
+        + f"<td>{r['nees_mean']:.2f}</td></tr>"
+        for r in mc["per_run"]
+    )
+    table = (
+        "<table><tr><th>seed</th><th>others att [rad]</th><th>others pos [m]</th><th>2nd half att</th><th>2nd half pos</th><th>NEES</th></tr>"
+        + rows
+        + "</table><table><tr><th>field</th><th>mean</th><th>std</th><th>min</th><th>max</th></tr>"
+        + "".join(f"<tr><td>{k}</td><td>{v['mean']:.4g}</td><td>{v['std']:.2g}</td><td>{v['min']:.4g}</td><td>{v['max']:.4g}</td></tr>" for k, v in st.items())
+        + "</table>"
+    )
+    return [p], table
+
+
+# --------------------------------------------------------------------------- HTML
+
+_PAGE = """<!doctype html>
+<html lang="en"><head><meta charset="utf-8"><title>{title}</title>
+<style>body{{font-family:sans-serif;margin:2em;max-width:1300px}} img{{max-width:100%;border:1px solid #ddd;margin:.5em 0}}
+table{{border-collapse:collapse;margin:1em 0;font-size:90%}} td,th{{border:1px solid #ccc;padding:3px 8px;text-align:right}}
+th{{background:#f0f0f0}} h2{{border-bottom:1px solid #ccc}}</style>
+<script>
+window.__errors = [];
+window.addEventListener("error", function (e) {{ window.__errors.push(String(e.message || e)); }});
+window.addEventListener("load", function () {{
+  var imgs = Array.from(document.images);
+  document.body.dataset.images = imgs.length;
+  document.body.dataset.imagesLoaded = imgs.filter(function (i) {{ return i.complete && i.naturalWidth > 0; }}).length;
+  document.body.dataset.errors = window.__errors.length;
+}});
+</script></head>
+<body><h1>{title}</h1>{body}</body></html>
+"""
+
+
+def _img(p: Path, caption: str) -> str:
+    b64 = base64.b64encode(p.read_bytes()).decode("ascii")
+    return f'<figure><img alt="{html.escape(caption)}" src="data:image/png;base64,{b64}"><figcaption>{html.escape(caption)}</figcaption></figure>'
+
+
+def _summary_table(s: dict) -> str:
+    if not s or "rms" not in s:
+        return ""
+    rows = []
+    for key, label in (("rms", "full run"), ("rms_second_half", "second half")):
+        r = s[key]
+        rows.append(f"<tr><td>{label}</td>" + "".join(f"<td>{r[w][u]:.3g}</td>" for w in ("self", "others") for u in ("att_rad", "pos_m")) + "</tr>")
+    extra = f"<p>NEES mean {s['nees']['mean']:.2f} (dof 6) · gate accepted {s['gate']['accepted']}, rejected {s['gate']['rejected']}</p>"
+    return "<table><tr><th>time RMS</th><th>self att [rad]</th><th>self pos [m]</th><th>others att [rad]</th><th>others pos [m]</th></tr>" + "".join(rows) + "</table>" + extra
+
+
+def _faults_table(faults: list) -> str:
+    if not faults:
+        return "<p>No faults.</p>"
+    cols = ("k", "t_s", "action", "target", "camera", "state", "phase", "sender", "detail")
+    return "<table><tr>" + "".join(f"<th>{c}</th>" for c in cols) + "</tr>" + "".join(
+        "<tr>" + "".join(f"<td>{html.escape(str(f.get(c, '')))}</td>" for c in cols) + "</tr>" for f in faults
+    ) + "</table>"
+
+
+def make_report(path: str | Path, out: str | Path | None = None) -> Path:
+    """Write figures and ``report.html``; returns the HTML path."""
+    p = Path(path)
+    out = Path(out) if out else (p.parent if p.is_file() else p) / "report"
+    out.mkdir(parents=True, exist_ok=True)
+    sections = []
+    if p.is_dir() and (p / "mc.json").exists():
+        figs, table = _mc_figures(p, out)
+        sections.append("<h2>Monte Carlo</h2>" + table + "".join(_img(f, f.stem) for f in figs))
+        title = f"Monte Carlo report: {p.name}"
+    elif p.is_dir() and (p / "compare.json").exists():
+        cmp_ = json.loads((p / "compare.json").read_text())
+        md = (p / "compare.md").read_text() if (p / "compare.md").exists() else ""
+        pngs = sorted(p.glob("*.png"))
+        sections.append("<h2>Strategy comparison</h2><pre>" + html.escape(md or json.dumps(cmp_, indent=1)[:20000]) + "</pre>")
+        sections.extend(_img(f, f.stem) for f in pngs)
+        title = f"Selection comparison: {p.name}"
+    else:
+        data = load_run(p)
+        title = f"Run report: {data.name} (n = {data.n}, {len(data.t)} steps)"
+        sections.append("<h2>Summary</h2>" + _summary_table(data.summary))
+        sections.append("<h2>Faults</h2>" + _faults_table(data.faults))
+        sections.append("<h2>Consistency</h2>" + _img(fig_nees(data, out), "NEES over time with its 95 % χ² band"))
+        sections.append(_img(fig_gate(data, out), "validation-gate rejections over time"))
+        sections.append("<h2>Measurement schedule</h2>" + _img(fig_schedule(data, out), "how often each (observer, target) pair was measured"))
+        sections.append("<h2>Errors per filter</h2>")
+        for f in range(data.err.shape[1]):
+            sections.append(_img(fig_filter(data, f, out), f"filter {f}: own and others' errors against ±3σ"))
+    page = out / "report.html"
+    page.write_text(_PAGE.format(title=html.escape(title), body="\n".join(sections)))
+    return page
+

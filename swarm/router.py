@@ -1,0 +1,80 @@
+"""A Zenoh router in Python (the bus of a swarm; no plugins needed).
+
+python -m swarm.router --listen tcp/0.0.0.0:7447
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import signal
+import sys
+import threading
+
+import zenoh
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description="Zenoh router for a swarm")
+    p.add_argument("--listen", action="append", default=None, help="endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p.add_argument("--config", default=None, help="a Zenoh JSON5 configuration file")
+    p.add_argument("--exit-when-done", metavar="RUN", default=None, help="exit once run RUN's world reports its last step (and the recorder has left)")
+    a = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s router %(levelname)s %(message)s", stream=sys.stderr)
+    cfg = zenoh.Config.from_file(a.config) if a.config else zenoh.Config()
+    cfg.insert_json5("mode", json.dumps("router"))
+    cfg.insert_json5("listen/endpoints", json.dumps(a.listen or ["tcp/0.0.0.0:7447"]))
+    cfg.insert_json5("scouting/multicast/enabled", "false")
+    stop = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: stop.set())
+    with zenoh.open(cfg) as session:
+        logging.info("router %s listening on %s", session.zid(), a.listen or ["tcp/0.0.0.0:7447"])
+        handles = []
+        if a.exit_when_done:
+            handles = _watch_run(session, a.exit_when_done, stop)
+        print("READY", flush=True)
+        stop.wait()
+        for h in handles:
+            h.undeclare()
+    return 0
+
+
+def _watch_run(session, run: str, stop: threading.Event):
+    """Stop when the run's world has said ``done`` and no recorder is alive any more."""
+    state = {"done": False, "recorders": set()}
+    lock = threading.Lock()
+
+    def check():
+        if state["done"] and not state["recorders"]:
+            logging.info("run %s is over; router exits", run)
+            stop.set()
+
+    def on_clock(sample):
+        try:
+            done = json.loads(bytes(sample.payload.to_bytes())).get("done", False)
+        except (ValueError, AttributeError):
+            return
+        if done is True:
+            with lock:
+                state["done"] = True
+                check()
+
+    def on_alive(sample):
+        key = str(sample.key_expr)
+        with lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                state["recorders"].add(key)
+            else:
+                state["recorders"].discard(key)
+            check()
+
+    return [
+        session.declare_subscriber(f"swarm/{run}/clock", on_clock),
+        session.liveliness().declare_subscriber(f"swarm/{run}/alive/recorder/*", on_alive, history=True),
+    ]
+
+
+if __name__ == "__main__":
+    sys.exit(main())

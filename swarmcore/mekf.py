@@ -1,0 +1,730 @@
+"""The cooperative Multiplicative EKF (dissertation chapter 4), one instance per satellite.
+
+Each satellite ``own`` runs one filter over the WHOLE swarm (full order, 12 error states
+per satellite, 12n in all), fed by its own gyro / star tracker / GPS and by every relative
+pose measurement that any satellite broadcasts.
+
+Error state of satellite ``b`` (block ``12b .. 12b+12``):
+
+* own satellite (gyro "dynamic model replacement" mode): ``[a, Δβ, Δr, Δv]``; its rate is
+  the bias-corrected gyro, not a state;
+* every other satellite: ``[a, Δω, Δr, Δv]``.
+
+``a`` is the attitude error in the body frame, ``q = δq(a) ⊗ q̂`` (see :mod:`quat`),
+``Δβ = β − β̂``, ``Δω = ω − ω̂``, ``Δr = r − r̂`` (H frame, m), ``Δv = v − v̂`` (H, m/s).
+
+Measurements (all residuals are "measured minus predicted", linearised at the prior):
+
+* absolute (own satellite only): star tracker ``q̃_BI = δq(ν) ⊗ q_BI`` (residual
+  ``local(q̃, q̂)``, H = I on ``a``) and GPS ``r̃_H = r_H + ν`` (H = I on ``Δr``).
+* relative, observer ``i`` sees target ``j`` (both in the observer body frame B_i):
+  ``q̃_BjBi = q_BjBi ⊗ δq(ν_Bi)`` with ``q_BjBi = q_j ⊗ q_i⁻¹``; residual
+  ``err_from_dq(q̂_BjBi⁻¹ ⊗ q̃)`` with ``∂/∂a_i = −I``, ``∂/∂a_j = T(q̂_i) T(q̂_j)ᵀ``;
+  ``r̃_ij_Bi = T(q_i) T_IH (r_j − r_i) + ν``, with ``∂/∂a_i = [r̂_ij_Bi ×]``,
+  ``∂/∂r_i = −T(q̂_i) T_IH``, ``∂/∂r_j = T(q̂_i) T_IH``. Noise covariance ``R`` (6×6,
+  ordered ``[attitude, position]``) is expressed in B_i.
+
+Update forms (all equal in exact arithmetic, held equal to round-off by the tests):
+
+* ``stacked`` — the dissertation's reference: one H for every measurement of the step, one
+  block-diagonal R, ``K = P Hᵀ (H P Hᵀ + R)⁻¹``, Joseph form. O(m³); tests only.
+* ``sequential`` — one 6-row Joseph update per measurement, all linearised at the prior
+  (the running correction is carried in the residual), O(m N²).
+* ``information`` — every measurement touches only the attitude and position errors
+  (the "observed" 6n of the 12n states), so their information ``Λ = Σ Hᵀ R⁻¹ H`` is
+  assembled block by block in that subspace and the whole step costs one pair of
+  6n×6n Cholesky factorisations plus a few N×6n products, evaluated in Joseph form.
+  Never inverts P itself (whose eigenvalues span ~20 decades).
+* ``auto`` — sequential for a handful of measurements, information otherwise.
+
+Gate: each relative measurement is tested against the prior, ``d² = νᵀ S⁻¹ ν`` with
+``S = H P⁻ Hᵀ + R``, and rejected when ``d²`` exceeds the χ²(6) threshold.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
+
+import numpy as np
+from . import kernels, quat
+from .dynamics import T_IH, hcw_noise_cov, hcw_phi, rk4_attitude
+from .linalg import chol, chol_solve, expm_batched, tri_solve
+
+__all__ = [
+    "FilterParams",
+    "SwarmEstimate",
+    "AbsoluteMeasurement",
+    "RelativeMeasurements",
+    "UpdateReport",
+    "observed_indices",
+    "init_estimate",
+    "predict",
+    "gate",
+    "update",
+    "relative_residuals",
+    "absolute_residual",
+    "linearize",
+    "Linearized",
+    "SOLVERS",
+    "attitude_phi_q",
+    "state_jacobian_blocks",
+    "reframe",
+]
+
+BLOCK = 12
+A_SL = slice(0, 3)  # attitude error
+W_SL = slice(3, 6)  # Δω (others) or Δβ (own)
+R_SL = slice(6, 9)  # Δr
+V_SL = slice(9, 12)  # Δv
+
+
+@dataclass(frozen=True)
+class FilterParams:
+    """Numbers the filter needs; built from a scenario by the application layer.
+
+    Noise densities: ``arw`` σ_v (rad/√s), ``rrw`` σ_u (rad/s/√s), ``torque`` σ_t
+    (N·m/√s), ``accel`` σ_f (m/s^1.5); filter-only tuning random walks ``att_rw_other``
+    (rad/√s, others' attitude) and ``pos_rw`` (m/√s, every position).
+    """
+
+    n: int
+    own: int
+    dt: float
+    mean_motion: float
+    J: np.ndarray
+    arw: float
+    rrw: float
+    torque: float
+    accel: float
+    att_rw_other: float = 0.0
+    pos_rw: float = 0.0
+    gate_threshold: float | None = None
+    update_method: str = "auto"
+    rk4_substeps: int = 1
+    max_iterations: int = 1
+    iterate_above_rad: float = 0.01
+    missing_gyro_rate_sigma: float = 1e-3  # rad/s: uncertainty of the held rate when a gyro sample is missing
+    # Derived constants (filled in __post_init__).
+    J_inv: np.ndarray = field(init=False, repr=False)
+    phi_trans: np.ndarray = field(init=False, repr=False)
+    q_trans: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.own < self.n:
+            raise ValueError(f"own satellite id {self.own} is not in 0..{self.n - 1}")
+        if self.update_method not in ("auto", "information", "sequential", "stacked"):
+            raise ValueError(f"unknown update method {self.update_method!r}")
+        J = np.asarray(self.J, dtype=float)
+        object.__setattr__(self, "J", J)
+        object.__setattr__(self, "J_inv", np.linalg.inv(J))
+        object.__setattr__(self, "phi_trans", hcw_phi(self.mean_motion, self.dt))
+        object.__setattr__(self, "q_trans", hcw_noise_cov(self.mean_motion, self.dt, self.accel, self.pos_rw))
+
+    def with_own(self, own: int) -> "FilterParams":
+        return replace(self, own=own)
+
+
+@dataclass(frozen=True)
+class SwarmEstimate:
+    """One filter's estimate of the whole swarm at time ``t`` (after an update or predict).
+
+    ``omega_BI_B[own]`` holds the bias-corrected gyro rate used in the last propagation.
+    """
+
+    step: int
+    t: float
+    q_BI: np.ndarray  # (n, 4)
+    omega_BI_B: np.ndarray  # (n, 3) rad/s
+    r_H: np.ndarray  # (n, 3) m
+    v_H: np.ndarray  # (n, 3) m/s
+    bias_B: np.ndarray  # (3,) own gyro bias, rad/s
+    P: np.ndarray  # (12n, 12n)
+
+    @property
+    def n(self) -> int:
+        return self.q_BI.shape[0]
+
+
+@dataclass(frozen=True)
+class AbsoluteMeasurement:
+    """The own satellite's star tracker and GPS at one instant (either may be absent)."""
+
+    q_BI: np.ndarray | None
+    r_H: np.ndarray | None
+    sigma_att_rad: float
+    sigma_pos_m: float
+
+
+@dataclass(frozen=True)
+class RelativeMeasurements:
+    """A batch of relative pose measurements (observer i sees target j), vectorised."""
+
+    observer: np.ndarray  # (m,) int
+    target: np.ndarray  # (m,) int
+    q_BjBi: np.ndarray  # (m, 4)
+    r_ij_Bi: np.ndarray  # (m, 3) m
+    R_Bi: np.ndarray  # (m, 6, 6) [att rad, pos m] in B_i
+
+    def __len__(self) -> int:
+        return int(self.observer.shape[0])
+
+    @classmethod
+    def empty(cls) -> "RelativeMeasurements":
+        return cls(
+            np.zeros(0, dtype=int),
+            np.zeros(0, dtype=int),
+            np.zeros((0, 4)),
+            np.zeros((0, 3)),
+            np.zeros((0, 6, 6)),
+        )
+
+    def subset(self, mask_or_idx) -> "RelativeMeasurements":
+        return RelativeMeasurements(
+            self.observer[mask_or_idx],
+            self.target[mask_or_idx],
+            self.q_BjBi[mask_or_idx],
+            self.r_ij_Bi[mask_or_idx],
+            self.R_Bi[mask_or_idx],
+        )
+
+    def canonical(self) -> "RelativeMeasurements":
+        """Sorted by (observer, target): the order every filter applies them in."""
+        order = np.lexsort((self.target, self.observer))
+        return self.subset(order)
+
+    @staticmethod
+    def concat(batches) -> "RelativeMeasurements":
+        batches = [b for b in batches if len(b)]
+        if not batches:
+            return RelativeMeasurements.empty()
+        return RelativeMeasurements(
+            np.concatenate([b.observer for b in batches]),
+            np.concatenate([b.target for b in batches]),
+            np.concatenate([b.q_BjBi for b in batches]),
+            np.concatenate([b.r_ij_Bi for b in batches]),
+            np.concatenate([b.R_Bi for b in batches]),
+        )
+
+
+@dataclass(frozen=True)
+class UpdateReport:
+    """What an update did: gate statistics per relative measurement (input order)."""
+
+    d2: np.ndarray  # (m,) squared Mahalanobis distance against the prior
+    accepted: np.ndarray  # (m,) bool
+    method: str
+    nis: float = 0.0  # joint NIS of every measurement applied (absolute + accepted relative)
+    nis_dof: int = 0
+    iterations: int = 1
+
+    @property
+    def n_accepted(self) -> int:
+        return int(np.count_nonzero(self.accepted))
+
+    @property
+    def n_rejected(self) -> int:
+        return int(self.accepted.size - np.count_nonzero(self.accepted))
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+@lru_cache(maxsize=64)
+def observed_indices(n: int) -> np.ndarray:
+    """Error-state indices of every attitude and position error, ordered [a_b, r_b] per b."""
+    base = BLOCK * np.arange(n)[:, None]
+    idx = (base + np.r_[0:3, 6:9][None, :]).ravel()
+    idx.setflags(write=False)
+    return idx
+
+
+@lru_cache(maxsize=64)
+def unobserved_indices(n: int) -> np.ndarray:
+    """The other error states (rates or biases, velocities), ordered [Δω|Δβ_b, Δv_b] per b."""
+    base = BLOCK * np.arange(n)[:, None]
+    idx = (base + np.r_[3:6, 9:12][None, :]).ravel()
+    idx.setflags(write=False)
+    return idx
+
+
+def init_estimate(
+    step: int,
+    t: float,
+    q_BI: np.ndarray,
+    omega_BI_B: np.ndarray,
+    r_H: np.ndarray,
+    v_H: np.ndarray,
+    bias_B: np.ndarray,
+    sigmas: dict,
+    own: int,
+) -> SwarmEstimate:
+    """An estimate with a diagonal initial covariance.
+
+    ``sigmas`` keys: ``att_rad``, ``rate_rad_s``, ``bias_rad_s``, ``pos_m``, ``vel_m_s``.
+    """
+    n = q_BI.shape[0]
+    d = np.empty((n, BLOCK))
+    d[:, A_SL] = sigmas["att_rad"] ** 2
+    d[:, W_SL] = sigmas["rate_rad_s"] ** 2
+    d[own, W_SL] = sigmas["bias_rad_s"] ** 2
+    d[:, R_SL] = sigmas["pos_m"] ** 2
+    d[:, V_SL] = sigmas["vel_m_s"] ** 2
+    return SwarmEstimate(
+        step=step,
+        t=t,
+        q_BI=quat.normalize(q_BI),
+        omega_BI_B=np.array(omega_BI_B, dtype=float),
+        r_H=np.array(r_H, dtype=float),
+        v_H=np.array(v_H, dtype=float),
+        bias_B=np.array(bias_B, dtype=float),
+        P=np.diag(d.ravel()),
+    )
+
+
+# --------------------------------------------------------------------------- predict
+
+
+def attitude_F(omega_hat: np.ndarray, J: np.ndarray, J_inv: np.ndarray, own_mask: np.ndarray) -> np.ndarray:
+    """Continuous error dynamics of the attitude part ``[a, Δω|Δβ]`` per satellite (n, 6, 6).
+
+    Others: ``ȧ = −[ω̂×] a + Δω``, ``Δω̇ = J⁻¹([Jω̂×] − [ω̂×]J) Δω``.
+    Own (gyro mode): ``ȧ = −[ω̂×] a − Δβ``, ``Δβ̇ = 0``.
+    """
+    n = omega_hat.shape[0]
+    F = np.zeros((n, 6, 6))
+    F[:, 0:3, 0:3] = -quat.skew(omega_hat)
+    F[:, 0:3, 3:6] = np.eye(3)
+    F[:, 3:6, 3:6] = J_inv @ (quat.skew(omega_hat @ J.T) - quat.skew(omega_hat) @ J)
+    F[own_mask, 0:3, 3:6] = -np.eye(3)
+    F[own_mask, 3:6, 3:6] = 0.0
+    return F
+
+
+def attitude_phi_q(
+    omega_hat: np.ndarray, params: FilterParams, own_mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Van Loan discretisation of every satellite's attitude block at once (n, 6, 6) ×2.
+
+    ``expm([[−F, G Qc Gᵀ], [0, Fᵀ]] Δt) = [[…, Φ⁻¹Q], [0, Φᵀ]]`` — the same construction as
+    ``filterpy.common.van_loan_discretization``, batched over satellites in one ``expm``.
+    """
+    n = omega_hat.shape[0]
+    F = attitude_F(omega_hat, params.J, params.J_inv, own_mask)
+    GQG = np.zeros((n, 6, 6))
+    # Others: filter-only attitude random walk on a, torque noise through J⁻¹ on Δω.
+    GQG[:, 0:3, 0:3] = params.att_rw_other**2 * np.eye(3)
+    GQG[:, 3:6, 3:6] = params.torque**2 * (params.J_inv @ params.J_inv.T)
+    # Own: gyro angle random walk on a (G = −I), rate random walk on Δβ (G = I).
+    GQG[own_mask, 0:3, 0:3] = params.arw**2 * np.eye(3)
+    GQG[own_mask, 3:6, 3:6] = params.rrw**2 * np.eye(3)
+    A = np.zeros((n, 12, 12))
+    A[:, :6, :6] = -F
+    A[:, :6, 6:] = GQG
+    A[:, 6:, 6:] = np.swapaxes(F, -1, -2)
+    B = expm_batched(A * params.dt)
+    phi = np.swapaxes(B[:, 6:, 6:], -1, -2)
+    Q = phi @ B[:, :6, 6:]
+    return phi, 0.5 * (Q + np.swapaxes(Q, -1, -2))
+
+
+def state_jacobian_blocks(est: SwarmEstimate, params: FilterParams, omega_own: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Φ and Q_k blocks (n, 12, 12) and the rates used (n, 3) for one propagation."""
+    n = est.n
+    own_mask = np.zeros(n, dtype=bool)
+    own_mask[params.own] = True
+    omega_hat = est.omega_BI_B.copy()
+    omega_hat[params.own] = omega_own
+    phi_att, q_att = attitude_phi_q(omega_hat, params, own_mask)
+    phi = np.zeros((n, BLOCK, BLOCK))
+    Q = np.zeros((n, BLOCK, BLOCK))
+    phi[:, 0:6, 0:6] = phi_att
+    Q[:, 0:6, 0:6] = q_att
+    phi[:, 6:12, 6:12] = params.phi_trans
+    Q[:, 6:12, 6:12] = params.q_trans
+    return phi, Q, omega_hat
+
+
+def propagate_blockdiag(P: np.ndarray, phi: np.ndarray, Q: np.ndarray) -> np.ndarray:
+    """``Φ P Φᵀ + Q`` for block-diagonal Φ and Q given as (n, 12, 12) blocks."""
+    n = phi.shape[0]
+    N = n * BLOCK
+    left = (phi @ P.reshape(n, BLOCK, N)).reshape(N, N)  # Φ P
+    # (Φ P) Φᵀ: act on column blocks.
+    cols = left.reshape(N, n, BLOCK).transpose(1, 0, 2)  # (n, N, 12)
+    right = (cols @ np.swapaxes(phi, -1, -2)).transpose(1, 0, 2).reshape(N, N)
+    idx = np.arange(n)
+    r4 = right.reshape(n, BLOCK, n, BLOCK)
+    r4[idx, :, idx, :] += Q
+    return 0.5 * (right + right.T)
+
+
+def predict(est: SwarmEstimate, params: FilterParams, gyro_rate_B: np.ndarray | None) -> SwarmEstimate:
+    """Propagate the whole-swarm estimate by one step ``dt``.
+
+    ``gyro_rate_B``: the own gyro's mean rate over the step (rad/s, bias included); when
+    absent (a missed sample), the last bias-corrected rate is held.
+    """
+    own = params.own
+    dt = params.dt
+    omega_own = est.omega_BI_B[own] if gyro_rate_B is None else np.asarray(gyro_rate_B, float) - est.bias_B
+    phi, Q, omega_hat = state_jacobian_blocks(est, params, omega_own)
+
+    # States: others' attitude and rate by RK4 on Euler's equations (torque-free mean),
+    # own attitude by the exact constant-rate step, translation by closed-form HCW.
+    q_new, w_new = rk4_attitude(est.q_BI, est.omega_BI_B, params.J, dt, params.rk4_substeps)
+    q_new[own] = quat.propagate_constant_rate(est.q_BI[own], omega_own, dt)
+    w_new[own] = omega_own
+    rv = np.concatenate([est.r_H, est.v_H], axis=1) @ params.phi_trans.T
+    if gyro_rate_B is None:
+        # No gyro sample: the held rate is uncertain, and so is the attitude it turns through.
+        Q[own, 0:3, 0:3] += (params.missing_gyro_rate_sigma * dt) ** 2 * np.eye(3)
+    P = propagate_blockdiag(est.P, phi, Q)
+    return SwarmEstimate(
+        step=est.step + 1,
+        t=est.t + dt,
+        q_BI=q_new,
+        omega_BI_B=w_new,
+        r_H=rv[:, 0:3],
+        v_H=rv[:, 3:6],
+        bias_B=est.bias_B.copy(),
+        P=P,
+    )
+
+
+# --------------------------------------------------------------------------- residuals
+
+
+def relative_residuals(est: SwarmEstimate, params: FilterParams, meas: RelativeMeasurements):
+    """Residuals (m, 6) and Jacobian blocks w.r.t. [a_i, r_i] and [a_j, r_j], each (m, 6, 6).
+
+    Column order of each block is ``[a (3), Δr (3)]`` of that satellite; the blocks for
+    the Δω/Δβ and Δv columns are zero.
+    """
+    i, j = meas.observer, meas.target
+    T_all = quat.attitude_matrix(est.q_BI)  # (n,3,3) I→B per satellite, computed once
+    T_i = T_all[i]
+    T_j = T_all[j]
+    C_all = T_all @ T_IH(params.mean_motion, est.t)  # H→B per satellite
+    C = C_all[i]
+    dr_H = est.r_H[j] - est.r_H[i]
+    r_hat = (C @ dr_H[:, :, None])[:, :, 0]
+    q_hat = quat.qmul(est.q_BI[j], quat.qconj(est.q_BI[i]))  # q_BjBi
+    y_att = quat.err_from_dq(quat.qmul(quat.qconj(q_hat), meas.q_BjBi))
+    y_pos = meas.r_ij_Bi - r_hat
+    m = len(meas)
+    Hi = np.zeros((m, 6, 6))
+    Hj = np.zeros((m, 6, 6))
+    Hi[:, 0:3, 0:3] = -np.eye(3)
+    Hj[:, 0:3, 0:3] = T_i @ np.swapaxes(T_j, -1, -2)
+    Hi[:, 3:6, 0:3] = quat.skew(r_hat)
+    Hi[:, 3:6, 3:6] = -C
+    Hj[:, 3:6, 3:6] = C
+    return np.concatenate([y_att, y_pos], axis=1), Hi, Hj
+
+
+_H_ABS = np.eye(6)
+
+
+def absolute_residual(est: SwarmEstimate, params: FilterParams, meas: AbsoluteMeasurement):
+    """Residual, local Jacobian on the own [a, Δr] and (diagonal) R of the available parts."""
+    own = params.own
+    has_q, has_r = meas.q_BI is not None, meas.r_H is not None
+    if not (has_q or has_r):
+        return None
+    y = np.empty(6)
+    if has_q:
+        y[:3] = quat.local(np.asarray(meas.q_BI, float), est.q_BI[own])
+    if has_r:
+        y[3:] = np.asarray(meas.r_H, float) - est.r_H[own]
+    var = np.array([meas.sigma_att_rad**2] * 3 + [meas.sigma_pos_m**2] * 3)
+    if has_q and has_r:
+        return y, _H_ABS, np.diag(var)
+    sl = slice(0, 3) if has_q else slice(3, 6)
+    return y[sl], _H_ABS[sl], np.diag(var[sl])
+
+
+# --------------------------------------------------------------------------- gate
+
+
+def _pair_cov(P_OO: np.ndarray, n: int, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+    """(m, 12, 12) prior covariance of [a_i, r_i, a_j, r_j] for each measurement."""
+    P4 = P_OO.reshape(n, 6, n, 6)
+    top = np.concatenate([P4[i, :, i, :], P4[i, :, j, :]], axis=2)
+    bot = np.concatenate([P4[j, :, i, :], P4[j, :, j, :]], axis=2)
+    return np.concatenate([top, bot], axis=1)
+
+
+def gate(est: SwarmEstimate, params: FilterParams, meas: RelativeMeasurements):
+    """χ² validation gate against the prior. Returns (y, Hi, Hj, d2, accepted).
+
+    ``d² = νᵀ S⁻¹ ν`` with ``S = H P⁻ Hᵀ + R`` for each measurement on its own (the
+    stacked form's gate), computed by :func:`swarmcore.kernels.gate_d2`.
+    """
+    y, Hi, Hj = relative_residuals(est, params, meas)
+    if len(meas) == 0:
+        return y, Hi, Hj, np.zeros(0), np.zeros(0, dtype=bool)
+    O = observed_indices(est.n)
+    d2 = kernels.gate_d2(est.P.take(O, 0).take(O, 1), meas.observer, meas.target, y, Hi, Hj, meas.R_Bi)
+    if params.gate_threshold is None:
+        accepted = np.ones(len(meas), dtype=bool)
+    else:
+        accepted = d2 <= params.gate_threshold
+    return y, Hi, Hj, d2, accepted
+
+
+# --------------------------------------------------------------------------- update
+
+
+@dataclass(frozen=True)
+class Linearized:
+    """Measurements of one step linearised at a point: what every solver consumes.
+
+    Relative rows: ``y`` (m, 6), Jacobian blocks ``Hi``/``Hj`` (m, 6, 6) on the observer's and
+    target's ``[a, Δr]``, noise ``R`` (m, 6, 6). Absolute rows of the own satellite:
+    ``ya`` (k,), ``Ha`` (k, 6) on its ``[a, Δr]``, ``Ra`` (k, k); or None.
+    """
+
+    own: int
+    observer: np.ndarray
+    target: np.ndarray
+    y: np.ndarray
+    Hi: np.ndarray
+    Hj: np.ndarray
+    R: np.ndarray
+    ya: np.ndarray | None = None
+    Ha: np.ndarray | None = None
+    Ra: np.ndarray | None = None
+
+    @property
+    def count(self) -> int:
+        return int(self.observer.size) + (self.ya is not None)
+
+    def shifted(self, dx: np.ndarray, n: int) -> "Linearized":
+        """Residuals plus ``H δx_O`` (the iterated-EKF residual about the prior)."""
+        dO = dx.reshape(n, BLOCK)[:, np.r_[0:3, 6:9]]  # (n, 6)
+        y = self.y + (self.Hi @ dO[self.observer][:, :, None])[:, :, 0] + (self.Hj @ dO[self.target][:, :, None])[:, :, 0]
+        ya = None if self.ya is None else self.ya + self.Ha @ dO[self.own]
+        return replace(self, y=y, ya=ya)
+
+
+def linearize(est: SwarmEstimate, params: FilterParams, absolute: AbsoluteMeasurement | None, relative: RelativeMeasurements) -> Linearized:
+    """Residuals and Jacobians of the absolute reading and the relative batch at ``est``."""
+    y, Hi, Hj = relative_residuals(est, params, relative)
+    ya = Ha = Ra = None
+    if absolute is not None:
+        res = absolute_residual(est, params, absolute)
+        if res is not None:
+            ya, Ha, Ra = res
+    return Linearized(params.own, relative.observer, relative.target, y, Hi, Hj, relative.R_Bi, ya, Ha, Ra)
+
+
+def _apply_correction(est: SwarmEstimate, params: FilterParams, dx: np.ndarray, P: np.ndarray) -> SwarmEstimate:
+    """Multiplicative attitude reset and additive corrections of every other state."""
+    n = est.n
+    d = dx.reshape(n, BLOCK)
+    q = quat.retract(est.q_BI, d[:, A_SL])
+    w = est.omega_BI_B + d[:, W_SL]
+    own = params.own
+    bias = est.bias_B + d[own, W_SL]
+    w[own] = est.omega_BI_B[own] - d[own, W_SL]  # the corrected rate follows the bias
+    return SwarmEstimate(
+        step=est.step,
+        t=est.t,
+        q_BI=q,
+        omega_BI_B=w,
+        r_H=est.r_H + d[:, R_SL],
+        v_H=est.v_H + d[:, V_SL],
+        bias_B=bias,
+        P=0.5 * (P + P.T),
+    )
+
+
+def _rows(lin: Linearized, n: int):
+    """Measurements as (state indices, y, H, R) rows: absolute first, then relative."""
+    O = observed_indices(n).reshape(n, 6)
+    rows = []
+    if lin.ya is not None:
+        rows.append((O[lin.own], lin.ya, lin.Ha, lin.Ra))
+    for k in range(lin.observer.size):
+        i, j = lin.observer[k], lin.target[k]
+        rows.append((np.r_[O[i], O[j]], lin.y[k], np.concatenate([lin.Hi[k], lin.Hj[k]], axis=1), lin.R[k]))
+    return rows
+
+
+def _solve_stacked(P: np.ndarray, n: int, lin: Linearized):
+    """Reference (dissertation): stack every measurement, one gain, Joseph form. O(m³)."""
+    N = P.shape[0]
+    rows = _rows(lin, n)
+    if not rows:
+        return np.zeros(N), P, 0.0
+    sizes = [r[1].shape[0] for r in rows]
+    tot = sum(sizes)
+    H = np.zeros((tot, N))
+    y = np.zeros(tot)
+    R = np.zeros((tot, tot))
+    r0 = 0
+    for (idx, yk, Hk, Rk), k in zip(rows, sizes):
+        H[r0 : r0 + k, idx] = Hk
+        y[r0 : r0 + k] = yk
+        R[r0 : r0 + k, r0 : r0 + k] = Rk
+        r0 += k
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    A = np.eye(N) - K @ H
+    nis = float(y @ np.linalg.solve(S, y))
+    return K @ y, A @ P @ A.T + K @ R @ K.T, nis
+
+
+def _solve_sequential(P: np.ndarray, n: int, lin: Linearized):
+    """One Joseph update per measurement, all held at the same linearisation. O(m N²)."""
+    N = P.shape[0]
+    P = P.copy()
+    dx = np.zeros(N)
+    nis = 0.0
+    for idx, yk, Hk, Rk in _rows(lin, n):
+        PHt = P[:, idx] @ Hk.T  # (N, k)
+        S = Hk @ PHt[idx] + Rk
+        K = np.linalg.solve(S, PHt.T).T  # (N, k)
+        innov = yk - Hk @ dx[idx]
+        nis += float(innov @ np.linalg.solve(S, innov))  # sequential NIS terms sum to the joint NIS
+        dx = dx + K @ innov
+        # Joseph: (I − KH) P (I − KH)ᵀ + K R Kᵀ, with H sparse on idx.
+        AP = P - K @ PHt.T
+        P = AP - (AP[:, idx] @ Hk.T) @ K.T + K @ Rk @ K.T
+    return dx, P, nis
+
+
+def _solve_information(P: np.ndarray, n: int, lin: Linearized):
+    """Square-root information form in the observed subspace O (attitude + position errors).
+
+    Every measurement touches only the 6n attitude and position errors O, so with
+    ``Λ = Σ H_Oᵀ R⁻¹ H_O`` and ``b = Σ H_Oᵀ R⁻¹ y`` (assembled block by block):
+
+    1. ``P_OO = L Lᵀ`` and ``M = I + Lᵀ Λ L = U Uᵀ`` (eigenvalues ≥ 1, well conditioned);
+    2. ``W = L U⁻ᵀ`` so that ``P⁺_OO = (P_OO⁻¹ + Λ)⁻¹ = W Wᵀ`` and ``δx_O = W Wᵀ b``;
+    3. the other states U follow their regression on O, ``B = P_UO P_OO⁻¹``:
+       ``δx_U = B δx_O``, ``P⁺_UO = B W Wᵀ`` and ``P⁺_UU = (P_UU − B P_OU) + (B W)(B W)ᵀ``, a
+       Schur complement the update leaves alone plus a square-root term.
+
+    Never inverts P, never forms ``P − P G P`` (whose cancellation loses every digit of the
+    own attitude when the star tracker shrinks its variance a million-fold), and keeps P⁺
+    positive semi-definite by construction — what the Joseph form buys the other two forms.
+    """
+    O = observed_indices(n)
+    no = O.size
+    if lin.count == 0:
+        return np.zeros(P.shape[0]), P, 0.0
+    Lam, b, yRy = kernels.information(n, lin.observer, lin.target, lin.y, lin.Hi, lin.Hj, lin.R)
+    if lin.ya is not None:
+        w = 1.0 / np.diag(lin.Ra)  # the star tracker and GPS noise is diagonal
+        oo = slice(6 * lin.own, 6 * lin.own + 6)
+        Lam[oo, oo] += lin.Ha.T @ (lin.Ha * w[:, None])
+        b[oo] += lin.Ha.T @ (w * lin.ya)
+        yRy += float(np.sum(w * lin.ya * lin.ya))
+    # Work in the permuted order [O, U]: contiguous blocks instead of fancy indexing.
+    perm, inv = _perm(n)
+    Pp = P.take(perm, 0).take(perm, 1)
+    P_OO, P_OU, P_UU = Pp[:no, :no], Pp[:no, no:], Pp[no:, no:]
+    L = chol(0.5 * (P_OO + P_OO.T))
+    M = np.eye(no) + L.T @ Lam @ L
+    Uc = chol(0.5 * (M + M.T))
+    W = tri_solve(Uc, L.T).T  # L U⁻ᵀ: P⁺_OO = W Wᵀ
+    B_U = chol_solve(L, P_OU).T  # regression of the unobserved states on O: P_UO P_OO⁻¹
+    BW = B_U @ W
+    Wb = W.T @ b
+    Pn = np.empty_like(P)
+    Pn[:no, :no] = W @ W.T
+    Pn[no:, :no] = BW @ W.T
+    Pn[:no, no:] = Pn[no:, :no].T
+    Pn[no:, no:] = P_UU - B_U @ P_OU + BW @ BW.T
+    dxp = np.concatenate([W @ Wb, BW @ Wb])
+    # Joint NIS yᵀ S⁻¹ y = yᵀ R⁻¹ y − bᵀ P⁺_OO b (matrix inversion lemma).
+    return dxp[inv], Pn.take(inv, 0).take(inv, 1), yRy - float(Wb @ Wb)
+
+
+@lru_cache(maxsize=64)
+def _perm(n: int):
+    perm = np.concatenate([observed_indices(n), unobserved_indices(n)])
+    inv = np.argsort(perm)
+    return perm, inv
+
+
+SOLVERS = {"stacked": _solve_stacked, "sequential": _solve_sequential, "information": _solve_information}
+
+
+def choose_method(method: str, n: int, m: int) -> str:
+    """``auto``: sequential while its cost m·N² stays below the information form's ~N³/2."""
+    if method != "auto":
+        return method
+    return "sequential" if (m + 1) * 8 <= BLOCK * n else "information"
+
+
+def update(
+    est: SwarmEstimate,
+    params: FilterParams,
+    absolute: AbsoluteMeasurement | None,
+    relative: RelativeMeasurements,
+    method: str | None = None,
+) -> tuple[SwarmEstimate, UpdateReport]:
+    """Measurement update with the absolute reading and the (gated) relative batch of a step.
+
+    Relative measurements must already be in canonical order (see
+    :meth:`RelativeMeasurements.canonical`); every form gives the same result to round-off.
+    When ``params.max_iterations > 1`` and the first correction turns some attitude by
+    more than ``params.iterate_above_rad``, the update is iterated (iterated EKF: re-linearise
+    at the corrected state, same gated set, same prior), which keeps the first updates
+    consistent when the initial attitude uncertainty is large.
+    """
+    n = est.n
+    if len(relative):
+        bad = (relative.observer < 0) | (relative.observer >= n) | (relative.target < 0) | (relative.target >= n)
+        if np.any(bad) or np.any(relative.observer == relative.target):
+            raise ValueError("relative measurement with an unknown or self satellite id")
+    y, Hi, Hj, d2, accepted = gate(est, params, relative)
+    kept = relative.subset(accepted)
+    ya = Ha = Ra = None
+    if absolute is not None:
+        res = absolute_residual(est, params, absolute)
+        if res is not None:
+            ya, Ha, Ra = res
+    lin = Linearized(params.own, kept.observer, kept.target, y[accepted], Hi[accepted], Hj[accepted], kept.R_Bi, ya, Ha, Ra)
+    method = choose_method(method or params.update_method, n, lin.count)
+    solve = SOLVERS[method]
+    dx, P, nis = solve(est.P, n, lin)
+    dof = 6 * int(lin.observer.size) + (0 if lin.ya is None else int(lin.ya.size))
+    iterations = 1
+    for _ in range(params.max_iterations - 1):
+        if np.max(np.abs(dx.reshape(n, BLOCK)[:, A_SL]), initial=0.0) <= params.iterate_above_rad:
+            break
+        point = _apply_correction(est, params, dx, est.P)
+        lin_i = linearize(point, params, absolute, kept).shifted(dx, n)
+        dx_new, P, nis = solve(est.P, n, lin_i)  # the NIS at the last linearisation
+        iterations += 1
+        converged = np.max(np.abs(dx_new - dx)) < 1e-12
+        dx = dx_new
+        if converged:
+            break
+    report = UpdateReport(d2=d2, accepted=accepted, method=method, nis=nis, nis_dof=dof, iterations=iterations)
+    return _apply_correction(est, params, dx, P), report
+
+
+def reframe(est: SwarmEstimate, old_own: int, new_own: int, sigma_bias_rad_s: float, sigma_rate_rad_s: float) -> SwarmEstimate:
+    """Turn a peer's estimate (filter of ``old_own``) into a starting point for ``new_own``.
+
+    A restarted agent has no filter of its own; it borrows a live peer's. The two rate
+    sub-blocks change meaning: ``new_own`` switches to gyro mode (its bias is unknown: β̂ = 0
+    with variance σ_bias², its rate will come from its gyro), ``old_own`` leaves gyro mode
+    (its rate state starts at the peer's bias-corrected gyro rate with variance σ_rate²).
+    Both sub-blocks lose their cross-covariances; everything else is kept as is.
+    """
+    if old_own == new_own:
+        return est
+    P = est.P.copy()
+    w = est.omega_BI_B.copy()
+    for b, var in ((new_own, sigma_bias_rad_s**2), (old_own, sigma_rate_rad_s**2)):
+        idx = BLOCK * b + np.arange(3, 6)
+        P[idx, :] = 0.0
+        P[:, idx] = 0.0
+        P[idx, idx] = var
+    return SwarmEstimate(est.step, est.t, est.q_BI.copy(), w, est.r_H.copy(), est.v_H.copy(), np.zeros(3), P)

@@ -1,0 +1,288 @@
+"""Truth and sensors of the swarm: what ``world_sim`` owns, as pure functions.
+
+Every random draw comes from :func:`swarmcore.streams.stream` keyed by (seed, purpose,
+step[, satellite]); noise for all n×n relative pairs is drawn every step, so which pairs
+are taken never changes the numbers of the others.
+
+Gyro model: a rate-integrating (delta-angle) gyro. The sample for step k→k+1 is the
+constant rate that carries the true attitude from ``q_k`` to ``q_{k+1}`` (coning
+compensated), plus the bias at ``t_k`` and the exactly discretised noise of the
+continuous model ``ω̃ = ω + β + η_v``, ``β̇ = η_u``: the attitude noise ``e`` (rad) and
+bias increment ``w`` are drawn jointly with covariance
+``[[σ_v² Δt + σ_u² Δt³/3, σ_u² Δt²/2], [σ_u² Δt²/2, σ_u² Δt]]`` per axis, which is what
+the filter's Van Loan block for the own satellite assumes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import quat
+from .cameras import T_CB, best_camera
+from .dynamics import T_IH, hcw_noise_cov, hcw_phi, rk4_attitude
+from .mekf import AbsoluteMeasurement, FilterParams, RelativeMeasurements, SwarmEstimate, init_estimate
+from .scenario import Scenario
+from .streams import stream
+
+__all__ = [
+    "TruthState",
+    "WorldParams",
+    "world_params",
+    "filter_params",
+    "initial_truth",
+    "step_truth",
+    "absolute_measurements",
+    "relative_truth",
+    "relative_measurements",
+    "relative_noise_cov",
+    "initial_estimate",
+]
+
+
+@dataclass(frozen=True)
+class TruthState:
+    step: int
+    t: float
+    q_BI: np.ndarray  # (n, 4)
+    omega_BI_B: np.ndarray  # (n, 3)
+    r_H: np.ndarray  # (n, 3)
+    v_H: np.ndarray  # (n, 3)
+    bias_B: np.ndarray  # (n, 3) gyro biases
+
+
+@dataclass(frozen=True)
+class WorldParams:
+    seed: int
+    n: int
+    dt: float
+    mean_motion: float
+    J: np.ndarray
+    truth_substeps: int
+    torque_sigma: float  # 0 when the disturbance is off
+    accel_sigma: float
+    arw: float
+    rrw: float  # 0 when the bias walk is off
+    star_sigma: float
+    gps_sigma: float
+    star_enabled: bool
+    gps_enabled: bool
+    rel: object  # scenario.Relative (frozen-by-convention)
+    phi_trans: np.ndarray
+    chol_trans: np.ndarray
+
+
+def world_params(sc: Scenario) -> WorldParams:
+    d = sc.disturbances
+    g = sc.sensors.gyro
+    n_e = sc.orbit.mean_motion_rad_s
+    accel = d.accel_sigma_m_s15 if d.force else 0.0
+    Qt = hcw_noise_cov(n_e, sc.dt_s, accel)
+    return WorldParams(
+        seed=sc.seed,
+        n=sc.n_sats,
+        dt=sc.dt_s,
+        mean_motion=n_e,
+        J=sc.spacecraft.J(),
+        truth_substeps=sc.truth_substeps,
+        torque_sigma=d.torque_sigma_Nm_sqrt_s if d.torque else 0.0,
+        accel_sigma=accel,
+        arw=g.arw_rad_sqrt_s,
+        rrw=g.rrw_rad_s15 if g.bias_walk else 0.0,
+        star_sigma=sc.sensors.star_tracker.sigma_rad,
+        gps_sigma=sc.sensors.gps.sigma_m,
+        star_enabled=sc.sensors.star_tracker.enabled,
+        gps_enabled=sc.sensors.gps.enabled,
+        rel=sc.sensors.relative,
+        phi_trans=hcw_phi(n_e, sc.dt_s),
+        chol_trans=_psd_chol(Qt),
+    )
+
+
+def filter_params(sc: Scenario, own: int) -> FilterParams:
+    """The filter of satellite ``own`` as the scenario configures it."""
+    f = sc.filter
+    return FilterParams(
+        n=sc.n_sats,
+        own=own,
+        dt=sc.dt_s,
+        mean_motion=sc.orbit.mean_motion_rad_s,
+        J=sc.spacecraft.J(),
+        arw=sc.sensors.gyro.arw_rad_sqrt_s,
+        rrw=sc.sensors.gyro.rrw_rad_s15,
+        torque=sc.disturbances.torque_sigma_Nm_sqrt_s,
+        accel=sc.disturbances.accel_sigma_m_s15,
+        att_rw_other=f.att_rw_other_rad_sqrt_s,
+        pos_rw=f.pos_rw_m_sqrt_s,
+        gate_threshold=f.gate.threshold(),
+        update_method=f.update,
+        rk4_substeps=f.rk4_substeps,
+        max_iterations=f.max_iterations,
+        iterate_above_rad=f.iterate_above_rad,
+        missing_gyro_rate_sigma=f.initial_sigma.rate_rad_s,
+    )
+
+
+def _psd_chol(Q: np.ndarray) -> np.ndarray:
+    """Cholesky factor of a PSD matrix that may be singular (zero noise)."""
+    w, V = np.linalg.eigh(0.5 * (Q + Q.T))
+    return V * np.sqrt(np.clip(w, 0.0, None))
+
+
+def initial_truth(sc: Scenario) -> TruthState:
+    """Random initial conditions within the scenario's ranges (stream 'init_truth')."""
+    rng = stream(sc.seed, "init_truth")
+    n = sc.n_sats
+    ini = sc.initial
+    r = np.zeros((n, 3))
+    for i in range(n):
+        for _attempt in range(1000):
+            cand = rng.uniform(-ini.position_max_m, ini.position_max_m, 3)
+            if i == 0 or np.min(np.linalg.norm(r[:i] - cand, axis=1)) >= ini.min_separation_m:
+                break
+        else:
+            raise ValueError(
+                f"initial.min_separation_m: cannot place {n} satellites {ini.min_separation_m} m apart "
+                f"within ±{ini.position_max_m} m"
+            )
+        r[i] = cand
+    v = rng.uniform(-ini.velocity_max_m_s, ini.velocity_max_m_s, (n, 3))
+    if ini.drift_free:
+        v[:, 1] = -2.0 * sc.orbit.mean_motion_rad_s * r[:, 0]
+    w = rng.uniform(-ini.rate_max_rad_s, ini.rate_max_rad_s, (n, 3))
+    q = quat.random_quaternion(rng, n) if ini.attitude == "random" else np.tile(quat.IDENTITY, (n, 1))
+    bias = rng.normal(0.0, sc.sensors.gyro.bias_initial_sigma_rad_s, (n, 3))
+    return TruthState(0, 0.0, q, w, r, v, bias)
+
+
+def _gyro_noise_chol(arw: float, rrw: float, dt: float) -> np.ndarray:
+    Q = np.array(
+        [
+            [arw**2 * dt + rrw**2 * dt**3 / 3.0, rrw**2 * dt**2 / 2.0],
+            [rrw**2 * dt**2 / 2.0, rrw**2 * dt],
+        ]
+    )
+    return _psd_chol(Q)
+
+
+def step_truth(wp: WorldParams, s: TruthState) -> tuple[TruthState, np.ndarray]:
+    """Advance the truth by ``dt``; return the new state and the gyro samples (n, 3) of the step."""
+    n, k, dt = wp.n, s.step, wp.dt
+    torques = None
+    if wp.torque_sigma > 0:
+        h = dt / wp.truth_substeps
+        torques = stream(wp.seed, "torque", k).standard_normal((wp.truth_substeps, n, 3)) * (wp.torque_sigma / np.sqrt(h))
+    q1, w1 = rk4_attitude(s.q_BI, s.omega_BI_B, wp.J, dt, wp.truth_substeps, torques)
+    rv = np.concatenate([s.r_H, s.v_H], axis=1) @ wp.phi_trans.T
+    if wp.accel_sigma > 0:
+        rv = rv + stream(wp.seed, "force", k).standard_normal((n, 6)) @ wp.chol_trans.T
+    # Gyro: coning-compensated mean rate + bias at t_k + exact discrete noise.
+    rate_mean = quat.quat_to_rotvec(quat.qmul(q1, quat.qconj(s.q_BI))) / dt
+    z = stream(wp.seed, "gyro", k).standard_normal((n, 3, 2))
+    noise = z @ _gyro_noise_chol(wp.arw, wp.rrw, dt).T  # (n, 3, 2): [attitude noise e, bias step]
+    gyro = rate_mean + s.bias_B + noise[..., 0] / dt
+    bias1 = s.bias_B + noise[..., 1]
+    return TruthState(k + 1, s.t + dt, q1, w1, rv[:, 0:3], rv[:, 3:6], bias1), gyro
+
+
+def absolute_measurements(wp: WorldParams, s: TruthState) -> list[AbsoluteMeasurement]:
+    """Every satellite's star tracker and GPS reading at ``s`` (streams 'star', 'gps')."""
+    nu_q = stream(wp.seed, "star", s.step).standard_normal((wp.n, 3)) * wp.star_sigma
+    nu_r = stream(wp.seed, "gps", s.step).standard_normal((wp.n, 3)) * wp.gps_sigma
+    q_meas = quat.normalize(quat.qmul(quat.dq_from_err(nu_q), s.q_BI))
+    r_meas = s.r_H + nu_r
+    return [
+        AbsoluteMeasurement(
+            q_BI=q_meas[i] if wp.star_enabled else None,
+            r_H=r_meas[i] if wp.gps_enabled else None,
+            sigma_att_rad=wp.star_sigma,
+            sigma_pos_m=wp.gps_sigma,
+        )
+        for i in range(wp.n)
+    ]
+
+
+def relative_truth(mean_motion: float, t: float, q_BI, r_H, observer, target):
+    """True ``q_BjBi`` (m, 4) and ``r_ij_Bi`` (m, 3) for the given pairs."""
+    T_i = quat.attitude_matrix(q_BI[observer])
+    C = T_i @ T_IH(mean_motion, t)
+    r = np.einsum("mab,mb->ma", C, r_H[target] - r_H[observer])
+    q = quat.qmul(q_BI[target], quat.qconj(q_BI[observer]))
+    return quat.normalize(q), r
+
+
+def relative_noise_cov(rel, r_ij_Bi: np.ndarray) -> np.ndarray:
+    """Noise covariance (m, 6, 6) in B_i, ``[attitude, position]``, of relative measurements.
+
+    ``isotropic`` (chapter 4): ``diag(σ_q² I, σ_p² I)``. ``camera`` (chapter 6): per-axis σ in
+    the frame of the face camera that sees the target, scaled by
+    ``(range / reference_range) ** range_exponent``, rotated into B_i.
+    """
+    r = np.atleast_2d(np.asarray(r_ij_Bi, dtype=float))
+    m = r.shape[0]
+    R = np.zeros((m, 6, 6))
+    if rel.model == "isotropic":
+        R[:, 0:3, 0:3] = rel.sigma_att_rad**2 * np.eye(3)
+        R[:, 3:6, 3:6] = rel.sigma_pos_m**2 * np.eye(3)
+        return R
+    rng_m = np.linalg.norm(r, axis=1)
+    scale = (rng_m / rel.reference_range_m) ** rel.range_exponent  # (m,)
+    cam = best_camera(r)
+    T_BC = np.swapaxes(T_CB[cam], -1, -2)  # (m, 3, 3) camera → body
+    sa = np.asarray(rel.sigma_att_camera_rad) ** 2
+    sp = np.asarray(rel.sigma_pos_camera_m) ** 2
+    s2 = scale[:, None] ** 2
+    R[:, 0:3, 0:3] = T_BC @ (np.eye(3) * (sa * s2)[:, None, :]) @ np.swapaxes(T_BC, -1, -2)
+    R[:, 3:6, 3:6] = T_BC @ (np.eye(3) * (sp * s2)[:, None, :]) @ np.swapaxes(T_BC, -1, -2)
+    return R
+
+
+def relative_measurements(wp: WorldParams, s: TruthState, observer: np.ndarray, target: np.ndarray) -> RelativeMeasurements:
+    """Noisy relative poses for the given pairs, with the noise covariance the sensor reports.
+
+    The reported covariance is computed from the *measured* position (what a camera
+    pipeline knows); the noise itself is drawn with the covariance at the true position.
+    """
+    observer = np.asarray(observer, dtype=int)
+    target = np.asarray(target, dtype=int)
+    if observer.size == 0:
+        return RelativeMeasurements.empty()
+    q_true, r_true = relative_truth(wp.mean_motion, s.t, s.q_BI, s.r_H, observer, target)
+    z_all = stream(wp.seed, "rel", s.step).standard_normal((wp.n, wp.n, 6))
+    z = z_all[observer, target]
+    L = np.linalg.cholesky(relative_noise_cov(wp.rel, r_true))
+    nu = np.einsum("mab,mb->ma", L, z)
+    q_meas = quat.normalize(quat.qmul(q_true, quat.dq_from_err(nu[:, 0:3])))
+    r_meas = r_true + nu[:, 3:6]
+    return RelativeMeasurements(observer, target, q_meas, r_meas, relative_noise_cov(wp.rel, r_meas))
+
+
+def initial_estimate(sc: Scenario, truth0: TruthState, own: int) -> SwarmEstimate:
+    """Filter ``own``'s prior: truth minus an error drawn from its initial covariance.
+
+    In the distributed emulator the world hands this to the agent (a prior from ground
+    operations); agents never see the truth itself.
+    """
+    s = sc.filter.initial_sigma
+    n = sc.n_sats
+    rng = stream(sc.seed, "init_est", own)
+    a = rng.standard_normal((n, 3)) * s.att_rad
+    dw = rng.standard_normal((n, 3)) * s.rate_rad_s
+    dr = rng.standard_normal((n, 3)) * s.pos_m
+    dv = rng.standard_normal((n, 3)) * s.vel_m_s
+    db = rng.standard_normal(3) * s.bias_rad_s
+    q_hat = quat.retract(truth0.q_BI, -a)
+    w_hat = truth0.omega_BI_B - dw
+    w_hat[own] = truth0.omega_BI_B[own]
+    return init_estimate(
+        step=truth0.step,
+        t=truth0.t,
+        q_BI=q_hat,
+        omega_BI_B=w_hat,
+        r_H=truth0.r_H - dr,
+        v_H=truth0.v_H - dv,
+        bias_B=truth0.bias_B[own] - db,
+        sigmas=s.model_dump(),
+        own=own,
+    )

@@ -1,0 +1,336 @@
+"""Monte Carlo error characterisation of a pose pipeline (dissertation §5.4.3, Figure 5.7).
+
+One observer camera at the origin of I (camera frame = I), the target on the boresight at
+each range (3 to 33 m by default), in each of ``n_orient`` attitudes (viewing directions
+spread over the sphere by a Fibonacci lattice, with a roll drawn from a stream), lit from
+each of ``n_sun`` Sun directions (Fibonacci lattice), under each illumination: ``solar``
+(the Sun alone) and ``global`` (the Sun plus an ambient term standing in for global
+illumination). Every image goes through the same pipeline the agents run; each estimate is
+compared with truth in the camera frame (``[a_C, e_C]``, see :mod:`swarmvision.covariance`).
+
+The pipelines are seeded like in flight: the "prediction" (ambiguity resolution for the
+monocular pipeline, ICP start for the stereo one) is the truth perturbed by
+``pred_sigma_att_rad`` / ``pred_sigma_pos_m``.
+
+Output: ``characterization.json`` (every sample, and per illumination the statistics per
+range bin and per Sun-angle bin that :class:`swarmvision.covariance.CharacterizedNoise`
+reads) and PNG plots (matplotlib, Agg).
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from swarmcore import quat
+from swarmcore.streams import stream
+
+from .config import VisionConfig
+
+__all__ = ["characterize", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
+
+AXES = ["att_x", "att_y", "att_z", "pos_x", "pos_y", "pos_z"]
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n, 3) nearly uniform unit vectors (golden-angle spiral)."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    r = np.sqrt(1.0 - z * z)
+    phi = np.pi * (3.0 - np.sqrt(5.0)) * i
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def camera_signature(cfg: VisionConfig, pipeline: str) -> dict:
+    from .pipeline import face_intrinsics
+    from .stereo import stereo_intrinsics
+
+    if pipeline == "mono":
+        k = face_intrinsics(cfg)
+        return {"width_px": k.width, "height_px": k.height, "focal_px": round(float(k.fx), 3)}
+    s = cfg.stereo_camera
+    k = stereo_intrinsics(s.width_px, s.height_px, s.focal_px)
+    return {"width_px": k.width, "height_px": k.height, "focal_px": round(float(k.fx), 3), "baseline_m": s.baseline_m}
+
+
+def table_name(pipeline: str, cam: dict) -> str:
+    """File name of a characterization table: pipeline and camera (size, focal length)."""
+    return f"characterization-{pipeline}-{cam['width_px']}x{cam['height_px']}-f{cam['focal_px']:g}.json"
+
+
+def _attitudes(n: int, seed: int) -> np.ndarray:
+    """n target attitudes q_BI: a tilt taking body +z onto each Fibonacci direction, then a
+    random roll (stream ``characterize_roll``) — spread over all viewing aspects."""
+    rng = stream(seed, "characterize_roll")
+    z = np.array([0.0, 0.0, 1.0])
+    out = []
+    for d in fibonacci_sphere(n):
+        ax = np.cross(z, d)
+        s = np.linalg.norm(ax)
+        tilt = np.array([np.pi, 0.0, 0.0]) if s < 1e-12 and d[2] < 0 else (np.zeros(3) if s < 1e-12 else ax / s * np.arctan2(s, d @ z))
+        roll = rng.uniform(-np.pi, np.pi)
+        out.append(quat.normalize(quat.qmul(quat.rotvec_to_quat(roll * z), quat.rotvec_to_quat(tilt))))
+    return np.array(out)
+
+
+def _camera_error(R_est, p_est, R_true, p_true):
+    import cv2
+
+    a, _ = cv2.Rodrigues(R_est @ R_true.T)
+    return np.r_[a.ravel(), np.asarray(p_est) - np.asarray(p_true)]
+
+
+def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_orient: int = 6, n_sun: int = 6,
+                 illuminations=("solar", "global"), ambient_global: float = 0.25, seed: int = 0,
+                 pred_sigma_att_rad: float = 0.03, pred_sigma_pos_m: float = 0.1, log=None, progress=None) -> dict:
+    """Run the Monte Carlo; return the JSON-ready result (samples and statistics).
+
+    ``progress(done, total)`` is called after every rendered sample."""
+    from .mono import MonoPipeline
+    from .noise import apply_noise
+    from .pipeline import face_intrinsics
+    from .render import SceneRenderer
+
+    cfg = (cfg or VisionConfig()).model_copy(deep=True)
+    cfg.pipeline = pipeline
+    ranges = np.linspace(3.0, 33.0, 11) if ranges is None else np.asarray(ranges, float)
+    atts = _attitudes(n_orient, seed)
+    suns = fibonacci_sphere(n_sun)
+    half = 0.2
+    if pipeline == "mono":
+        from .models import cube_satellite
+
+        bodies = [cube_satellite(0, half, cfg.mono.tag_size_m, cfg.render.texture_px_per_cell)]
+        intr = face_intrinsics(cfg)
+        mp = MonoPipeline(cfg.mono, intr, half, 1)
+    elif pipeline == "stereo":
+        from .models import model_radius, reference_cloud, spacecraft_model
+        from .stereo import StereoPipeline, stereo_intrinsics
+
+        parts = list(spacecraft_model(0))
+        bodies = [parts]
+        s = cfg.stereo_camera
+        intr = stereo_intrinsics(s.width_px, s.height_px, s.focal_px)
+        pts, nrm = reference_cloud(cfg.stereo.model_points)
+        sp = StereoPipeline(cfg.stereo, intr, s.baseline_m, pts, nrm, model_radius(parts))
+    else:
+        raise ValueError(f"pipeline must be mono or stereo, got {pipeline!r}")
+    samples = []
+    t_start = time.perf_counter()
+    for illum in illuminations:
+        amb = 0.0 if illum == "solar" else ambient_global
+        L = cfg.lighting
+        rend = SceneRenderer(bodies, ambient=amb, sun_intensity=L.sun_intensity, shadows=L.shadows,
+                             znear=cfg.render.znear_m, zfar=cfg.render.zfar_m, platform=cfg.render.platform)
+        for ir, rng_m in enumerate(ranges):
+            for io, q in enumerate(atts):
+                for isn, sun in enumerate(suns):
+                    rng = stream(seed, "characterize", ir, io, isn, 0 if illum == "solar" else 1)
+                    p_true = np.array([0.0, 0.0, rng_m])
+                    R_true = quat.attitude_matrix(q).T  # B_j → I = C
+                    rend.set_bodies(q[None, :], p_true[None, :])
+                    rend.set_sun(sun)
+                    # Prediction: truth perturbed like a converged filter's prior.
+                    dR = quat.attitude_matrix(quat.rotvec_to_quat(rng.normal(0, pred_sigma_att_rad, 3))).T
+                    R_pred = dR @ R_true
+                    p_pred = p_true + rng.normal(0, pred_sigma_pos_m, 3)
+                    ok, err, extra = False, np.full(6, np.nan), {}
+                    if pipeline == "mono":
+                        img = apply_noise(rend.render(np.eye(3), np.zeros(3), intr), cfg.noise, rng)
+                        poses = mp.poses_in_image(img, 0, None, {0: R_pred})
+                        if 0 in poses:
+                            P = poses[0]
+                            ok, err = True, _camera_error(P.R_CBj, P.p_C, R_true, p_true)
+                            extra = {"tags": P.n_tags, "rms_px": P.reproj_rms_px, "ambiguous": P.ambiguous}
+                    else:
+                        left = apply_noise(rend.render(np.eye(3), np.zeros(3), intr), cfg.noise, rng)
+                        right = apply_noise(rend.render(np.eye(3), np.array([cfg.stereo_camera.baseline_m, 0, 0]), intr), cfg.noise, rng)
+                        res = sp.measure(left, right, R_pred, p_pred, rng)
+                        if res is not None:
+                            ok, err = True, _camera_error(res.R_CBj, res.p_C, R_true, p_true)
+                            extra = {"fitness": res.fitness, "points": res.n_points}
+                    sun_deg = float(np.degrees(np.arccos(np.clip(sun[2], -1, 1))))  # LOS is +z
+                    samples.append({"illumination": illum, "range_m": float(rng_m), "orientation": io, "sun": isn,
+                                    "sun_deg": sun_deg, "ok": ok, "err": [float(x) for x in err], **extra})
+                    if progress is not None:
+                        progress(len(samples), len(illuminations) * len(ranges) * len(atts) * len(suns))
+            if log:
+                done = sum(1 for s_ in samples if s_["illumination"] == illum and s_["range_m"] == float(rng_m))
+                okn = sum(1 for s_ in samples if s_["illumination"] == illum and s_["range_m"] == float(rng_m) and s_["ok"])
+                log(f"{pipeline} {illum} range {rng_m:.1f} m: {okn}/{done} ok ({time.perf_counter() - t_start:.0f} s)")
+        rend.close()
+    out = {
+        "pipeline": pipeline,
+        "camera": camera_signature(cfg, pipeline),
+        "axes": AXES,
+        "frame": "camera (OpenCV): a_C rotation vector of R_est R_trueᵀ (rad), e_C = p_est − p_true (m)",
+        "design": {"ranges_m": ranges.tolist(), "n_orient": n_orient, "n_sun": n_sun, "illuminations": list(illuminations),
+                   "ambient_global": ambient_global, "seed": seed, "pred_sigma_att_rad": pred_sigma_att_rad,
+                   "pred_sigma_pos_m": pred_sigma_pos_m},
+        "config": cfg.model_dump(mode="json"),
+        "wall_s": time.perf_counter() - t_start,
+        "illuminations": {},
+        "samples": samples,
+    }
+    for illum in illuminations:
+        out["illuminations"][illum] = summarize_samples([s for s in samples if s["illumination"] == illum], ranges)
+    return out
+
+
+def _trimmed_mse(E: np.ndarray, k: float = 5.0):
+    """Per column: mean square of the errors within k robust σ (1.4826·MAD) of the median,
+    and the fraction beyond (outliers the gate must handle, not R)."""
+    if E.shape[0] == 0:
+        return np.full(E.shape[1], np.nan), np.full(E.shape[1], np.nan)
+    med = np.median(E, axis=0)
+    mad = 1.4826 * np.median(np.abs(E - med), axis=0)
+    inl = np.abs(E - med) <= k * np.maximum(mad, 1e-9)
+    mse = np.array([np.mean(E[inl[:, c], c] ** 2) if inl[:, c].any() else np.nan for c in range(E.shape[1])])
+    return mse, 1.0 - inl.mean(axis=0)
+
+
+def summarize_samples(samples: list, ranges, sun_edges=np.arange(0, 181, 30)) -> dict:
+    """Statistics per range bin and per Sun-angle bin (what the filter's R is built from)."""
+    rows = {"range_m": [], "count": [], "success_rate": [], "mean": [], "var": [], "mse": [], "mse_trimmed": [], "outlier_frac": []}
+    mse_by_range = {}
+    for r in ranges:
+        ss = [s for s in samples if s["range_m"] == float(r)]
+        E = np.array([s["err"] for s in ss if s["ok"]], float).reshape(-1, 6)
+        mt, of = _trimmed_mse(E)
+        mse_by_range[float(r)] = mt
+        rows["range_m"].append(float(r))
+        rows["count"].append(int(E.shape[0]))
+        rows["success_rate"].append(float(E.shape[0] / max(1, len(ss))))
+        rows["mean"].append((E.mean(0) if len(E) else np.full(6, np.nan)).tolist())
+        rows["var"].append((E.var(0) if len(E) > 1 else np.full(6, np.nan)).tolist())
+        rows["mse"].append(((E**2).mean(0) if len(E) else np.full(6, np.nan)).tolist())
+        rows["mse_trimmed"].append(mt.tolist())
+        rows["outlier_frac"].append(of.tolist())
+    # Sun-angle factor: each sample's squared error relative to its range bin's trimmed MSE,
+    # averaged per Sun bin (trimmed the same way), so the range mix does not leak in.
+    centers = 0.5 * (sun_edges[1:] + sun_edges[:-1])
+    sun = {"sun_deg": centers.tolist(), "edges_deg": list(map(float, sun_edges)), "count": [], "success_rate": [],
+           "factor": [], "mse_trimmed": []}
+    for lo, hi in zip(sun_edges[:-1], sun_edges[1:]):
+        ss = [s for s in samples if lo <= s["sun_deg"] < hi or (hi == sun_edges[-1] and s["sun_deg"] == hi)]
+        ok = [s for s in ss if s["ok"] and np.all(np.isfinite(mse_by_range[s["range_m"]]))]
+        sun["count"].append(len(ok))
+        sun["success_rate"].append(float(len(ok) / max(1, len(ss))) if ss else float("nan"))
+        if ok:
+            E = np.array([s["err"] for s in ok])
+            Z = E / np.sqrt(np.array([mse_by_range[s["range_m"]] for s in ok]))
+            fz, _ = _trimmed_mse(Z)
+            mt, _ = _trimmed_mse(E)
+            sun["factor"].append(fz.tolist())
+            sun["mse_trimmed"].append(mt.tolist())
+        else:
+            sun["factor"].append([float("nan")] * 6)
+            sun["mse_trimmed"].append([float("nan")] * 6)
+    return {"by_range": rows, "by_sun": sun}
+
+
+def plot(result: dict, out_dir: Path) -> list[Path]:
+    """Figure 5.7-style plots: error variance per camera axis versus range and Sun angle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    styles = {"solar": "-", "global": "--"}
+    colors = ["tab:red", "tab:green", "tab:blue"]
+    fig, axs = plt.subplots(2, 2, figsize=(12, 8))
+    for illum, st in result["illuminations"].items():
+        ls = styles.get(illum, ":")
+        rb, sb = st["by_range"], st["by_sun"]
+        r = np.array(rb["range_m"])
+        V = np.array(rb["mse_trimmed"], float)
+        V[np.array(rb["count"]) < 3] = np.nan  # too few poses for a variance
+        S = np.array(sb["mse_trimmed"], float)
+        S[np.array(sb["count"]) < 3] = np.nan
+        sd = np.array(sb["sun_deg"])
+        for k, name in enumerate("XYZ"):
+            axs[0, 0].plot(r, V[:, 3 + k], ls, color=colors[k], marker="o", ms=3, label=f"{name} ({illum})")
+            axs[0, 1].plot(r, V[:, k], ls, color=colors[k], marker="o", ms=3, label=f"q{k + 1} ({illum})")
+            axs[1, 0].plot(sd, S[:, 3 + k], ls, color=colors[k], marker="o", ms=3, label=f"{name} ({illum})")
+            axs[1, 1].plot(sd, S[:, k], ls, color=colors[k], marker="o", ms=3, label=f"q{k + 1} ({illum})")
+    titles = [("Distance vs. position error variance", "Distance (m)", "Position error variance, camera frame (m²)"),
+              ("Distance vs. orientation error variance", "Distance (m)", "Orientation error variance, camera frame (rad²)"),
+              ("Sun angle vs. position error variance", "Sun angle (deg)", "Position error variance, camera frame (m²)"),
+              ("Sun angle vs. orientation error variance", "Sun angle (deg)", "Orientation error variance, camera frame (rad²)")]
+    for ax, (t, xl, yl) in zip(axs.ravel(), titles):
+        ax.set_title(t)
+        ax.set_xlabel(xl)
+        ax.set_ylabel(yl)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, ncol=2)
+    fig.suptitle(f"{result['pipeline']} pipeline: relative pose error (outlier-trimmed MSE) by range and Sun angle")
+    fig.tight_layout()
+    p1 = out_dir / f"fig5_7_{result['pipeline']}.png"
+    fig.savefig(p1, dpi=110)
+    plt.close(fig)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for illum, st in result["illuminations"].items():
+        ax.plot(st["by_range"]["range_m"], st["by_range"]["success_rate"], styles.get(illum, ":"), marker="o", label=illum)
+    ax.set_xlabel("Distance (m)")
+    ax.set_ylabel("fraction of images with a pose")
+    ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    ax.set_title(f"{result['pipeline']}: success rate vs range")
+    fig.tight_layout()
+    p2 = out_dir / f"success_{result['pipeline']}.png"
+    fig.savefig(p2, dpi=110)
+    plt.close(fig)
+    return [p1, p2]
+
+
+def stats_only(result: dict) -> dict:
+    """The result without its per-sample list: what a filter needs (shipped in ``data/``)."""
+    return {k: v for k, v in result.items() if k != "samples"}
+
+
+def write(result: dict, out_dir: Path) -> dict:
+    """Write ``characterization.json`` and the plots; return the file paths."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / table_name(result["pipeline"], result["camera"])
+    path.write_text(json.dumps(result, indent=1, allow_nan=True) + "\n")
+    pngs = plot(result, out_dir)
+    return {"json": str(path), "plots": [str(p) for p in pngs]}
+
+
+def vision_config_for(pipeline: str, scenario: str | Path | None = None, sets=()) -> VisionConfig:
+    """The VisionConfig to characterize: a scenario's ``vision`` section (with ``--set``
+    overrides) or the defaults, with ``pipeline`` forced."""
+    if scenario is None:
+        cfg = VisionConfig()
+    else:
+        from swarm.scenario_files import load_scenario
+
+        cfg = load_scenario(Path(scenario), list(sets)).vision
+    cfg = cfg.model_copy(deep=True)
+    cfg.pipeline = pipeline
+    return cfg
+
+
+def run_cli(pipeline: str, out: Path, scenario: Path | None = None, sets=(), ranges=None, orientations: int = 6,
+            suns: int = 6, illuminations=("solar", "global"), ambient_global: float | None = None, seed: int = 0,
+            log=print, progress=None) -> dict:
+    """What ``swarm characterize`` does: run, write JSON + plots, print a summary table."""
+    cfg = vision_config_for(pipeline, scenario, sets)
+    amb = ambient_global if ambient_global is not None else (cfg.lighting.ambient if cfg.lighting.ambient > 0 else 0.25)
+    res = characterize(pipeline, cfg, ranges, orientations, suns, tuple(illuminations), amb, seed, log=log, progress=progress)
+    files = write(res, out)
+    for illum, st in res["illuminations"].items():
+        rb = st["by_range"]
+        log(f"{pipeline} [{illum}] range → success, σ_pos camera x/y/z (m), σ_att x/y/z (rad), trimmed:")
+        for r, ok, v in zip(rb["range_m"], rb["success_rate"], rb["mse_trimmed"]):
+            sd = np.sqrt(np.asarray(v, float))
+            log(f"  {r:5.1f} m  {ok:4.0%}  pos {sd[3]:.4f} {sd[4]:.4f} {sd[5]:.4f}  att {sd[0]:.4f} {sd[1]:.4f} {sd[2]:.4f}")
+    log(f"wrote {files['json']} and {', '.join(files['plots'])}")
+    return files

@@ -1,0 +1,200 @@
+"""docker compose for real: a swarm of containers, faults from the CLI, a second site.
+
+Needs the image (``make image``; these tests build it when missing, which takes minutes
+the first time). Marked ``docker``: ``pytest -m docker`` runs them alone.
+"""
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import uuid
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+pytestmark = [pytest.mark.docker, pytest.mark.integration]
+
+
+def _compose_cmd() -> list[str]:
+    if shutil.which("docker") is None:
+        pytest.skip("no docker CLI on this machine")
+    if subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
+        return ["docker", "compose"]
+    if shutil.which("docker-compose"):
+        return ["docker-compose"]
+    pytest.skip("neither `docker compose` nor `docker-compose` is installed")
+
+
+@pytest.fixture(scope="module")
+def image():
+    if subprocess.run(["docker", "info"], capture_output=True).returncode != 0:
+        pytest.skip("the docker daemon is not running")
+    p = subprocess.run([str(ROOT / "scripts" / "docker-build.sh")], capture_output=True, text=True, timeout=3600)
+    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    return "swarm-coloc:latest"
+
+
+class Compose:
+    def __init__(self, out: Path, env: dict, files=("compose.yaml",)):
+        self.cmd = _compose_cmd()
+        self.project = f"swt{uuid.uuid4().hex[:8]}"
+        self.files = [a for f in files for a in ("-f", str(ROOT / f))]
+        self.env = dict(os.environ, SWARM_OUT=str(out), COMPOSE_PROJECT_NAME=self.project, **env)
+        self.out = out
+        out.mkdir(parents=True, exist_ok=True)
+
+    def __call__(self, *args, timeout=900, check=True):
+        p = subprocess.run([*self.cmd, *self.files, "-p", self.project, *args], cwd=ROOT, env=self.env, capture_output=True, text=True, timeout=timeout)
+        if check and p.returncode != 0:
+            raise AssertionError(f"{' '.join(args)}: {p.stdout[-3000:]}\n{p.stderr[-3000:]}")
+        return p
+
+    def down(self):
+        self("down", "-v", "--remove-orphans", "-t", "5", check=False, timeout=300)
+
+
+def _summary(out):
+    return json.loads((out / "summary.json").read_text())
+
+
+def _sim(n, sets):
+    from swarm.scenario_files import load_scenario
+    from swarmcore.sim import simulate
+
+    return simulate(load_scenario(ROOT / "scenarios" / "demo.yaml", [f"n_sats={n}", *sets])).summary()
+
+
+def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
+    c = Compose(tmp_path / "out", {"SWARM_N": "4", "SWARM_SET_EXTRA": "duration_s=20"})
+    try:
+        c("up", timeout=900)
+    finally:
+        c.down()
+    s = _summary(c.out)
+    assert s["n_sats"] == 4 and s["steps"] == 21
+    assert (c.out / "run.mcap").stat().st_size > 100_000
+    ref = _sim(4, ["duration_s=20"])
+    for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
+        assert s[key] == ref[key], f"{key}: containers and in-process differ"
+
+
+def _fault(c: Compose, *args):
+    import time as _t
+
+    t0 = _t.monotonic()
+    p = subprocess.run(
+        [sys.executable, "-m", "swarm.cli", "fault", "--compose", "--project", c.project, *args],
+        cwd=ROOT,
+        env=dict(os.environ, SWARM_BUS_PORT=c.env["SWARM_BUS_PORT"]),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    print(f"fault {args}: {_t.monotonic() - t0:.1f} s: {p.stdout.strip()} {p.stderr.strip()[-300:]}", flush=True)
+    assert p.returncode == 0 and "done" in p.stdout, p.stdout + p.stderr
+    return p.stdout
+
+
+def _wait_step(c: Compose, k: int, timeout=300):
+    """Block until the world has reached step k (watching the bus from the host)."""
+    import zenoh
+
+    from swarm.bus.session import BusConfig
+
+    seen = threading.Event()
+    cfg = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{c.env['SWARM_BUS_PORT']}"], connect_timeout_ms=60_000)
+    with zenoh.open(cfg.zenoh_config()) as s:
+        sub = s.declare_subscriber("swarm/compose/clock", lambda smp: json.loads(bytes(smp.payload.to_bytes()))["k"] >= k and seen.set())
+        ok = seen.wait(timeout)
+        sub.undeclare()
+    assert ok, f"the swarm never reached step {k}"
+
+
+@pytest.mark.slow
+def test_container_faults_kill_restart_camera_partition(image, tmp_path):
+    from swarm.launch import free_port
+    from swarm.recording import load_recording
+    from swarmcore.scenario import Scenario
+
+    port = str(free_port())
+    n, dur = 4, 300
+    sets = f"duration_s={dur} emulator.lockstep_max_realtime_factor=3 emulator.step_timeout_s=15"
+    c = Compose(tmp_path / "out", {"SWARM_N": str(n), "SWARM_SET_EXTRA": sets, "SWARM_BUS_PORT": port})
+    log = []
+    try:
+        c("up", "-d", timeout=600)
+        _wait_step(c, 10)
+        log.append(_fault(c, "kill-agent", "2"))
+        _wait_step(c, 35)
+        log.append(_fault(c, "restart-agent", "2"))
+        _wait_step(c, 55)
+        log.append(_fault(c, "camera", "1", "0", "off"))
+        _wait_step(c, 70)
+        log.append(_fault(c, "partition", "3"))
+        _wait_step(c, 95)
+        log.append(_fault(c, "heal", "3"))
+        # The run ends by itself: wait for the recorder to write the summary and leave.
+        rid = c("ps", "-q", "recorder").stdout.split()
+        r = subprocess.run(["docker", "wait", *rid], capture_output=True, text=True, timeout=900)
+        assert r.returncode == 0, r.stderr
+    finally:
+        (tmp_path / "compose.log").write_text(c("logs", "--no-color", "-t", check=False).stdout)
+        c.down()
+    sc = Scenario(n_sats=n, duration_s=dur)
+    rec = load_recording(c.out / "run.mcap", n, sc.steps)
+    s = _summary(c.out)
+    done = {f["action"]: f["k"] for f in s["faults"] if f["phase"] == "done"}
+    assert set(done) >= {"kill-agent", "restart-agent", "camera", "partition", "heal"}, (s["faults"], log)
+    from swarm_harness import within_3sigma_fraction
+
+    # Survivors keep estimating the killed satellite within 3σ while it is dead.
+    k0, k1 = done["kill-agent"], done["restart-agent"]
+    dead = slice(k0 + 2, k1)
+    assert not rec.alive[dead, 2].any()
+    frac, cnt = within_3sigma_fraction(rec, [0, 1, 3], 2, k_from=k0 + 2, k_to=k1)
+    assert cnt > 0 and frac >= 0.97, frac
+    # The restarted agent is back.
+    assert rec.alive[k1 + 5 :, 2].mean() > 0.9
+    # Camera 0 of satellite 1 produced nothing after the fault.
+    from swarm.bus.messages import decode
+    from swarm.mcaplog import iter_messages
+
+    after = sum(
+        sum(1 for m in decode("meas", d).meas if m.camera == 0)
+        for t, _s, d, _l, _p in iter_messages(c.out / "run.mcap")
+        if t.endswith("/meas/1") and json.loads(d)["k"] > done["camera"]
+    )
+    assert after == 0
+    # Partitioned satellite 3: the others keep estimating it within 3σ, and it comes back.
+    kp, kh = done["partition"], done["heal"]
+    frac3, cnt3 = within_3sigma_fraction(rec, [0, 1], 3, k_from=kp)
+    assert cnt3 > 0 and frac3 >= 0.97, frac3
+    back = np.flatnonzero(rec.alive[kh:, 3])
+    assert back.size and back[0] <= 40, f"satellite 3's agent not back within 40 steps of the heal: {back[:5]}"
+    assert rec.alive[kh + back[0] + 5 :, 3].mean() > 0.9, rec.alive[:, 3].astype(int)
+    # The recording is complete for the processes that were up: every live survivor, every step.
+    assert rec.alive[:, [0, 1]].all()
+    assert np.isfinite(rec.t).all()
+
+
+def test_agent_on_another_site_joins_through_the_router(image, tmp_path):
+    """Two Docker networks joined only by the router: the stand-in for an agent on another
+    machine pointing at the router's endpoint."""
+    c = Compose(tmp_path / "out", {"SWARM_N": "4", "SWARM_N_LOCAL": "3", "SWARM_SET_EXTRA": "duration_s=15"}, files=("compose.yaml", "compose.remote.yaml"))
+    try:
+        c("up", timeout=900)
+        logs = c("logs", "--no-color", "remote_agent", check=False).stdout
+        nets = subprocess.run(["docker", "network", "ls", "--format", "{{.Name}}"], capture_output=True, text=True).stdout.split()
+    finally:
+        c.down()
+    assert f"{c.project}_site_b" in nets and f"{c.project}_bus" in nets
+    assert "initialised from the world's prior" in logs and "done at step 15" in logs, logs[-2000:]
+    s = _summary(c.out)
+    assert s["steps"] == 16
+    ref = _sim(4, ["duration_s=15"])
+    assert s["rms"] == ref["rms"] and s["per_pair"] == ref["per_pair"]

@@ -1,0 +1,102 @@
+"""Scenario files: defaults, overrides and errors that name the field."""
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from swarm.scenario_files import ScenarioError, load_scenario, parse_overrides
+from swarmcore import graphs
+from swarmcore.scenario import Scenario
+
+
+def test_defaults_follow_table_4_1():
+    sc = Scenario()
+    assert sc.orbit.mean_motion_rad_s == 1.08e-3
+    assert sc.sensors.gyro.arw_rad_sqrt_s == 3.16e-7 and sc.sensors.gyro.rrw_rad_s15 == 3.16e-10
+    assert sc.sensors.star_tracker.sigma_rad == 2.9e-5 and sc.sensors.gps.sigma_m == 0.01
+    assert sc.sensors.relative.sigma_att_rad == 0.03 and sc.sensors.relative.sigma_pos_m == 0.01
+    assert sc.disturbances.torque_sigma_Nm_sqrt_s == 5e-6 and sc.disturbances.accel_sigma_m_s15 == 1e-8
+    assert sc.initial.position_max_m == 10 and sc.initial.velocity_max_m_s == 0.005
+    assert sc.initial.rate_max_rad_s == 0.006 and sc.dt_s == 1.0
+
+
+def test_dissertation_inertia_refused_unless_allowed():
+    with pytest.raises(ValueError, match="triangle inequality"):
+        Scenario(spacecraft={"inertia_kg_m2": [1.67, 8.33, 3.67]})
+    sc = Scenario(spacecraft={"inertia_kg_m2": [1.67, 8.33, 3.67], "allow_nonphysical_inertia": True})
+    np.testing.assert_allclose(np.diag(sc.spacecraft.J()), [1.67, 8.33, 3.67])
+
+
+def test_bad_file_value_names_the_field(tmp_path):
+    f = tmp_path / "bad.yaml"
+    f.write_text("n_sats: 4\nsensors:\n  gps:\n    sigma_m: -1\n")
+    with pytest.raises(ScenarioError) as exc:
+        load_scenario(f)
+    msg = str(exc.value)
+    assert "sensors.gps.sigma_m" in msg and str(f) in msg and "-1" in msg
+
+
+def test_unknown_field_is_named(tmp_path):
+    f = tmp_path / "typo.yaml"
+    f.write_text("n_sats: 4\nfilter:\n  gaet: {enabled: false}\n")
+    with pytest.raises(ScenarioError, match=r"filter\.gaet: unknown field"):
+        load_scenario(f)
+
+
+def test_yaml_syntax_error_names_the_file(tmp_path):
+    f = tmp_path / "broken.yaml"
+    f.write_text("n_sats: [4\n")
+    with pytest.raises(ScenarioError, match="not valid YAML"):
+        load_scenario(f)
+
+
+def test_set_overrides_any_field(tmp_path):
+    f = tmp_path / "s.yaml"
+    f.write_text(textwrap.dedent("""
+        n_sats: 4
+        graph: {kind: complete}
+    """))
+    sc = load_scenario(f, ["graph.kind=chain", "filter.gate.enabled=false", "sensors.relative.sigma_pos_camera_m=[0.1, 0.1, 0.05]"], seed=9)
+    assert sc.graph.kind == "chain" and sc.filter.gate.enabled is False and sc.seed == 9
+    assert sc.sensors.relative.sigma_pos_camera_m == [0.1, 0.1, 0.05]
+    with pytest.raises(ScenarioError, match="graph.kind"):
+        load_scenario(f, ["graph.kind=ring"])
+    with pytest.raises(ScenarioError, match="dotted.key=value"):
+        parse_overrides(["n_sats"])
+
+
+def test_graph_matrix_validated_and_used():
+    with pytest.raises(ValueError, match=r"graph.matrix: must be 3×3"):
+        Scenario(n_sats=3, graph={"kind": "matrix", "matrix": [[1, 1], [1, 1]]})
+    M = [[1, 1, 0], [0, 0, 1], [1, 0, 1]]
+    sc = Scenario(n_sats=3, graph={"kind": "matrix", "matrix": M})
+    G = graphs.incidence(3, "matrix", matrix=sc.graph.matrix)
+    i, j = graphs.edges(G)
+    assert list(zip(i.tolist(), j.tolist())) == [(0, 1), (1, 2), (2, 0)]
+    assert G.diagonal().tolist() == [True, False, True]
+
+
+@pytest.mark.parametrize(
+    "kind,expected",
+    [
+        ("complete", 12),
+        ("star", 3),
+        ("chain", 3),
+        ("duplex_chain", 6),
+    ],
+)
+def test_topologies(kind, expected):
+    G = graphs.incidence(4, kind)
+    assert G[~np.eye(4, dtype=bool)].sum() == expected
+    if kind == "star":
+        assert G[:, 0].sum() == 4 and G[1:, 1:][~np.eye(3, dtype=bool)].sum() == 0
+
+
+def test_every_shipped_scenario_loads():
+    from pathlib import Path
+
+    files = sorted(Path(__file__).resolve().parents[1].joinpath("scenarios").glob("*.yaml"))
+    assert files
+    for f in files:
+        load_scenario(f)

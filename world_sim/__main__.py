@@ -1,0 +1,28 @@
+"""python -m world_sim --scenario FILE --run RUN [bus flags]"""
+
+from __future__ import annotations
+
+import sys
+
+from swarm.node import bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
+
+
+def main(argv=None) -> int:
+    p = role_arg_parser("world_sim: truth, time, sensors and cameras of the swarm")
+    p.add_argument("--no-recorder", action="store_true", help="do not wait for a recorder at startup")
+    a = p.parse_args(argv)
+    setup_logging("world", a.verbose)
+    sc = load_role_scenario(a.scenario, a.sets)
+    from .node import World
+
+    w = World(sc, a.run, bus_config_from_args(a), expect_recorder=not a.no_recorder)
+    install_term_handler(w.stop)
+    try:
+        w.run_steps()
+    finally:
+        w.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
