@@ -31,6 +31,9 @@ def main(argv=None) -> int:
     install_term_handler(ag.stop)
     try:
         ag.run_loop()
+        if ag.done and not ag.stop.is_set():
+            # Our final estimate may still be on its way: leave once the recorder has it.
+            ag.linger_while_recording(sc.emulator.shutdown_linger_s + 5.0)
     finally:
         ag.close()
     return 0

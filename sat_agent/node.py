@@ -25,6 +25,7 @@ from swarm.bus.convert import (
 )
 from swarm.bus.messages import Fault, Health
 from swarm.node import Node
+from swarmcore import kernels
 from swarmcore.mekf import RelativeMeasurements, reframe
 from swarmcore.scenario import Scenario
 from swarmcore.sim import filter_step
@@ -36,7 +37,7 @@ class Agent(Node):
     def __init__(self, sc: Scenario, sat: int, run: str, bus, restart: bool = False):
         if not 0 <= sat < sc.n_sats:
             raise SystemExit(f"sat_agent: --id {sat} is not a satellite of this {sc.n_sats}-satellite swarm")
-        super().__init__("agent", sat, run, sc.n_sats, bus)
+        super().__init__("agent", sat, run, sc.n_sats, bus, announce=False)
         self.sc = sc
         self.i = sat
         self.params = filter_params(sc, sat)
@@ -64,6 +65,8 @@ class Agent(Node):
         self.watch_liveliness(self.keys.alive("agent"))
         self.finished: dict[int, dict[int, float]] = {}  # step → {peer: when we learnt it is past it}
         self.queryable(self.keys.cov(sat), self._serve_cov)
+        kernels.warm_up()  # compile before the world counts on our step times
+        self.announce()
 
     # -- queries and events -----------------------------------------------------
     def _serve_cov(self, key: str):

@@ -25,7 +25,7 @@ NEEDS_STATE = ("greedy", "swarm_greedy", "fast_swarm_greedy", "logdet_greedy")
 
 class Selector(Node):
     def __init__(self, sc: Scenario, run: str, bus):
-        super().__init__("selector", 0, run, sc.n_sats, bus)
+        super().__init__("selector", 0, run, sc.n_sats, bus, announce=False)
         self.sc = sc
         self.G = scenario_graph(sc)
         self.params = [filter_params(sc, i) for i in range(sc.n_sats)]
@@ -34,11 +34,13 @@ class Selector(Node):
         self.done = False
         self.planned: set[int] = set()
         self.next_plan: dict[int, int] = {}  # agent → the step its latest estimate lets us plan
+        self.clock_seen = False  # the run has started
         self.subscribe(self.keys.est())
         self.subscribe(self.keys.fault())
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.clock())
         self.watch_liveliness(self.keys.alive("agent"))
+        self.announce()
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
@@ -59,16 +61,18 @@ class Selector(Node):
             f: Fault = ev.msg
             if f.action == "camera" and f.phase == "command" and f.target is not None and f.camera is not None:
                 self.camera_ok[f.target, f.camera] = f.state == "on"
-        elif ev.kind == "clock" and ev.msg.done:
-            self.done = True
+        elif ev.kind == "clock":
+            self.clock_seen = True
+            self.done = self.done or ev.msg.done
         return True
 
-    def plan(self, k: int, ref: int) -> None:
+    def plan(self, k: int, ref: int, msg=None) -> None:
         sc = self.sc
         t0 = time.perf_counter()
         est = None
         if sc.selection.strategy in NEEDS_STATE:
-            msg = self.query(self.keys.cov(ref), "full_est", timeout=sc.emulator.step_timeout_s)
+            if msg is None:
+                msg = self.query(self.keys.cov(ref), "full_est", timeout=sc.emulator.step_timeout_s)
             if msg is None:
                 self.log.warning("step %d: agent %d did not serve its estimate", k, ref)
                 return
@@ -99,6 +103,16 @@ class Selector(Node):
         )
         self.planned.add(k)
 
+    def plan_first(self, ref: int) -> None:
+        """Plan step 0 from the reference agent's prior, fetched rather than awaited: an
+        agent publishes its prior once, when it initialises, and a selector that came up
+        later (or whose subscription was still propagating) never sees it."""
+        msg = self.query(self.keys.cov(ref), "full_est", timeout=2.0)
+        if msg is None or msg.own != ref:
+            return  # not initialised yet: its prior will arrive as an event, or we ask again
+        if msg.k == 0 and not self.clock_seen:
+            self.plan(0, ref, msg)
+
     def run_loop(self) -> None:
         if self.sc.selection.strategy == "none":
             self.log.info("the scenario takes every measurement of its graph: nothing to select")
@@ -109,6 +123,9 @@ class Selector(Node):
             self.pump(0.5)
             # Plan from the reference agent's latest estimate only (the lowest live id).
             ref = self.ref_agent()
+            if ref is not None and ref not in self.next_plan and not self.clock_seen and 0 not in self.planned:
+                self.plan_first(ref)
+                continue
             k = self.next_plan.get(ref, -1) if ref is not None else -1
             if 0 <= k < self.sc.steps and k not in self.planned:
                 self.plan(k, ref)

@@ -53,7 +53,7 @@ def _id_fields(kind: str, msg) -> list[int]:
 class Node:
     """A role's bus presence. Only the thread that calls :meth:`next_event` touches state."""
 
-    def __init__(self, role: str, ident: int | str, run: str, n_sats: int, bus: BusConfig):
+    def __init__(self, role: str, ident: int | str, run: str, n_sats: int, bus: BusConfig, announce: bool = True):
         self.role = role
         self.ident = ident
         self.name = f"{role}-{ident}" if role in ("agent",) else role
@@ -67,7 +67,16 @@ class Node:
         self._malformed_logged = 0
         self.stop = threading.Event()
         self.session = open_session(bus)
-        self.token = self.session.liveliness().declare_token(self.keys.alive(role, ident))
+        self.token = None
+        if announce:
+            self.announce()
+
+    def announce(self) -> None:
+        """Declare this node alive. Roles call it after declaring their subscribers and
+        queryables, so that "alive" on the bus means "listening": whoever reacts to the
+        token (the world starting the run, say) cannot publish into a gap."""
+        if self.token is None:
+            self.token = self.session.liveliness().declare_token(self.keys.alive(self.role, self.ident))
 
     # -- plumbing -------------------------------------------------------------
     def subscribe(self, key: str) -> None:
@@ -85,9 +94,11 @@ class Node:
                 pass
         self._handles.clear()
         try:
-            self.token.undeclare()
+            if self.token is not None:
+                self.token.undeclare()
         except Exception:
             pass
+        self.token = None
 
     def put(self, key: str, msg) -> None:
         self.session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
@@ -169,6 +180,40 @@ class Node:
         except MessageError as exc:
             self.count_malformed(s.key, exc)
             return None
+
+    def linger_while_recording(self, timeout_s: float) -> bool:
+        """Keep this session open until the run's recorder (if one is alive) has finished.
+
+        A Zenoh session that closes right after a put can take undelivered messages with
+        it (seen here: every agent's last estimate missing from the recording when the
+        agents left the moment the world said done). The recorder drops its liveliness
+        token only once it holds every live agent's final estimate, so waiting for that
+        token to go is an acknowledgement. Returns False if ``timeout_s`` passed first."""
+        gone = threading.Event()
+
+        def cb(sample) -> None:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                gone.set()
+
+        key = self.keys.alive("recorder")
+        sub = self.session.liveliness().declare_subscriber(key, cb)
+        try:
+            present = False
+            try:
+                present = any(r.ok is not None for r in self.session.liveliness().get(key, timeout=min(5.0, timeout_s)))
+            except zenoh.ZError as exc:
+                self.log.warning("liveliness query %s: %s", key, exc)
+            if not present:
+                return True
+            if not gone.wait(timeout_s):
+                self.log.warning("the recorder was still running %.0f s after the run ended; leaving anyway", timeout_s)
+                return False
+            return True
+        finally:
+            try:
+                sub.undeclare()
+            except Exception:
+                pass
 
     def close(self) -> None:
         self._undeclare_all()

@@ -175,7 +175,7 @@ def main(argv=None) -> int:
     r = Recorder(a.run, a.out, bus_config_from_args(a), a.flush_every_s, derive_foxglove=not a.no_foxglove, scenario=sc)
     install_term_handler(r.stop)
     try:
-        r.run_loop()
+        r.run_loop(max_linger_s=sc.emulator.shutdown_linger_s if sc is not None else 30.0)
     finally:
         r.close()
     if a.summary and sc is not None:

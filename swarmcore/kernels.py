@@ -17,7 +17,7 @@ import os
 
 import numpy as np
 
-__all__ = ["gate_d2", "information", "HAVE_NUMBA"]
+__all__ = ["gate_d2", "information", "warm_up", "HAVE_NUMBA"]
 
 try:  # pragma: no cover - exercised by whichever is installed
     if os.environ.get("SWARM_NO_NUMBA"):
@@ -232,3 +232,15 @@ def information(n, observer, target, y, Hi, Hj, R):
             np.ascontiguousarray(y), np.ascontiguousarray(Hi), np.ascontiguousarray(Hj), np.ascontiguousarray(R),
         )
     return information_numpy(n, observer, target, y, Hi, Hj, R)
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) every kernel now, on a two-satellite dummy,
+    so that a process's first filter step is not also its compile step."""
+    n = 2
+    P = np.eye(6 * n)
+    o, t = np.array([0]), np.array([1])
+    y = np.zeros((1, 6))
+    H = np.eye(6)[None].copy()
+    gate_d2(P, o, t, y, H, -H, H)
+    information(n, o, t, y, H, -H, H)

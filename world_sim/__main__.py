@@ -19,6 +19,9 @@ def main(argv=None) -> int:
     install_term_handler(w.stop)
     try:
         w.run_steps()
+        if not w.stop.is_set():
+            # The "done" clock may still be on its way: leave once the recorder has finished.
+            w.linger_while_recording(sc.emulator.shutdown_linger_s + 5.0)
     finally:
         w.close()
     return 0

@@ -42,7 +42,7 @@ class World(Node):
                 f"world_sim: vision.pipeline {sc.vision.pipeline!r} is not distributed yet (images do not travel on "
                 "the bus); run it in-process with `swarm sim`, or set vision.pipeline: none"
             )
-        super().__init__("world", 0, run, sc.n_sats, bus)
+        super().__init__("world", 0, run, sc.n_sats, bus, announce=False)
         self.sc = sc
         self.wp = world_params(sc)
         self.G = scenario_graph(sc)
@@ -69,6 +69,7 @@ class World(Node):
         self.started = False
         self.queryable(self.keys.init(), self._serve_prior)
         self.queryable(self.keys.claim(), self._serve_claim)
+        self.announce()
 
     # -- queries ------------------------------------------------------------------
     def _serve_prior(self, key: str):
