@@ -22,11 +22,12 @@ from swarm.bus.convert import (
     estimate_msg,
     full_estimate_msg,
     relative_from_batches,
+    views_from_images,
 )
 from swarm.bus.messages import Fault, Health
 from swarm.node import Node
 from swarmcore import kernels
-from swarmcore.mekf import RelativeMeasurements, reframe
+from swarmcore.mekf import RelativeMeasurements, predict, reframe
 from swarmcore.scenario import Scenario
 from swarmcore.sim import filter_step
 from swarmcore.streams import stream
@@ -65,6 +66,13 @@ class Agent(Node):
         self.watch_liveliness(self.keys.alive("agent"))
         self.finished: dict[int, dict[int, float]] = {}  # step → {peer: when we learnt it is past it}
         self.queryable(self.keys.cov(sat), self._serve_cov)
+        self.vision = None
+        self.imgs: dict[int, object] = {}
+        if sc.vision.pipeline != "none":
+            from swarmvision.pipeline import VisionSystem  # the pose pipelines; rendering stays in the world
+
+            self.vision = VisionSystem(sc.vision, sc.n_sats, sc.spacecraft.half_size_m, sc.seed, sc.orbit.mean_motion_rad_s)
+            self.subscribe(self.keys.img(sat))
         kernels.warm_up()  # compile before the world counts on our step times
         self.announce()
 
@@ -93,6 +101,8 @@ class Agent(Node):
             self.sensors[k] = ev.msg
         elif ev.kind == "cam":
             self.cams[k] = ev.msg
+        elif ev.kind == "img":
+            self.imgs[k] = ev.msg
         elif ev.kind == "meas":
             if ev.msg.observer != self.i:
                 if k <= cur:
@@ -194,6 +204,28 @@ class Agent(Node):
         )
         return rel, np.array([d.camera for d in dets], dtype=int)
 
+    def _catch_up(self, k: int) -> None:
+        """Predict (only) across steps this agent missed (free-running mode, a stall)."""
+        while self.est.step < k - 1:
+            s_prev = self.sensors.pop(self.est.step + 1, None)
+            self.est = filter_step(self.est, self.params, None if s_prev is None else _gyro(s_prev), None, RelativeMeasurements.empty())[0]
+
+    def _vision_batch(self, k: int):
+        """Our relative measurements of step k from our own images (and their cameras)."""
+        msg = self.imgs.pop(k, None)
+        if msg is None or not msg.views:
+            return RelativeMeasurements.empty(), np.zeros(0, dtype=int)
+        views = [v for v in views_from_images(msg) if v.camera >= 6 or self.camera_ok[v.camera]]
+        rel = self.vision.measure(self.i, views, self.est, k, targets=msg.targets)
+        rep = self.vision.last_reports.get(self.i)
+        if rep is not None and rep.missed:
+            self.log.debug("step %d: no pose of %s from the images", k, rep.missed)
+        if self.sc.vision.pipeline == "stereo":
+            cams = 6 + rel.target
+        else:
+            cams = np.array([int(rep.details.get(int(j), {}).get("camera", 0)) for j in rel.target], dtype=int)
+        return rel, cams
+
     def _dropped(self, k: int, what: int) -> bool:
         if self.drop_rate <= 0:
             return False
@@ -205,9 +237,19 @@ class Agent(Node):
         t = clock.t_s
         timeout = em.step_timeout_s if em.time_mode == "lockstep" else 0.8 * self.sc.dt_s / em.realtime_factor
         if self.i in clock.live_agents:  # otherwise the world sends us nothing this step
-            self.wait_for(lambda: k in self.sensors and k in self.cams, timeout)
+            self.wait_for(lambda: k in self.sensors and k in self.cams and (self.vision is None or k in self.imgs), timeout)
         sens = self.sensors.pop(k, None)
-        rel_own, cams = self._own_batch(k)
+        t0 = time.perf_counter()
+        if self.vision is not None:
+            # The image pipelines start from this step's prediction (tag ambiguity, ICP
+            # seed), so predict first, as the in-process simulator does.
+            self._catch_up(k)
+            if k > 0 and self.est.step < k:
+                self.est = predict(self.est, self.params, None if sens is None else _gyro(sens))
+            rel_own, cams = self._vision_batch(k)
+        else:
+            rel_own, cams = self._own_batch(k)
+        ms_own = (time.perf_counter() - t0) * 1e3
         self.cams.pop(k, None)
         if not self._dropped(k, 0):
             self.put(self.keys.meas(self.i), batch_msg(rel_own, cams, run=self.run, sender=self.name, k=k, t_s=t, observer=self.i))
@@ -234,15 +276,12 @@ class Agent(Node):
         batches = [got[j] for j in sorted(got)]
         rel = RelativeMeasurements.concat([rel_own, relative_from_batches(batches)])
         t0 = time.perf_counter()
-        # Catch up over steps this agent missed (free-running mode): predict only.
-        while self.est.step < k - 1:
-            s_prev = self.sensors.pop(self.est.step + 1, None)
-            self.est = filter_step(self.est, self.params, None if s_prev is None else _gyro(s_prev), None, RelativeMeasurements.empty())[0]
+        self._catch_up(k)
         gyro = None if sens is None else _gyro(sens)
         absm = None if sens is None else absolute_from_sensors(sens)
         self.est, report = filter_step(self.est, self.params, gyro, absm, rel, self.sc.filter.mode, propagate=k > 0 and self.est.step < k)
         self.last_step = k
-        ms = (time.perf_counter() - t0) * 1e3
+        ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.vision is not None else 0.0)
         msg = estimate_msg(
             self.est,
             run=self.run,
@@ -272,7 +311,7 @@ class Agent(Node):
                 host=_HOST,
             ),
         )
-        for store in (self.sensors, self.cams, self.batches, self.clocks, self.finished):
+        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished):
             for old in [s for s in store if s < k - 2]:
                 store.pop(old, None)
 

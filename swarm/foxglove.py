@@ -29,6 +29,7 @@ from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 from foxglove_schemas_protobuf.Point3_pb2 import Point3
 from foxglove_schemas_protobuf.Pose_pb2 import Pose
 from foxglove_schemas_protobuf.Quaternion_pb2 import Quaternion
+from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneEntity_pb2 import SceneEntity
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
@@ -106,8 +107,9 @@ def _pose(r, q) -> Pose:
 class FoxgloveDeriver:
     """Turns decoded bus messages into Foxglove messages on the recorder's writer."""
 
-    def __init__(self, writer, mean_motion: float | None = None, half_size_m: float = 0.2):
+    def __init__(self, writer, mean_motion: float | None = None, half_size_m: float = 0.2, images: bool = False):
         self.w = writer
+        self.images = images  # rendered camera images too (large: opt-in)
         self.mean_motion = mean_motion
         self.size = 2 * half_size_m
         self._sids: dict[str, int] = {}
@@ -132,6 +134,18 @@ class FoxgloveDeriver:
             self._estimate(msg, log_ns)
         elif kind == "meas":
             self._measurements(msg, log_ns)
+        elif kind == "img" and self.images:
+            self._images(msg, log_ns)
+
+    def _images(self, m, log_ns: int) -> None:
+        """Every rendered view as ``foxglove.RawImage`` (mono8) on ``/sat<i>/cam<c>[/left|/right]``."""
+        pix = iter(m.pixels)
+        for v in m.views:
+            for side in (("",) if v.n_images == 1 else ("/left", "/right")):
+                im = next(pix)
+                msg = RawImage(timestamp=_ts(int(round(m.t_s * 1e9))), frame_id=f"sat{m.sat}/cam{v.camera}",
+                               width=v.width_px, height=v.height_px, encoding="mono8", step=v.width_px, data=im.tobytes())
+                self._put(f"/sat{m.sat}/cam{v.camera}{side}", msg, log_ns)
 
     def _truth(self, m, log_ns: int) -> None:
         q = q_BH(np.asarray(m.q_BI), self.mean_motion, m.t_s)

@@ -63,7 +63,8 @@ class Recorder:
         if derive_foxglove and scenario is not None:
             from .foxglove import FoxgloveDeriver
 
-            self.foxglove = FoxgloveDeriver(self.w, scenario.orbit.mean_motion_rad_s, scenario.spacecraft.half_size_m)
+            self.foxglove = FoxgloveDeriver(self.w, scenario.orbit.mean_motion_rad_s, scenario.spacecraft.half_size_m,
+                                            images=scenario.emulator.record_images)
 
     def _schema(self, kind: str) -> int:
         sid = self._schema_ids.get(kind)
@@ -93,7 +94,10 @@ class Recorder:
             if kind == "est":
                 self._est_at.setdefault(msg.k, set()).add(msg.own)
                 self._est_at.pop(msg.k - 3, None)
-            self.w.add(self.w.channel(s.key, self._schema(kind)), s.payload, now, int(round(msg.t_s * 1e9)))
+            # Images: the JSON header only on the bus channel (pixels as foxglove.RawImage when
+            # emulator.record_images is on); every other message exactly as it travelled.
+            data = msg.header_json() if kind == "img" else s.payload
+            self.w.add(self.w.channel(s.key, self._schema(kind)), data, now, int(round(msg.t_s * 1e9)))
             if self.foxglove is not None:
                 self.foxglove.on_message(kind, msg, now)
             if kind == "est" and self.final is not None and msg.k == self.final[0]:

@@ -272,6 +272,9 @@ class Emulator(_Model):
     )
     startup_timeout_s: PosFloat = Field(120.0, description="longest wait for every process to come up")
     flush_every_s: PosFloat = Field(1.0, description="recorder: flush to disk at least this often (sim time)")
+    record_images: bool = Field(
+        False, description="recorder: also write every rendered image (foxglove.RawImage, large) besides its metadata"
+    )
     shutdown_linger_s: PosFloat = Field(
         30.0, description="after the last step: how long the recorder waits for every live agent's final estimate, "
         "and the world and agents keep their bus sessions open until the recorder has them"

@@ -50,7 +50,7 @@ def tracking_camera_T_CB(r_B: np.ndarray) -> np.ndarray:
     else:
         R_act, _ = cv2.Rodrigues(axis / s * np.arctan2(s, c))
     # R_act carries body axes onto camera axes (columns = camera axes in B); T_CB = R_actᵀ.
-    return R_act.T
+    return np.ascontiguousarray(R_act.T)  # C order: results must not depend on layout (bus copies are C)
 
 
 @dataclass
@@ -88,6 +88,10 @@ class StereoPipeline:
         )
         self.Q = Q
         self._o3d = o3d
+        # Open3D parallelises ICP's sums with TBB (OMP_NUM_THREADS does not reach it), and
+        # a parallel sum's order varies run to run: one thread keeps a seed's numbers the
+        # same in-process, across processes and in containers.
+        o3d.utility.set_max_threads(1)
         self.target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(model_points, float)))
         self.target.normals = o3d.utility.Vector3dVector(np.asarray(model_normals, float))
         self.min_intensity_dn = cfg.min_intensity_dn

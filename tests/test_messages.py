@@ -11,7 +11,9 @@ from swarm.bus.convert import (
     estimate_from_full,
     estimate_msg,
     full_estimate_msg,
+    images_msg,
     relative_from_batches,
+    views_from_images,
 )
 from swarmcore import quat
 from swarmcore.mekf import RelativeMeasurements, SwarmEstimate
@@ -40,6 +42,10 @@ EXAMPLES = {
     "fault": M.Fault(**H, action="camera", target=1, camera=2, state="off"),
     "health": M.Health(**H, sat=1, camera_ok=[True] * 5 + [False], malformed=2),
     "claim": M.Claim(**H, sat=2, token="abc123", running=True),
+    "img": M.Images(**H, sat=1, targets=[0, 2], views=[
+        M.ViewMeta(camera=2, T_CB=[0, 1.0, 0, 0, 0, 1, 1, 0, 0], r_C_B_m=[0, 0.2, 0], width_px=5, height_px=3, fx_px=4.0, fy_px=4.0, cx_px=2.0, cy_px=1.0),
+        M.ViewMeta(camera=8, T_CB=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], r_C_B_m=[0, 0, 0], width_px=4, height_px=2, fx_px=9.0, fy_px=9.0, cx_px=1.5, cy_px=0.5, target=2, baseline_m=0.5, n_images=2),
+    ]).with_pixels([rng.integers(0, 256, (3, 5), dtype=np.uint8), rng.integers(0, 256, (2, 4), dtype=np.uint8), np.zeros((2, 4), np.uint8)]),
     "truth": M.Truth(**H, q_BI=[[0, 0, 0, 1.0]], omega_BI_B_rad_s=[[0, 0, 0.1]], r_H_m=[[1, 2, 3.0]], v_H_m_s=[[0, 0, 0.0]], gyro_bias_B_rad_s=[[0, 0, 0.0]]),
 }
 
@@ -54,7 +60,8 @@ def test_round_trip_exact_with_version(kind):
     raw = M.encode(msg)
     back = M.decode(kind, raw)
     assert back == msg
-    assert json.loads(raw)["v"] == M.SCHEMA_VERSION == 1
+    header = raw.partition(b"\n")[0] if kind == "img" else raw
+    assert json.loads(header)["v"] == M.SCHEMA_VERSION == 1
     assert M.encode(back) == raw
 
 
@@ -95,6 +102,41 @@ def test_malformed_payloads_are_refused_with_the_reason(kind, payload, reason):
         M.decode(kind, payload)
 
 
+def test_images_carry_pixels_exactly_and_refuse_a_short_payload():
+    msg = EXAMPLES["img"]
+    raw = M.encode(msg)
+    back = M.decode("img", raw)
+    assert [p.tolist() for p in back.pixels] == [p.tolist() for p in msg.pixels]
+    assert all(p.flags["WRITEABLE"] and p.flags["C_CONTIGUOUS"] for p in back.pixels)
+    with pytest.raises(M.MessageError, match="need 31 pixel bytes, got 30"):
+        M.decode("img", raw[:-1])
+    with pytest.raises(M.MessageError, match="no newline"):
+        M.decode("img", raw.partition(b"\n")[0])
+    with pytest.raises(M.MessageError, match="width_px"):
+        M.decode("img", raw.replace(b'"width_px":5', b'"width_px":0'))
+    with pytest.raises(M.MessageError, match="do not match"):
+        msg.model_copy().with_pixels([np.zeros((3, 5), np.uint8)])
+
+
+def test_views_round_trip_through_an_images_message():
+    from swarmcore.cameras import T_CB, Intrinsics
+    from swarmvision.pipeline import View
+
+    intr = Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5)
+    views = [
+        View(1, 3, 7, 7.0, (rng.integers(0, 256, (4, 6), dtype=np.uint8),), T_CB[3].copy(), np.array([-0.2, 0, 0]), intr),
+        View(1, 8, 7, 7.0, (np.ones((4, 6), np.uint8), np.zeros((4, 6), np.uint8)), np.eye(3), np.zeros(3), intr, target=2, baseline_m=0.5),
+    ]
+    msg = M.decode("img", M.encode(images_msg(views, run=RUN, k=7, t_s=7.0, sat=1, targets=np.array([2, 0]))))
+    assert msg.targets == [0, 2]
+    back = views_from_images(msg)
+    for a, b in zip(views, back):
+        assert (a.observer, a.camera, a.step, a.t, a.target, a.baseline_m, a.intrinsics) == (b.observer, b.camera, b.step, b.t, b.target, b.baseline_m, b.intrinsics)
+        np.testing.assert_array_equal(a.T_CB, b.T_CB)
+        np.testing.assert_array_equal(a.r_C_B, b.r_C_B)
+        assert len(a.images) == len(b.images) and all(np.array_equal(x, y) for x, y in zip(a.images, b.images))
+
+
 def test_bad_array_payload():
     est = json.loads(M.encode(EXAMPLES["est"]))
     est["P_pose"]["b64"] = est["P_pose"]["b64"][:-8]
@@ -108,6 +150,7 @@ def test_keys_and_parsing():
     assert M.parse_key(k.meas(3)) == ("r1", "meas", 3)
     assert M.parse_key(k.sensors(2)) == ("r1", "sensors", 2)
     assert M.parse_key(k.cam(0)) == ("r1", "cam", 0)
+    assert M.parse_key(k.img(5)) == ("r1", "img", 5)
     assert M.parse_key(k.clock()) == ("r1", "clock", None)
     assert M.parse_key(k.cov(4)) == ("r1", "full_est", 4)
     assert M.parse_key(k.alive("agent", 7)) == ("r1", "alive", 7)

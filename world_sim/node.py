@@ -15,11 +15,12 @@ import time
 
 import numpy as np
 
-from swarm.bus.convert import detections, full_estimate_msg, sensors_msg
+from swarm.bus.convert import detections, full_estimate_msg, images_msg, sensors_msg
 from swarm.bus.messages import CameraOutput, Claim, Clock, Fault, Select, Truth
 from swarm.node import Node
 from swarmcore import graphs
 from swarmcore.cameras import best_camera
+from swarmcore.mekf import RelativeMeasurements
 from swarmcore.scenario import Scenario
 from swarmcore.sim import scenario_graph
 from swarmcore.world import (
@@ -37,12 +38,17 @@ AGENT_FAULTS = ("kill-agent", "restart-agent", "stop-agent")
 
 class World(Node):
     def __init__(self, sc: Scenario, run: str, bus, expect_recorder: bool = True, expect_selector: bool | None = None):
-        if sc.vision.pipeline != "none":
+        if sc.vision.pipeline == "stereo" and sc.vision.aim == "predicted":
             raise SystemExit(
-                f"world_sim: vision.pipeline {sc.vision.pipeline!r} is not distributed yet (images do not travel on "
-                "the bus); run it in-process with `swarm sim`, or set vision.pipeline: none"
+                "world_sim: vision.aim 'predicted' (tracking cameras pointed by each agent's prediction) runs "
+                "in-process only (`swarm sim`); distributed runs aim at the true line of sight: set vision.aim: truth"
             )
         super().__init__("world", 0, run, sc.n_sats, bus, announce=False)
+        self.vision = None
+        if sc.vision.pipeline != "none":
+            from swarmvision.pipeline import VisionSystem  # rendering only when asked for
+
+            self.vision = VisionSystem(sc.vision, sc.n_sats, sc.spacecraft.half_size_m, sc.seed, sc.orbit.mean_motion_rad_s)
         self.sc = sc
         self.wp = world_params(sc)
         self.G = scenario_graph(sc)
@@ -245,6 +251,21 @@ class World(Node):
         )
         return obs, tgt
 
+    def publish_images(self, k: int, t: float, live: list[int], obs: np.ndarray, tgt: np.ndarray) -> None:
+        """Render what each live observer's scheduled cameras see and send it to that agent
+        (an empty message when it has nothing scheduled: it waits for one every step)."""
+        keep = np.isin(obs, live)
+        obs, tgt = obs[keep], tgt[keep]
+        views = self.vision.render_views(k, t, self.truth.q_BI, self.truth.r_H, (obs, tgt), camera_ok=self.camera_ok)
+        for i in live:
+            mine = [v for (o, _c), v in sorted(views.items()) if o == i]
+            self.put(self.keys.img(i), images_msg(mine, run=self.run, k=k, t_s=t, sat=i, targets=tgt[obs == i]))
+
+    def close(self) -> None:
+        if self.vision is not None:
+            self.vision.close()
+        super().close()
+
     def run_steps(self, progress=None) -> None:
         sc, em = self.sc, self.sc.emulator
         self.startup()
@@ -295,7 +316,11 @@ class World(Node):
                     ),
                 )
             obs, tgt = self.selection(k)
-            rel = relative_measurements(self.wp, tr, obs, tgt)
+            if self.vision is not None:
+                self.publish_images(k, t, live, obs, tgt)
+                rel = RelativeMeasurements.empty()  # agents measure from the images
+            else:
+                rel = relative_measurements(self.wp, tr, obs, tgt)
             # The camera that truly sees the target must be healthy to produce anything.
             cams = np.zeros(0, dtype=int)
             if len(rel):

@@ -7,7 +7,7 @@ import numpy as np
 from swarmcore.mekf import AbsoluteMeasurement, RelativeMeasurements, SwarmEstimate, UpdateReport
 from swarmcore.sim import pose_cov_blocks
 
-from .messages import B64Array, Detection, Estimate, FullEstimate, MeasBatch, RelMeas, Sensors
+from .messages import B64Array, Detection, Estimate, FullEstimate, Images, MeasBatch, RelMeas, Sensors, ViewMeta
 
 __all__ = [
     "estimate_msg",
@@ -18,6 +18,8 @@ __all__ = [
     "batch_msg",
     "relative_from_batches",
     "detections",
+    "images_msg",
+    "views_from_images",
 ]
 
 
@@ -151,3 +153,45 @@ def relative_from_batches(batches: list[MeasBatch]) -> RelativeMeasurements:
         r_ij_Bi=np.array([m.r_ij_Bi_m for m in rows], dtype=float),
         R_Bi=np.array([m.R_Bi for m in rows], dtype=float).reshape(-1, 6, 6),
     )
+
+
+def images_msg(views, *, run: str, k: int, t_s: float, sat: int, targets) -> Images:
+    """One observer's rendered views (:class:`swarmvision.pipeline.View`) as an Images message."""
+    metas, pixels = [], []
+    for v in views:
+        it = v.intrinsics
+        metas.append(
+            ViewMeta(
+                camera=int(v.camera),
+                T_CB=_l(np.asarray(v.T_CB, dtype=float).ravel()),
+                r_C_B_m=_l(v.r_C_B),
+                width_px=int(it.width),
+                height_px=int(it.height),
+                fx_px=float(it.fx),
+                fy_px=float(it.fy),
+                cx_px=float(it.cx),
+                cy_px=float(it.cy),
+                target=int(v.target),
+                baseline_m=float(v.baseline_m),
+                n_images=len(v.images),
+            )
+        )
+        pixels.extend(v.images)
+    msg = Images(run=run, sender="world", k=k, t_s=t_s, sat=sat, targets=sorted(int(j) for j in targets), views=metas)
+    return msg.with_pixels(pixels)
+
+
+def views_from_images(msg: Images) -> list:
+    """The views of an Images message, as the vision pipelines take them."""
+    from swarmcore.cameras import Intrinsics
+    from swarmvision.pipeline import View
+
+    out, pix = [], iter(msg.pixels)
+    for m in msg.views:
+        ims = tuple(next(pix) for _ in range(m.n_images))
+        intr = Intrinsics(m.width_px, m.height_px, m.fx_px, m.fy_px, m.cx_px, m.cy_px)
+        out.append(
+            View(msg.sat, m.camera, msg.k, msg.t_s, ims, np.array(m.T_CB, dtype=float).reshape(3, 3), np.array(m.r_C_B_m, dtype=float),
+                 intr, target=m.target, baseline_m=m.baseline_m)
+        )
+    return out

@@ -13,6 +13,7 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/clock                world → all           Clock
     swarm/<run>/sat/<i>/sensors      world → agent i       Sensors
     swarm/<run>/sat/<i>/cam          world → agent i       CameraOutput
+    swarm/<run>/sat/<i>/img          world → agent i       Images  (rendered; JSON header + raw pixels)
     swarm/<run>/meas/<i>             agent i → all         MeasBatch
     swarm/<run>/est/<i>              agent i → all         Estimate
     swarm/<run>/cov/<i>              agent i (queryable)   FullEstimate
@@ -32,7 +33,7 @@ import re
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator
 
 SCHEMA_VERSION = 1
 
@@ -53,6 +54,8 @@ __all__ = [
     "Health",
     "Truth",
     "Claim",
+    "Images",
+    "ViewMeta",
     "Keys",
     "MODELS",
     "encode",
@@ -145,11 +148,13 @@ class CameraOutput(_Header):
 
 
 class RelMeas(_Msg):
-    """A relative pose measurement with its covariance R_Bi (6×6 row-major, [att rad, pos m])."""
+    """A relative pose measurement with its covariance R_Bi (6×6 row-major, [att rad, pos m]).
+
+    ``camera``: 0–5 the body-fixed face cameras; 6 + j the tracking stereo pair aimed at j."""
 
     observer: SatId
     target: SatId
-    camera: int = Field(ge=0, le=5)
+    camera: int = Field(ge=0, le=6 + 10_000)
     q_BjBi: Vec4
     r_ij_Bi_m: Vec3
     R_Bi: Annotated[list[float], Field(min_length=36, max_length=36)]
@@ -286,6 +291,63 @@ class Truth(_Header):
     gyro_bias_B_rad_s: list[Vec3]
 
 
+class ViewMeta(_Msg):
+    """One camera's view inside :class:`Images`: where the camera is and how it projects."""
+
+    camera: int = Field(ge=0, description="0–5 face cameras; 6 + j the stereo pair tracking j")
+    T_CB: Annotated[list[float], Field(min_length=9, max_length=9)] = Field(description="body → camera (OpenCV axes), row-major")
+    r_C_B_m: Vec3 = Field(description="(left) camera centre in the body frame")
+    width_px: int = Field(ge=1, le=16384)
+    height_px: int = Field(ge=1, le=16384)
+    fx_px: float = Field(gt=0)
+    fy_px: float = Field(gt=0)
+    cx_px: float
+    cy_px: float
+    target: int = Field(-1, ge=-1, description="stereo: the tracked satellite; −1 for face cameras")
+    baseline_m: float = Field(0.0, ge=0.0)
+    n_images: int = Field(1, ge=1, le=2, description="1 (face camera) or 2 (stereo left, right)")
+
+
+class Images(_Header):
+    """World → agent i: the images its scheduled cameras saw at step k (possibly none).
+
+    On the wire: this JSON header, one newline, then the raw 8-bit grey pixels of every
+    view's images in order (``height_px × width_px`` bytes each): images are too large for
+    JSON and base64 and need no conversion. :func:`decode` checks the byte count.
+    ``targets``: the satellites this observer is scheduled to measure."""
+
+    kind: Literal["img"] = "img"
+    sat: SatId
+    targets: list[SatId] = []
+    views: list[ViewMeta] = []
+    _pixels: list = PrivateAttr(default_factory=list)
+
+    def with_pixels(self, pixels: list) -> "Images":
+        want = [(v.height_px, v.width_px) for v in self.views for _ in range(v.n_images)]
+        got = [tuple(np.shape(p)) for p in pixels]
+        if got != want:
+            raise MessageError(f"images: pixel arrays of shapes {got} do not match the views' {want}")
+        self._pixels = [np.ascontiguousarray(p, dtype=np.uint8) for p in pixels]
+        return self
+
+    @property
+    def pixels(self) -> list:
+        """Every view's images, flattened in view order (uint8 arrays, height × width)."""
+        return self._pixels
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Images):
+            return NotImplemented
+        return self.header_json() == other.header_json() and len(self.pixels) == len(other.pixels) and all(
+            np.array_equal(a, b) for a, b in zip(self.pixels, other.pixels)
+        )
+
+    __hash__ = None
+
+    def header_json(self) -> bytes:
+        return self.model_dump_json().encode("utf-8")
+
+
 MODELS: dict[str, type[_Header]] = {
     "clock": Clock,
     "sensors": Sensors,
@@ -298,10 +360,13 @@ MODELS: dict[str, type[_Header]] = {
     "health": Health,
     "truth": Truth,
     "claim": Claim,
+    "img": Images,
 }
 
 
 def encode(msg: _Header) -> bytes:
+    if isinstance(msg, Images):
+        return msg.header_json() + b"\n" + b"".join(p.tobytes() for p in msg.pixels)
     return msg.model_dump_json().encode("utf-8")
 
 
@@ -310,12 +375,30 @@ def decode(kind: str, payload: bytes | bytearray | memoryview):
     model = MODELS.get(kind)
     if model is None:
         raise MessageError(f"unknown message kind {kind!r}")
+    payload = bytes(payload)
+    body = None
+    if model is Images:
+        payload, nl, body = payload.partition(b"\n")
+        if not nl:
+            raise MessageError("invalid img message: no newline between the JSON header and the pixels")
     try:
-        return model.model_validate_json(bytes(payload))
+        msg = model.model_validate_json(payload)
     except ValidationError as exc:
         first = exc.errors()[0]
         loc = ".".join(str(p) for p in first["loc"]) or "(payload)"
         raise MessageError(f"invalid {kind} message: {loc}: {first['msg']} ({exc.error_count()} error(s))") from None
+    if body is not None:
+        shapes = [(v.height_px, v.width_px) for v in msg.views for _ in range(v.n_images)]
+        need = sum(h * w for h, w in shapes)
+        if len(body) != need:
+            raise MessageError(f"invalid img message: {len(shapes)} image(s) need {need} pixel bytes, got {len(body)}")
+        pix, off = [], 0
+        for h, w in shapes:
+            # A copy, not a view into the payload: writeable and aligned like any new array.
+            pix.append(np.frombuffer(body, dtype=np.uint8, count=h * w, offset=off).reshape(h, w).copy())
+            off += h * w
+        msg.with_pixels(pix)
+    return msg
 
 
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
@@ -338,6 +421,9 @@ class Keys:
 
     def cam(self, i: int) -> str:
         return f"{self.root}/sat/{i}/cam"
+
+    def img(self, i: int | str) -> str:
+        return f"{self.root}/sat/{i}/img"
 
     def meas(self, i: int | str = "*") -> str:
         return f"{self.root}/meas/{i}"
@@ -376,7 +462,7 @@ class Keys:
 _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
     r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)"
-    r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam)"
+    r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
     r"|(?P<idkind>meas|est|health|cov|init)/(?P<id>\d+)"
     r"|alive/(?P<role>[^/]+)/(?P<ident>[^/]+))$"
 )
