@@ -372,8 +372,10 @@ def predict(est: SwarmEstimate, params: FilterParams, gyro_rate_B: np.ndarray | 
 
     # States: others' attitude and rate by RK4 on Euler's equations (torque-free mean),
     # own attitude by the exact constant-rate step, translation by closed-form HCW.
-    q_new, w_new = rk4_attitude(est.q_BI, est.omega_BI_B, params.J, dt, params.rk4_substeps)
-    q_new[own] = quat.propagate_constant_rate(est.q_BI[own], omega_own, dt)
+    out = kernels.rk4_free(est.q_BI, est.omega_BI_B, params.J, params.J_inv, dt, params.rk4_substeps)
+    q_new, w_new = rk4_attitude(est.q_BI, est.omega_BI_B, params.J, dt, params.rk4_substeps) if out is None else out
+    q_own = kernels.propagate_constant_rate(est.q_BI[own], omega_own, dt)
+    q_new[own] = quat.propagate_constant_rate(est.q_BI[own], omega_own, dt) if q_own is None else q_own
     w_new[own] = omega_own
     rv = np.concatenate([est.r_H, est.v_H], axis=1) @ params.phi_trans.T
     if gyro_rate_B is None:
@@ -399,8 +401,16 @@ def relative_residuals(est: SwarmEstimate, params: FilterParams, meas: RelativeM
     """Residuals (m, 6) and Jacobian blocks w.r.t. [a_i, r_i] and [a_j, r_j], each (m, 6, 6).
 
     Column order of each block is ``[a (3), Δr (3)]`` of that satellite; the blocks for
-    the Δω/Δβ and Δv columns are zero.
+    the Δω/Δβ and Δv columns are zero. Compiled (:func:`swarmcore.kernels.relative_residuals`)
+    when numba is present; :func:`relative_residuals_numpy` is the same in numpy.
     """
+    out = kernels.relative_residuals(est.q_BI, est.r_H, T_IH(params.mean_motion, est.t), meas.observer, meas.target,
+                                     meas.q_BjBi.reshape(-1, 4), meas.r_ij_Bi.reshape(-1, 3))
+    return relative_residuals_numpy(est, params, meas) if out is None else out
+
+
+def relative_residuals_numpy(est: SwarmEstimate, params: FilterParams, meas: RelativeMeasurements):
+    """:func:`relative_residuals` in vectorised numpy (the compiled kernel's twin)."""
     i, j = meas.observer, meas.target
     T_all = quat.attitude_matrix(est.q_BI)  # (n,3,3) I→B per satellite, computed once
     T_i = T_all[i]
@@ -523,7 +533,9 @@ def _apply_correction(est: SwarmEstimate, params: FilterParams, dx: np.ndarray, 
     """Multiplicative attitude reset and additive corrections of every other state."""
     n = est.n
     d = dx.reshape(n, BLOCK)
-    q = quat.retract(est.q_BI, d[:, A_SL])
+    q = kernels.retract(est.q_BI, d[:, A_SL])
+    if q is None:
+        q = quat.retract(est.q_BI, d[:, A_SL])
     w = est.omega_BI_B + d[:, W_SL]
     own = params.own
     bias = est.bias_B + d[own, W_SL]
@@ -630,15 +642,17 @@ def _solve_information(P: np.ndarray, n: int, lin: Linearized):
     M = np.eye(no) + L.T @ Lam @ L
     Uc = chol(0.5 * (M + M.T))
     W = tri_solve(Uc, L.T).T  # L U⁻ᵀ: P⁺_OO = W Wᵀ
-    B_U = chol_solve(L, P_OU).T  # regression of the unobserved states on O: P_UO P_OO⁻¹
-    BW = B_U @ W
+    # With B = P_UO P_OO⁻¹ = Xᵀ L⁻¹ and X = L⁻¹ P_OU: B P_OU = XᵀX and B W = (U⁻¹ X)ᵀ = Yᵀ,
+    # two triangular solves in place of a Cholesky solve and a product.
+    X = tri_solve(L, P_OU)
+    Y = tri_solve(Uc, X)
     Wb = W.T @ b
     Pn = np.empty_like(P)
     Pn[:no, :no] = W @ W.T
-    Pn[no:, :no] = BW @ W.T
-    Pn[:no, no:] = Pn[no:, :no].T
-    Pn[no:, no:] = P_UU - B_U @ P_OU + BW @ BW.T
-    dxp = np.concatenate([W @ Wb, BW @ Wb])
+    Pn[:no, no:] = W @ Y
+    Pn[no:, :no] = Pn[:no, no:].T
+    Pn[no:, no:] = P_UU - X.T @ X + Y.T @ Y
+    dxp = np.concatenate([W @ Wb, Y.T @ Wb])
     # Joint NIS yᵀ S⁻¹ y = yᵀ R⁻¹ y − bᵀ P⁺_OO b (matrix inversion lemma).
     return dxp[inv], Pn.take(inv, 0).take(inv, 1), yRy - float(Wb @ Wb)
 
@@ -678,17 +692,22 @@ def update(
     """
     n = est.n
     if len(relative):
-        bad = (relative.observer < 0) | (relative.observer >= n) | (relative.target < 0) | (relative.target >= n)
-        if np.any(bad) or np.any(relative.observer == relative.target):
+        lo = min(relative.observer.min(), relative.target.min())
+        hi = max(relative.observer.max(), relative.target.max())
+        if lo < 0 or hi >= n or (relative.observer == relative.target).any():
             raise ValueError("relative measurement with an unknown or self satellite id")
     y, Hi, Hj, d2, accepted = gate(est, params, relative)
-    kept = relative.subset(accepted)
+    if accepted.all():  # the usual case: no copies
+        kept = relative
+    else:
+        kept = relative.subset(accepted)
+        y, Hi, Hj = y[accepted], Hi[accepted], Hj[accepted]
     ya = Ha = Ra = None
     if absolute is not None:
         res = absolute_residual(est, params, absolute)
         if res is not None:
             ya, Ha, Ra = res
-    lin = Linearized(params.own, kept.observer, kept.target, y[accepted], Hi[accepted], Hj[accepted], kept.R_Bi, ya, Ha, Ra)
+    lin = Linearized(params.own, kept.observer, kept.target, y, Hi, Hj, kept.R_Bi, ya, Ha, Ra)
     method = choose_method(method or params.update_method, n, lin.count)
     solve = SOLVERS[method]
     dx, P, nis = solve(est.P, n, lin)
