@@ -73,6 +73,8 @@ class Agent(Node):
 
             self.vision = VisionSystem(sc.vision, sc.n_sats, sc.spacecraft.half_size_m, sc.seed, sc.orbit.mean_motion_rad_s)
             self.subscribe(self.keys.img(sat))
+            # Build the pipeline now (tag detector; stereo: the model cloud), not on step 0.
+            _ = self.vision.stereo if sc.vision.pipeline == "stereo" else self.vision.mono
         kernels.warm_up()  # compile before the world counts on our step times
         self.announce()
 

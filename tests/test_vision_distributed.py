@@ -50,6 +50,12 @@ def test_mono_images_on_the_bus_give_the_in_process_numbers(tmp_path):
     assert len(topics["0/img"]) == sc.steps and topics["0/img"][0].startswith(b"{")
     raw = [t for t in topics if t.startswith("/sat0/cam")]
     assert raw, "no foxglove.RawImage channel for satellite 0"
+    from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+
+    img = RawImage()
+    img.ParseFromString(topics[raw[0]][0])
+    assert (img.width, img.height, img.encoding, img.step) == (800, 800, "mono8", 800)
+    assert len(img.data) == 800 * 800 and max(img.data) > 0  # something in view, not a blank frame
 
 
 def test_stereo_images_on_the_bus_give_the_in_process_numbers(tmp_path):
