@@ -150,9 +150,12 @@ def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir
         clocks = [lt for topic, _s, _d, lt, _p in iter_messages(out / "run.mcap") if topic.endswith("/clock")]
         wall = (max(clocks) - min(clocks)) / 1e9
         steps_ms = []
+        est_prefix = f"{sw.keys.root}/est/"  # the agents' own channels, not the derived /foxglove/est/<i>
         for topic, _s, data, _lt, _p in iter_messages(out / "run.mcap"):
-            if "/est/" in topic:
-                steps_ms.append(json.loads(data).get("step_ms", 0.0))
+            if topic.startswith(est_prefix):
+                m = json.loads(data)
+                if m.get("phase") == "posterior":
+                    steps_ms.append(m.get("step_ms", 0.0))
         row = {
             "n": n,
             "time_mode": "lockstep",

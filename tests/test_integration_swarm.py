@@ -261,3 +261,14 @@ def test_bench_bus_prints_and_writes_json(tmp_path):
     assert [r["bytes"] > 1_000_000 for r in rows] == [False, True]
     for r in rows:
         assert 0 < r["one_way"]["p50_ms"] <= r["one_way"]["p99_ms"]
+
+
+def test_bench_run_measures_a_real_swarm(tmp_path):
+    """`swarm bench run`'s measurement: a real lockstep swarm, its real-time factor and the
+    agents' filter times read back from the recording."""
+    from swarm.bench_bus import bench_realtime
+
+    (row,) = bench_realtime([3], duration_s=4.0, workdir=tmp_path, log=lambda s: None)
+    assert row["world_exit_code"] == 0 and row["n"] == 3
+    assert row["realtime_factor"] > 0 and row["stepping_wall_s"] > 0
+    assert row["agent_filter_ms_median"] is not None and row["agent_filter_ms_median"] > 0
