@@ -306,6 +306,24 @@ if HAVE_NUMBA:
         return qo, wo
 
     @numba.njit(cache=True, fastmath=False, inline="always")
+    def _qmul_s(a0, a1, a2, a3, b0, b1, b2, b3):
+        """Shuster product a ⊗ b = [a4 b_v + b4 a_v − a_v × b_v, a4 b4 − a_v·b_v], scalars."""
+        return (
+            a3 * b0 + b3 * a0 - (a1 * b2 - a2 * b1),
+            a3 * b1 + b3 * a1 - (a2 * b0 - a0 * b2),
+            a3 * b2 + b3 * a2 - (a0 * b1 - a1 * b0),
+            a3 * b3 - (a0 * b0 + a1 * b1 + a2 * b2),
+        )
+
+    @numba.njit(cache=True, fastmath=False, inline="always")
+    def _unit_canonical(r0, r1, r2, r3, out):
+        """``out`` = the unit quaternion of (r0..r3) with non-negative scalar part."""
+        nr = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
+        if r3 < 0.0:
+            nr = -nr
+        out[0], out[1], out[2], out[3] = r0 / nr, r1 / nr, r2 / nr, r3 / nr
+
+    @numba.njit(cache=True, fastmath=False, inline="always")
     def _att_matrix(q, T):
         """T(q) = (q4² − |e|²) I + 2 e eᵀ − 2 q4 [e×] into T (3×3)."""
         e0, e1, e2, w = q[0], q[1], q[2], q[3]
@@ -343,20 +361,9 @@ if HAVE_NUMBA:
             rh0 = C[i, 0, 0] * d0 + C[i, 0, 1] * d1 + C[i, 0, 2] * d2
             rh1 = C[i, 1, 0] * d0 + C[i, 1, 1] * d1 + C[i, 1, 2] * d2
             rh2 = C[i, 2, 0] * d0 + C[i, 2, 1] * d1 + C[i, 2, 2] * d2
-            # q̂ = q_j ⊗ q_i⁻¹ (Shuster: a ⊗ b = [a4 b_v + b4 a_v − a_v × b_v, a4 b4 − a_v·b_v])
-            a0, a1, a2, a3 = q_BI[j, 0], q_BI[j, 1], q_BI[j, 2], q_BI[j, 3]
-            b0, b1, b2, b3 = -q_BI[i, 0], -q_BI[i, 1], -q_BI[i, 2], q_BI[i, 3]
-            h0 = a3 * b0 + b3 * a0 - (a1 * b2 - a2 * b1)
-            h1 = a3 * b1 + b3 * a1 - (a2 * b0 - a0 * b2)
-            h2 = a3 * b2 + b3 * a2 - (a0 * b1 - a1 * b0)
-            h3 = a3 * b3 - (a0 * b0 + a1 * b1 + a2 * b2)
-            # δq = q̂⁻¹ ⊗ q_meas;  a = 2 vec(δq) / δq4
-            a0, a1, a2, a3 = -h0, -h1, -h2, h3
-            b0, b1, b2, b3 = q_meas[k, 0], q_meas[k, 1], q_meas[k, 2], q_meas[k, 3]
-            e0 = a3 * b0 + b3 * a0 - (a1 * b2 - a2 * b1)
-            e1 = a3 * b1 + b3 * a1 - (a2 * b0 - a0 * b2)
-            e2 = a3 * b2 + b3 * a2 - (a0 * b1 - a1 * b0)
-            e3 = a3 * b3 - (a0 * b0 + a1 * b1 + a2 * b2)
+            # q̂ = q_j ⊗ q_i⁻¹;  δq = q̂⁻¹ ⊗ q_meas;  a = 2 vec(δq) / δq4
+            h0, h1, h2, h3 = _qmul_s(q_BI[j, 0], q_BI[j, 1], q_BI[j, 2], q_BI[j, 3], -q_BI[i, 0], -q_BI[i, 1], -q_BI[i, 2], q_BI[i, 3])
+            e0, e1, e2, e3 = _qmul_s(-h0, -h1, -h2, h3, q_meas[k, 0], q_meas[k, 1], q_meas[k, 2], q_meas[k, 3])
             y[k, 0] = 2.0 * e0 / e3
             y[k, 1] = 2.0 * e1 / e3
             y[k, 2] = 2.0 * e2 / e3
@@ -410,16 +417,8 @@ if HAVE_NUMBA:
             # δq(a) = normalise([a/2, 1]);  q = normalise(δq ⊗ q̂) with q4 ≥ 0
             d0, d1, d2 = 0.5 * a[s, 0], 0.5 * a[s, 1], 0.5 * a[s, 2]
             nd = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2 + 1.0)
-            d0, d1, d2, d3 = d0 / nd, d1 / nd, d2 / nd, 1.0 / nd
-            b0, b1, b2, b3 = q_hat[s, 0], q_hat[s, 1], q_hat[s, 2], q_hat[s, 3]
-            r0 = d3 * b0 + b3 * d0 - (d1 * b2 - d2 * b1)
-            r1 = d3 * b1 + b3 * d1 - (d2 * b0 - d0 * b2)
-            r2 = d3 * b2 + b3 * d2 - (d0 * b1 - d1 * b0)
-            r3 = d3 * b3 - (d0 * b0 + d1 * b1 + d2 * b2)
-            nr = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
-            if r3 < 0.0:
-                nr = -nr
-            out[s, 0], out[s, 1], out[s, 2], out[s, 3] = r0 / nr, r1 / nr, r2 / nr, r3 / nr
+            r = _qmul_s(d0 / nd, d1 / nd, d2 / nd, 1.0 / nd, q_hat[s, 0], q_hat[s, 1], q_hat[s, 2], q_hat[s, 3])
+            _unit_canonical(r[0], r[1], r[2], r[3], out[s])
         return out
 
 
@@ -438,17 +437,9 @@ if HAVE_NUMBA:
         ang = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
         # rotvec → quaternion, sin(x/2)/x by its series for tiny angles (as quat.rotvec_to_quat)
         k = 0.5 - ang * ang / 48.0 if ang < 1e-8 else np.sin(0.5 * ang) / ang
-        d0, d1, d2, d3 = k * t0, k * t1, k * t2, np.cos(0.5 * ang)
-        b0, b1, b2, b3 = q[0], q[1], q[2], q[3]
-        r0 = d3 * b0 + b3 * d0 - (d1 * b2 - d2 * b1)
-        r1 = d3 * b1 + b3 * d1 - (d2 * b0 - d0 * b2)
-        r2 = d3 * b2 + b3 * d2 - (d0 * b1 - d1 * b0)
-        r3 = d3 * b3 - (d0 * b0 + d1 * b1 + d2 * b2)
-        nr = np.sqrt(r0 * r0 + r1 * r1 + r2 * r2 + r3 * r3)
-        if r3 < 0.0:
-            nr = -nr
+        r = _qmul_s(k * t0, k * t1, k * t2, np.cos(0.5 * ang), q[0], q[1], q[2], q[3])
         out = np.empty(4)
-        out[0], out[1], out[2], out[3] = r0 / nr, r1 / nr, r2 / nr, r3 / nr
+        _unit_canonical(r[0], r[1], r[2], r[3], out)
         return out
 
 
