@@ -43,8 +43,8 @@ class LocalSwarm:
     """The processes of one run; :meth:`run` drives it to the end."""
 
     def __init__(self, sc: Scenario, out: Path, run_id: str | None = None, python: str = sys.executable, log=print):
-        if sc.vision.pipeline == "stereo" and sc.vision.aim == "predicted":
-            raise ValueError("vision.aim: 'predicted' runs in-process only (`swarm sim`); use vision.aim: truth")
+        if (why := sc.vision.distributed_refusal()) is not None:
+            raise ValueError(why)
         self.sc = sc
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)

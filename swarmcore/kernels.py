@@ -253,15 +253,20 @@ def warm_up() -> None:
 if HAVE_NUMBA:
 
     @numba.njit(cache=True, fastmath=False, inline="always")
+    def _qmul_s(a0, a1, a2, a3, b0, b1, b2, b3):
+        """Shuster product a ⊗ b = [a4 b_v + b4 a_v − a_v × b_v, a4 b4 − a_v·b_v], scalars."""
+        return (
+            a3 * b0 + b3 * a0 - (a1 * b2 - a2 * b1),
+            a3 * b1 + b3 * a1 - (a2 * b0 - a0 * b2),
+            a3 * b2 + b3 * a2 - (a0 * b1 - a1 * b0),
+            a3 * b3 - (a0 * b0 + a1 * b1 + a2 * b2),
+        )
+
+    @numba.njit(cache=True, fastmath=False, inline="always")
     def _att_rhs(q0, q1, q2, q3, w0, w1, w2, J, Ji):
-        # q̇ = ½ [ω; 0] ⊗ q (Shuster): ½ [q4 ω − ω × e, −ω·e];  ω̇ = J⁻¹ (−ω × Jω)
-        c0 = w1 * q2 - w2 * q1
-        c1 = w2 * q0 - w0 * q2
-        c2 = w0 * q1 - w1 * q0
-        dq0 = 0.5 * (q3 * w0 - c0)
-        dq1 = 0.5 * (q3 * w1 - c1)
-        dq2 = 0.5 * (q3 * w2 - c2)
-        dq3 = -0.5 * (w0 * q0 + w1 * q1 + w2 * q2)
+        # q̇ = ½ [ω; 0] ⊗ q (Shuster);  ω̇ = J⁻¹ (−ω × Jω)
+        p0, p1, p2, p3 = _qmul_s(w0, w1, w2, 0.0, q0, q1, q2, q3)
+        dq0, dq1, dq2, dq3 = 0.5 * p0, 0.5 * p1, 0.5 * p2, 0.5 * p3
         h0 = J[0, 0] * w0 + J[0, 1] * w1 + J[0, 2] * w2
         h1 = J[1, 0] * w0 + J[1, 1] * w1 + J[1, 2] * w2
         h2 = J[2, 0] * w0 + J[2, 1] * w1 + J[2, 2] * w2
@@ -304,16 +309,6 @@ if HAVE_NUMBA:
             qo[s, 0], qo[s, 1], qo[s, 2], qo[s, 3] = sgn * a0, sgn * a1, sgn * a2, sgn * a3
             wo[s, 0], wo[s, 1], wo[s, 2] = b0, b1, b2
         return qo, wo
-
-    @numba.njit(cache=True, fastmath=False, inline="always")
-    def _qmul_s(a0, a1, a2, a3, b0, b1, b2, b3):
-        """Shuster product a ⊗ b = [a4 b_v + b4 a_v − a_v × b_v, a4 b4 − a_v·b_v], scalars."""
-        return (
-            a3 * b0 + b3 * a0 - (a1 * b2 - a2 * b1),
-            a3 * b1 + b3 * a1 - (a2 * b0 - a0 * b2),
-            a3 * b2 + b3 * a2 - (a0 * b1 - a1 * b0),
-            a3 * b3 - (a0 * b0 + a1 * b1 + a2 * b2),
-        )
 
     @numba.njit(cache=True, fastmath=False, inline="always")
     def _unit_canonical(r0, r1, r2, r3, out):

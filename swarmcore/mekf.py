@@ -49,7 +49,7 @@ from functools import lru_cache
 import numpy as np
 from . import kernels, quat
 from .dynamics import T_IH, hcw_noise_cov, hcw_phi, rk4_attitude
-from .linalg import chol, chol_solve, expm_batched, tri_solve
+from .linalg import chol, expm_batched, tri_solve
 
 __all__ = [
     "FilterParams",

@@ -206,6 +206,13 @@ class VisionConfig(_Model):
         "(dissertation's virtual frame) or the one the observer predicts"
     )
 
+    def distributed_refusal(self) -> str | None:
+        """Why this configuration cannot run distributed (`swarm run`, compose), or None."""
+        if self.pipeline == "stereo" and self.aim == "predicted":
+            return ("vision.aim: 'predicted' (tracking cameras pointed by each agent's prediction) runs "
+                    "in-process only (`swarm sim`); distributed runs aim at the true line of sight: set vision.aim: truth")
+        return None
+
     @model_validator(mode="after")
     def _checks(self):
         if self.stereo.block_size % 2 == 0:

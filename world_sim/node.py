@@ -38,11 +38,8 @@ AGENT_FAULTS = ("kill-agent", "restart-agent", "stop-agent")
 
 class World(Node):
     def __init__(self, sc: Scenario, run: str, bus, expect_recorder: bool = True, expect_selector: bool | None = None):
-        if sc.vision.pipeline == "stereo" and sc.vision.aim == "predicted":
-            raise SystemExit(
-                "world_sim: vision.aim 'predicted' (tracking cameras pointed by each agent's prediction) runs "
-                "in-process only (`swarm sim`); distributed runs aim at the true line of sight: set vision.aim: truth"
-            )
+        if (why := sc.vision.distributed_refusal()) is not None:
+            raise SystemExit(f"world_sim: {why}")
         super().__init__("world", 0, run, sc.n_sats, bus, announce=False)
         self.vision = None
         if sc.vision.pipeline != "none":

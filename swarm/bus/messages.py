@@ -322,8 +322,12 @@ class Images(_Header):
     views: list[ViewMeta] = []
     _pixels: list = PrivateAttr(default_factory=list)
 
+    def pixel_shapes(self) -> list[tuple[int, int]]:
+        """(height, width) of every image the views announce, in wire order."""
+        return [(v.height_px, v.width_px) for v in self.views for _ in range(v.n_images)]
+
     def with_pixels(self, pixels: list) -> "Images":
-        want = [(v.height_px, v.width_px) for v in self.views for _ in range(v.n_images)]
+        want = self.pixel_shapes()
         got = [tuple(np.shape(p)) for p in pixels]
         if got != want:
             raise MessageError(f"images: pixel arrays of shapes {got} do not match the views' {want}")
@@ -388,7 +392,7 @@ def decode(kind: str, payload: bytes | bytearray | memoryview):
         loc = ".".join(str(p) for p in first["loc"]) or "(payload)"
         raise MessageError(f"invalid {kind} message: {loc}: {first['msg']} ({exc.error_count()} error(s))") from None
     if body is not None:
-        shapes = [(v.height_px, v.width_px) for v in msg.views for _ in range(v.n_images)]
+        shapes = msg.pixel_shapes()
         need = sum(h * w for h, w in shapes)
         if len(body) != need:
             raise MessageError(f"invalid img message: {len(shapes)} image(s) need {need} pixel bytes, got {len(body)}")
