@@ -14,13 +14,13 @@ from swarmcore.mekf import predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.world import (
     absolute_measurements,
-    filter_params,
     initial_estimate,
     initial_truth,
-    relative_measurements,
     step_truth,
     world_params,
 )
+from swarmcore.agent import filter_params
+from swarmcore.measurement import synthetic_batch
 
 __all__ = ["bench_filter", "machine_info"]
 
@@ -48,7 +48,7 @@ def _inputs(n: int, graph: str, steps: int, seed: int):
     inputs = []
     for _ in range(steps):
         truth, gyro = step_truth(wp, truth)
-        inputs.append((gyro[0], absolute_measurements(wp, truth)[0], relative_measurements(wp, truth, obs, tgt).canonical()))
+        inputs.append((gyro[0], absolute_measurements(wp, truth)[0], synthetic_batch(wp, truth, obs, tgt)))
     return params, est0, inputs
 
 

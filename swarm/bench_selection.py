@@ -22,13 +22,13 @@ from swarmcore.scenario import Scenario
 from swarmcore.streams import stream
 from swarmcore.world import (
     absolute_measurements,
-    filter_params,
     initial_estimate,
     initial_truth,
-    relative_measurements,
     step_truth,
     world_params,
 )
+from swarmcore.agent import filter_params
+from swarmcore.measurement import synthetic_batch
 
 from .bench import machine_info
 from .outputs import write_json
@@ -50,7 +50,7 @@ def _planning_estimate(sc: Scenario, warm_steps: int):
         truth, gyro = step_truth(wp, truth)
         est = predict(est, p, gyro[0])
         obs, tgt = sel.random_tree_select(full, None, stream(sc.seed, "bench-warm", k))
-        rel = relative_measurements(wp, truth, obs, tgt).canonical()
+        rel = synthetic_batch(wp, truth, obs, tgt)
         est, _ = update(est, p, absolute_measurements(wp, truth)[0], rel)
     return predict(est, p, None), p
 

@@ -95,12 +95,14 @@ def sim(
     """
     from swarmcore.sim import simulate
 
+    from .models import measurement_model
+
     from .outputs import write_run
 
     sc = _load(scenario, sets, seed)
     with _progress() as prog:
         task = prog.add_task(f"sim {sc.name} n={sc.n_sats}", total=sc.steps)
-        res = simulate(sc, progress=lambda k, K: prog.update(task, completed=k))
+        res = simulate(sc, measurement_model(sc), progress=lambda k, K: prog.update(task, completed=k))
     summary = write_run(res, out, arrays=arrays)
     console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed}"))
     console.print(
@@ -462,13 +464,13 @@ def characterize(
         raise typer.Exit(2)
     from swarmvision.characterize import run_cli
 
+    vision = None if scenario is None else _load(scenario, sets).vision
     with _progress() as prog:
         task = prog.add_task(f"characterize {pipeline}", total=None)
         run_cli(
             pipeline,
             out,
-            scenario=scenario,
-            sets=sets or (),
+            vision=vision,
             ranges=[float(x) for x in ranges.split(",") if x.strip()],
             orientations=orientations,
             suns=suns,
@@ -500,7 +502,7 @@ def bench_vision_cmd(
 
     res = bench_vision(repeats=repeats, log=log)
     paths = [Path(p) for p in scenarios.split(",") if p.strip()]
-    res["scenarios"] = scenario_rtf(paths, steps, log=log) if paths else []
+    res["scenarios"] = scenario_rtf([(p, _load(p, None)) for p in paths], steps, log=log) if paths else []
     res["machine_info"] = machine_info()
     write_json(out, res)
     console.print(f"wrote {out}")

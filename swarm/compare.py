@@ -60,6 +60,8 @@ def _one(args) -> dict:
     from swarmcore import selection
     from swarmcore.sim import simulate
 
+    from .models import measurement_model
+
     sc = Scenario.model_validate({**data, "seed": seed, "selection": {**data["selection"], "strategy": strategy}})
     times_ms: list[float] = []
     inner = selection.select_for_scenario
@@ -73,7 +75,7 @@ def _one(args) -> dict:
     selection.select_for_scenario = timed
     try:
         t0 = time.perf_counter()
-        res = simulate(sc)
+        res = simulate(sc, measurement_model(sc))
         wall = time.perf_counter() - t0
     finally:
         selection.select_for_scenario = inner

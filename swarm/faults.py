@@ -17,13 +17,14 @@ import subprocess
 import time
 from pathlib import Path
 
+from swarmcore.scenario import NETWORK_FAULTS, PROCESS_FAULTS, SELECTOR_PROCESS_FAULTS
+
 from .bus.messages import Fault, Keys
 from .bus.session import BusConfig
 from .node import Node
 
 __all__ = ["send_fault", "compose_containers"]
 
-PROCESS_ACTIONS = ("kill-agent", "stop-agent", "restart-agent", "kill-selector", "restart-selector", "partition", "heal")
 
 
 def _target(run_dir, connect, run_id, compose) -> tuple[str, str, int]:
@@ -84,7 +85,7 @@ def _agent_hosts(node: Node, want: int | None, timeout: float = 10.0) -> dict[in
 
 def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | None) -> str:
     cont = compose_containers(project)
-    if cmd.action in ("kill-selector", "restart-selector"):
+    if cmd.action in SELECTOR_PROCESS_FAULTS:
         ids = [c["ID"] for c in cont if c["service"] == "selector"]
     elif cmd.action == "heal":
         # Off the bus, the agent cannot report: find the agent container that is not on
@@ -125,7 +126,7 @@ def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | 
         _docker("stop", cid)
     elif cmd.action in ("restart-agent", "restart-selector"):
         _docker("restart", cid)
-    elif cmd.action in ("partition", "heal"):
+    elif cmd.action in NETWORK_FAULTS:
         nets = json.loads(_docker("inspect", "--format", "{{json .NetworkSettings.Networks}}", cid)) or {}
         net = network or next((n for n in nets if n.endswith("_bus")), None)
         if cmd.action == "partition":
@@ -161,7 +162,7 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
         if ev is not None:
             k, t = ev.msg.k, ev.msg.t_s
         cmd = Fault(run=run, sender="cli", k=k, t_s=t, **fields)
-        if compose and cmd.action in PROCESS_ACTIONS:
+        if compose and cmd.action in PROCESS_FAULTS:
             node.put(keys.fault(), cmd.model_copy(update={"detail": "compose"}))
             try:
                 detail = _compose_action(node, cmd, project, network)
@@ -170,7 +171,7 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
                 raise
             node.put(keys.fault(), cmd.model_copy(update={"phase": "done", "sender": "cli", "detail": detail}))
             return f"{cmd.action} {cmd.target if cmd.target is not None else ''}: done ({detail})"
-        if not compose and cmd.action in ("partition", "heal"):
+        if not compose and cmd.action in NETWORK_FAULTS:
             raise ValueError(f"{cmd.action} needs --compose (local processes share one network)")
         node.put(keys.fault(), cmd)
         deadline = time.monotonic() + timeout

@@ -20,8 +20,10 @@ def _one(args):
     data, seed, out_dir, arrays = args
     from swarmcore.sim import simulate
 
+    from .models import measurement_model
+
     sc = Scenario.model_validate({**data, "seed": seed})
-    res = simulate(sc)
+    res = simulate(sc, measurement_model(sc))
     return seed, write_run(res, Path(out_dir), arrays=arrays)
 
 

@@ -9,7 +9,6 @@ import signal
 import sys
 import threading
 import time
-from dataclasses import dataclass
 
 import zenoh
 
@@ -17,20 +16,9 @@ from swarmcore.scenario import Scenario
 
 from .bus.messages import Keys, MessageError, decode, encode, parse_key
 from .bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
+from .protocol import Event, Query, Send, Wait
 
 __all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scenario"]
-
-
-@dataclass(frozen=True)
-class Event:
-    """A decoded sample: a message (``msg``) or a liveliness change (``alive`` True/False)."""
-
-    key: str
-    kind: str
-    sat: int | None
-    msg: object | None = None
-    alive: bool | None = None
-    role: str | None = None
 
 
 def _id_fields(kind: str, msg) -> list[int]:
@@ -180,6 +168,56 @@ class Node:
         except MessageError as exc:
             self.count_malformed(s.key, exc)
             return None
+
+    # -- running a protocol machine -------------------------------------------------
+    def wait_for(self, cond, timeout: float, on_event, wake=None) -> bool:
+        """Hand events to ``on_event`` until ``cond()`` holds or ``timeout`` seconds pass
+        (or the node is asked to stop). ``wake()`` may name an earlier instant (monotonic)
+        at which ``cond`` can change without a new event. The one wait loop of the roles."""
+        deadline = time.monotonic() + timeout
+        while not cond():
+            if self.stop.is_set():
+                return False
+            now = time.monotonic()
+            remaining = deadline - now
+            if remaining <= 0:
+                # Take in what has already arrived before giving up (a zero wait drains).
+                ev = self.next_event(0)
+                if ev is None:
+                    return False
+                on_event(ev)
+                continue
+            w = wake() if wake is not None else None
+            ev = self.next_event(remaining if w is None else max(0.0, min(remaining, w - now)))
+            if ev is not None:
+                on_event(ev)
+        return True
+
+    def drive(self, machine) -> None:
+        """Run a role's protocol machine (:mod:`swarm.protocol`) on this node: publish what
+        it sends, answer its queries, and feed it events while it waits."""
+
+        def on_event(ev: Event) -> None:
+            for out in machine.handle(ev):
+                self.put(out.key, out.msg)
+
+        gen = machine.run()
+        reply = None
+        while not self.stop.is_set():
+            try:
+                action = gen.send(reply)
+            except StopIteration:
+                return
+            reply = None
+            if isinstance(action, Send):
+                self.put(action.key, action.msg)
+            elif isinstance(action, Query):
+                reply = self.query(action.key, action.kind, action.timeout_s)
+            elif isinstance(action, Wait):
+                reply = self.wait_for(action.until, action.timeout_s, on_event, action.wake)
+            else:
+                raise TypeError(f"unknown protocol action {action!r}")
+        gen.close()
 
     def linger_while_recording(self, timeout_s: float) -> bool:
         """Keep this session open until the run's recorder (if one is alive) has finished.

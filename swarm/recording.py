@@ -53,7 +53,6 @@ class Recording:
 
     def summary(self, sc: Scenario) -> dict:
         _a, _dr, att, pos, nees = self.errors()
-        dof = float(np.nansum(self.nis_dof))
         return summarize(
             n_sats=self.n,
             dt=sc.dt_s,
@@ -64,11 +63,12 @@ class Recording:
             gate_accepted=self.gate_accepted,
             gate_rejected=self.gate_rejected,
             step_ms=self.step_ms,
+            nis=self.nis,
+            nis_dof=self.nis_dof,
             alive=self.alive,
             extra={
                 "scenario": sc.name,
                 "mode": sc.filter.mode,
-                "nis": {"sum": float(np.nansum(self.nis)), "dof": dof, "ratio": float(np.nansum(self.nis) / dof) if dof else None},
                 "measurements_per_step_mean": float(self.taken.sum(axis=(1, 2)).mean()),
                 "faults": self.faults,
                 "selector_fallback_steps": self.fallback_steps,
@@ -81,7 +81,11 @@ def _shape(path) -> tuple[int, int]:
     """(n, K) from the truth messages of a recording."""
     n, K = 0, 0
     for topic, _s, data, _lt, _pt in iter_messages(path):
-        if topic.endswith("/truth"):
+        try:
+            kind = parse_key(topic)[1]
+        except MessageError:
+            continue  # our own channels and the derived Foxglove ones (``/foxglove/truth`` too)
+        if kind == "truth":
             m = json.loads(data)
             n = max(n, len(m["q_BI"]))
             K = max(K, int(m["k"]) + 1)

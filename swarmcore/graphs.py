@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["incidence", "edges", "GRAPH_KINDS"]
+__all__ = ["incidence", "edges", "scenario_graph", "GRAPH_KINDS"]
 
 GRAPH_KINDS = ("complete", "star", "chain", "duplex_chain", "matrix")
 
@@ -58,3 +58,9 @@ def edges(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     np.fill_diagonal(off, False)
     i, j = np.nonzero(off)
     return i, j
+
+
+def scenario_graph(sc) -> np.ndarray:
+    """The incidence matrix a :class:`swarmcore.scenario.Scenario`'s ``graph`` section describes."""
+    g = sc.graph
+    return incidence(sc.n_sats, g.kind, landmark=g.landmark, matrix=g.matrix, absolute=g.absolute)

@@ -457,14 +457,6 @@ def absolute_residual(est: SwarmEstimate, params: FilterParams, meas: AbsoluteMe
 # --------------------------------------------------------------------------- gate
 
 
-def _pair_cov(P_OO: np.ndarray, n: int, i: np.ndarray, j: np.ndarray) -> np.ndarray:
-    """(m, 12, 12) prior covariance of [a_i, r_i, a_j, r_j] for each measurement."""
-    P4 = P_OO.reshape(n, 6, n, 6)
-    top = np.concatenate([P4[i, :, i, :], P4[i, :, j, :]], axis=2)
-    bot = np.concatenate([P4[j, :, i, :], P4[j, :, j, :]], axis=2)
-    return np.concatenate([top, bot], axis=1)
-
-
 def gate(est: SwarmEstimate, params: FilterParams, meas: RelativeMeasurements):
     """χ² validation gate against the prior. Returns (y, Hi, Hj, d2, accepted).
 

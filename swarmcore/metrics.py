@@ -7,8 +7,9 @@ import warnings
 import numpy as np
 
 from . import quat
+from .mekf import observed_indices
 
-__all__ = ["pose_errors", "pose_nees", "summarize"]
+__all__ = ["pose_errors", "pose_nees", "pose_cov_blocks", "summarize"]
 
 
 def pose_errors(q_hat, r_hat, q_true, r_true):
@@ -27,6 +28,14 @@ def pose_nees(a, dr, P_pose):
     return np.einsum("...i,...i->...", e, np.linalg.solve(P_pose, e[..., None])[..., 0])
 
 
+def pose_cov_blocks(P: np.ndarray, n: int) -> np.ndarray:
+    """(n, 6, 6) covariance of each satellite's [a, Δr] from a full 12n × 12n P."""
+    O = observed_indices(n)
+    P4 = P[np.ix_(O, O)].reshape(n, 6, n, 6)
+    idx = np.arange(n)
+    return P4[idx, :, idx, :]
+
+
 def summarize(
     *,
     n_sats: int,
@@ -38,14 +47,21 @@ def summarize(
     gate_accepted: np.ndarray,
     gate_rejected: np.ndarray,
     step_ms: np.ndarray,
+    nis: np.ndarray,
+    nis_dof: np.ndarray,
     alive: np.ndarray | None = None,
     extra: dict | None = None,
 ) -> dict:
     """The ``summary.json`` contract shared by ``swarm sim`` and ``swarm run``.
 
     ``alive`` (K, F) masks filter steps that did not run (dead agents); NaN entries in the
-    error arrays are ignored the same way.
+    error arrays are ignored the same way. ``nis`` / ``nis_dof`` (K, F): each update's
+    joint NIS and its degrees of freedom; the summary gives their sums and ratio (≈ 1 for
+    a consistent filter).
     """
+    dof = float(np.nansum(nis_dof))
+    nis_block = {"sum": float(np.nansum(nis)), "dof": dof, "ratio": float(np.nansum(nis) / dof) if dof else None}
+    extra = {"nis": nis_block, **(extra or {})}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: steps nobody estimated
         return _summarize(n_sats, dt, seed, att_err, pos_err, nees, gate_accepted, gate_rejected, step_ms, alive, extra)

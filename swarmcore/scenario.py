@@ -6,13 +6,13 @@ Defaults follow the dissertation's Table 4.1 (LEO, ~622 km). Pure: no file I/O h
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 from scipy.stats import chi2
 
-from swarmvision.config import VisionConfig  # pydantic + numpy only: the core stays pure
+from .vision_config import VisionConfig
 
 PosFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
@@ -202,12 +202,18 @@ class Cameras(_Model):
     fov_deg: float = Field(90.0, gt=1, lt=179)
 
 
+#: Selection strategies (:mod:`swarmcore.selection` implements each; add one there and here).
+StrategyName = Literal[
+    "none", "complete", "random", "random_tree", "greedy", "swarm_greedy", "fast_swarm_greedy", "logdet_greedy"
+]
+#: The strategies that need no state estimate (a selector's fallback).
+FallbackStrategy = Literal["random_tree", "random", "complete"]
+
+
 class Selection(_Model):
     """Measurement selection (chapter 6); see :mod:`swarmcore.selection` for the strategies."""
 
-    strategy: Literal[
-        "none", "complete", "random", "random_tree", "greedy", "swarm_greedy", "fast_swarm_greedy", "logdet_greedy"
-    ] = Field(
+    strategy: StrategyName = Field(
         "none",
         description="none: take every measurement of the graph each step; complete: every candidate; "
         "random: m random directed pairs; random_tree: a uniform random spanning tree (at most m "
@@ -227,16 +233,41 @@ class Selection(_Model):
         [1.0] * 12, description="c_b: weights of the 12 error states [a, Δω|Δβ, Δr, Δv] of a satellite"
     )
     require_visible: bool = Field(True, description="only candidates predicted to be visible")
-    fallback: Literal["random_tree", "random", "complete"] = Field(
+    fallback: FallbackStrategy = Field(
         "random_tree", description="state-free strategy used when the selector has no estimate"
     )
+
+
+#: Every fault the emulator knows (scheduled in a scenario, or sent with ``swarm fault``).
+FaultAction = Literal[
+    "kill-agent",
+    "restart-agent",
+    "stop-agent",
+    "camera",
+    "kill-selector",
+    "restart-selector",
+    "drop",
+    "partition",
+    "heal",
+]
+FAULT_ACTIONS: tuple[str, ...] = get_args(FaultAction)
+#: Faults on an agent's process, carried out by the supervisor (``swarm run``) or Docker.
+AGENT_PROCESS_FAULTS = ("kill-agent", "restart-agent", "stop-agent")
+#: Faults on the selector's process.
+SELECTOR_PROCESS_FAULTS = ("kill-selector", "restart-selector")
+#: Faults on a container's network: compose only (local processes share one network).
+NETWORK_FAULTS = ("partition", "heal")
+#: Faults some process other than the bus roles carries out (supervisor, Docker).
+PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS
+#: Faults that name a satellite.
+TARGETED_FAULTS = AGENT_PROCESS_FAULTS + ("camera", "drop") + NETWORK_FAULTS
 
 
 class FaultSpec(_Model):
     """A time-tagged fault of the distributed emulator (applied at the start of a step)."""
 
     at_step: int = Field(ge=0, description="the step at whose start the fault is applied")
-    action: Literal["kill-agent", "restart-agent", "stop-agent", "camera", "kill-selector", "restart-selector", "drop"]
+    action: FaultAction
     target: int | None = Field(None, ge=0, description="satellite id (agent and camera faults)")
     camera: int | None = Field(None, ge=0, le=5, description="camera index 0..5 (+z,+x,+y,−x,−y,−z)")
     state: Literal["on", "off"] | None = None
@@ -244,7 +275,9 @@ class FaultSpec(_Model):
 
     @model_validator(mode="after")
     def _complete(self):
-        if self.action in ("kill-agent", "restart-agent", "stop-agent", "camera", "drop") and self.target is None:
+        if self.action in NETWORK_FAULTS:
+            raise ValueError(f"action {self.action} acts on a container's network: send it with `swarm fault --compose`")
+        if self.action in TARGETED_FAULTS and self.target is None:
             raise ValueError(f"action {self.action} needs a target satellite id")
         if self.action == "camera" and (self.camera is None or self.state is None):
             raise ValueError("action camera needs camera (0..5) and state (on|off)")

@@ -109,6 +109,7 @@ and 28 % at m = 49, but no less at n = 10 (pruning removes few pairs there).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import get_args
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
@@ -116,7 +117,8 @@ from scipy.sparse.csgraph import connected_components
 from . import quat
 from .cameras import Intrinsics, best_camera, visible_cameras
 from .mekf import BLOCK, FilterParams, RelativeMeasurements, SwarmEstimate, observed_indices, relative_residuals
-from .world import relative_noise_cov, relative_truth
+from .scenario import FallbackStrategy, StrategyName
+from .sensors import relative_noise_cov, relative_pose
 
 __all__ = [
     "STRATEGIES",
@@ -139,11 +141,20 @@ __all__ = [
     "random_tree_select",
     "select",
     "select_for_scenario",
+    "choose_pairs",
+    "selector_prior",
+    "mask_dead",
+    "STRATEGIES",
+    "STATE_FREE",
+    "NEEDS_STATE",
 ]
 
-STRATEGIES = ("complete", "random", "random_tree", "greedy", "swarm_greedy", "fast_swarm_greedy", "logdet_greedy")
+#: Every strategy (their names are declared once, with the scenario's ``selection.strategy``).
+STRATEGIES: tuple[str, ...] = tuple(s for s in get_args(StrategyName) if s != "none")
 #: Strategies that need no state estimate (usable as a fallback by a selector without one).
-STATE_FREE = ("complete", "random", "random_tree")
+STATE_FREE: tuple[str, ...] = get_args(FallbackStrategy)
+#: Strategies that plan from a filter's estimate (the selector fetches it).
+NEEDS_STATE: tuple[str, ...] = tuple(s for s in STRATEGIES if s not in STATE_FREE)
 
 
 @dataclass(frozen=True)
@@ -201,7 +212,7 @@ class Candidates:
 
 def predicted_relative(est: SwarmEstimate, params: FilterParams, observer, target):
     """Predicted ``q_BjBi`` (m, 4) and ``r_ij_Bi`` (m, 3) m from the estimate (no noise)."""
-    return relative_truth(params.mean_motion, est.t, est.q_BI, est.r_H, np.asarray(observer), np.asarray(target))
+    return relative_pose(params.mean_motion, est.t, est.q_BI, est.r_H, np.asarray(observer), np.asarray(target))
 
 
 def candidate_mask(
@@ -697,3 +708,33 @@ def select_for_scenario(sc, k: int, G: np.ndarray, est_prior: SwarmEstimate | No
 
     rng = stream(sc.seed, "select", k)
     return select(sc.selection.strategy, est_prior, ref_params, sc.selection.budget, G, camera_ok, rng, config_for_scenario(sc))
+
+
+def mask_dead(camera_ok: np.ndarray, live) -> np.ndarray:
+    """Camera health with every camera of a satellite whose agent is not live switched
+    off: a dead satellite measures nothing (it is still a target)."""
+    out = np.array(camera_ok, dtype=bool, copy=True)
+    dead = np.setdiff1d(np.arange(out.shape[0]), np.asarray(sorted(live), dtype=int))
+    out[dead] = False
+    return out
+
+
+def selector_prior(est: SwarmEstimate, params: FilterParams, k: int) -> SwarmEstimate:
+    """What the selector plans step k with: the reference filter's estimate at k−1 carried
+    to k without its gyro (the selector never sees it), or the initial estimate at k = 0."""
+    from .mekf import predict
+
+    return est if est.step >= k else predict(est, params, None)
+
+
+def choose_pairs(sc, k: int, G: np.ndarray, ref_est: SwarmEstimate | None, ref_params: FilterParams | None, camera_ok: np.ndarray):
+    """The (observer, target) pairs measured at step k: the graph's edges when the scenario
+    selects nothing, else the selector's choice from the reference filter's estimate
+    (``ref_est`` None: only a state-free strategy can run)."""
+    if sc.selection.strategy == "none":
+        from .graphs import edges
+
+        return edges(G)
+    if ref_est is None or ref_params is None:
+        return select_for_scenario(sc, k, G, None, None, camera_ok)
+    return select_for_scenario(sc, k, G, selector_prior(ref_est, ref_params, k), ref_params, camera_ok)

@@ -1,13 +1,18 @@
-"""In-process simulator: every satellite's filter on one machine, same core calls and order
-as the distributed emulator (``world_sim`` / ``sat_agent``), so both give the same numbers.
+"""In-process simulator: every satellite's filter on one machine, the same core calls in
+the same order as the distributed emulator (``world_sim`` / ``sat_agent``), so both give
+the same numbers.
 
 One step k (t_k = k dt):
 
 1. world: (k > 0) advance the truth from k−1 and emit each gyro's sample of that interval;
-   absolute readings at t_k; relative measurements of the pairs scheduled for k.
-2. agent i: (k > 0) predict with its own gyro sample; update with its own absolute reading
-   (if it has the sensors) and the relative batch (all of it when cooperative, only its own
-   rows when isolated) in canonical order.
+   absolute readings at t_k; the pairs scheduled for k (the graph, or the selector's
+   choice from satellite 0's filter); what each observer's cameras deliver
+   (:class:`swarmcore.measurement.CameraModel`).
+2. agent i (:class:`swarmcore.agent.AgentFilter`): its pose estimator turns its own
+   observation into relative measurements (predicting first when the estimator needs the
+   prediction); then it updates with its absolute reading (if it has the sensors) and every
+   observer's batch (all of it when cooperative, only its own rows when isolated) in
+   canonical order.
 """
 
 from __future__ import annotations
@@ -18,55 +23,16 @@ from typing import Callable
 
 import numpy as np
 
-from . import graphs
-from .mekf import (
-    AbsoluteMeasurement,
-    FilterParams,
-    RelativeMeasurements,
-    SwarmEstimate,
-    UpdateReport,
-    observed_indices,
-    predict,
-    update,
-)
-from .metrics import pose_errors, pose_nees, summarize
+from .agent import AgentFilter, filter_params
+from .graphs import scenario_graph
+from .measurement import MeasurementModel, synthetic_model
+from .mekf import RelativeMeasurements, SwarmEstimate, UpdateReport
+from .metrics import pose_cov_blocks, pose_errors, pose_nees, summarize
 from .scenario import Scenario
-from .world import (
-    absolute_measurements,
-    filter_params,
-    initial_estimate,
-    initial_truth,
-    relative_measurements,
-    step_truth,
-    world_params,
-)
+from .selection import choose_pairs
+from .world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
 
-__all__ = ["filter_step", "SimResult", "simulate", "pose_cov_blocks"]
-
-
-def filter_step(
-    est: SwarmEstimate,
-    params: FilterParams,
-    gyro_rate_B: np.ndarray | None,
-    absolute: AbsoluteMeasurement | None,
-    relative: RelativeMeasurements,
-    mode: str = "cooperative",
-    propagate: bool = True,
-) -> tuple[SwarmEstimate, UpdateReport]:
-    """One agent step: predict (unless ``propagate`` is False, at k = 0), then update."""
-    if propagate:
-        est = predict(est, params, gyro_rate_B)
-    if mode == "isolated":
-        relative = relative.subset(relative.observer == params.own)
-    return update(est, params, absolute, relative.canonical())
-
-
-def pose_cov_blocks(P: np.ndarray, n: int) -> np.ndarray:
-    """(n, 6, 6) covariance of each satellite's [a, Δr] from a full P."""
-    O = observed_indices(n)
-    P4 = P[np.ix_(O, O)].reshape(n, 6, n, 6)
-    idx = np.arange(n)
-    return P4[idx, :, idx, :]
+__all__ = ["SimResult", "simulate"]
 
 
 @dataclass
@@ -88,8 +54,6 @@ class SimResult:
 
     def summary(self) -> dict:
         sc = self.scenario
-        dof = float(np.nansum(self.nis_dof))
-        nis_ratio = float(np.nansum(self.nis) / dof) if dof else None
         return summarize(
             n_sats=sc.n_sats,
             dt=sc.dt_s,
@@ -100,10 +64,11 @@ class SimResult:
             gate_accepted=self.gate_accepted,
             gate_rejected=self.gate_rejected,
             step_ms=self.step_ms,
+            nis=self.nis,
+            nis_dof=self.nis_dof,
             extra={
                 "scenario": sc.name,
                 "mode": sc.filter.mode,
-                "nis": {"sum": float(np.nansum(self.nis)), "dof": dof, "ratio": nis_ratio},
                 "measurements_per_step_mean": float(self.schedule.sum(axis=(1, 2)).mean()),
                 **self.extra,
             },
@@ -185,73 +150,47 @@ class Recorder:
         )
 
 
-def scenario_graph(sc: Scenario) -> np.ndarray:
-    g = sc.graph
-    return graphs.incidence(sc.n_sats, g.kind, landmark=g.landmark, matrix=g.matrix, absolute=g.absolute)
+def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Callable[[int, int], None] | None = None) -> SimResult:
+    """Run every satellite's filter over the scenario in this process.
 
-
-def selector_prior(est: SwarmEstimate, params: FilterParams, k: int) -> SwarmEstimate:
-    """What the selector plans step k with: the reference filter's estimate at k−1 carried
-    to k without its gyro (the selector never sees it), or the initial estimate at k = 0."""
-    return est if est.step >= k else predict(est, params, None)
-
-
-def choose_pairs(sc: Scenario, k: int, G: np.ndarray, ref_est: SwarmEstimate, ref_params: FilterParams, camera_ok: np.ndarray):
-    """The (observer, target) pairs measured at step k: the graph, or the selector's choice."""
-    if sc.selection.strategy == "none":
-        return graphs.edges(G)
-    from .selection import select_for_scenario  # the selector's brain (chapter 6)
-
-    return select_for_scenario(sc, k, G, selector_prior(ref_est, ref_params, k), ref_params, camera_ok)
-
-
-def simulate(sc: Scenario, progress: Callable[[int, int], None] | None = None) -> SimResult:
-    """Run every satellite's filter over the scenario in this process."""
+    ``model``: the relative-measurement model (default: the synthetic one; scenarios that
+    render need :func:`swarm.models.measurement_model`)."""
     n, K = sc.n_sats, sc.steps
+    model = model or synthetic_model(sc)
     wp = world_params(sc)
     G = scenario_graph(sc)
     camera_ok = np.ones((n, 6), dtype=bool)
-    params = [filter_params(sc, i) for i in range(n)]
     truth = initial_truth(sc)
-    ests = [initial_estimate(sc, truth, i) for i in range(n)]
+    filters = [AgentFilter(filter_params(sc, i), initial_estimate(sc, truth, i), sc.filter.mode) for i in range(n)]
+    cameras = model.cameras()
+    estimator = model.estimator()
     rec = Recorder(K, n, n)
-    vision = None
-    if sc.vision.pipeline != "none":
-        from swarmvision.pipeline import VisionSystem  # rendering only when asked for
-
-        vision = VisionSystem(sc.vision, n, sc.spacecraft.half_size_m, sc.seed, sc.orbit.mean_motion_rad_s)
     gyro = None
-    for k in range(K):
-        if k > 0:
-            truth, gyro = step_truth(wp, truth)
-        rec.truth_at(k, truth)
-        absm = absolute_measurements(wp, truth)
-        obs, tgt = choose_pairs(sc, k, G, ests[0], params[0], camera_ok)
-        rec.schedule[k, obs, tgt] = True
-        ms_pred = np.zeros(n)
-        if vision is not None:
-            # Image pipelines start from each observer's prediction (ICP seed, ambiguity).
-            for i in range(n):
+    try:
+        for k in range(K):
+            if k > 0:
+                truth, gyro = step_truth(wp, truth)
+            rec.truth_at(k, truth)
+            absm = absolute_measurements(wp, truth)
+            obs, tgt = choose_pairs(sc, k, G, filters[0].est, filters[0].params, camera_ok)
+            rec.schedule[k, obs, tgt] = True
+            ms_pred = np.zeros(n)
+            if estimator.needs_prediction and k > 0:
+                # Image pipelines start from each observer's prediction (ICP seed, ambiguity).
+                for i, f in enumerate(filters):
+                    t0 = time.perf_counter()
+                    f.predict_to(k, gyro[i])
+                    ms_pred[i] = (time.perf_counter() - t0) * 1e3
+            seen = cameras.observe(truth, obs, tgt, camera_ok, predicted=[f.est for f in filters])
+            batches = [estimator.measure(i, seen[i], filters[i].est, k)[0] for i in sorted(seen)]
+            rel = RelativeMeasurements.concat(batches)
+            for i, f in enumerate(filters):
                 t0 = time.perf_counter()
-                if k > 0:
-                    ests[i] = predict(ests[i], params[i], gyro[i])
-                ms_pred[i] = (time.perf_counter() - t0) * 1e3
-            rel = vision.relative_measurements(k, truth.t, truth.q_BI, truth.r_H, (obs, tgt), ests)
-        else:
-            rel = relative_measurements(wp, truth, obs, tgt)
-        for i in range(n):
-            t0 = time.perf_counter()
-            ests[i], rep = filter_step(
-                ests[i],
-                params[i],
-                None if gyro is None else gyro[i],
-                absm[i] if G[i, i] else None,
-                rel,
-                sc.filter.mode,
-                propagate=k > 0 and vision is None,
-            )
-            ms = (time.perf_counter() - t0) * 1e3 + ms_pred[i]
-            rec.estimate_at(k, i, ests[i], rep, ms)
-        if progress is not None:
-            progress(k + 1, K)
+                rep, _late = f.step(k, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, rel)
+                ms = (time.perf_counter() - t0) * 1e3 + ms_pred[i]
+                rec.estimate_at(k, i, f.est, rep, ms)
+            if progress is not None:
+                progress(k + 1, K)
+    finally:
+        cameras.close()
     return rec.result(sc)

@@ -1,4 +1,5 @@
-"""Truth and sensors of the swarm: what ``world_sim`` owns, as pure functions.
+"""Truth and sensors of the swarm: what ``world_sim`` owns, as pure functions (the truth
+side: nothing here is flight software; the filter's set-up is :mod:`swarmcore.agent`).
 
 Every random draw comes from :func:`swarmcore.streams.stream` keyed by (seed, purpose,
 step[, satellite]); noise for all n×n relative pairs is drawn every step, so which pairs
@@ -20,23 +21,22 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import quat
-from .cameras import T_CB, best_camera
-from .dynamics import T_IH, hcw_noise_cov, hcw_phi, rk4_attitude
-from .mekf import AbsoluteMeasurement, FilterParams, RelativeMeasurements, SwarmEstimate, init_estimate
+from .agent import Detections
+from .cameras import best_camera
+from .dynamics import hcw_noise_cov, hcw_phi, rk4_attitude
+from .mekf import AbsoluteMeasurement, SwarmEstimate, init_estimate
 from .scenario import Scenario
+from .sensors import relative_noise_cov, relative_pose
 from .streams import stream
 
 __all__ = [
     "TruthState",
     "WorldParams",
     "world_params",
-    "filter_params",
     "initial_truth",
     "step_truth",
     "absolute_measurements",
-    "relative_truth",
-    "relative_measurements",
-    "relative_noise_cov",
+    "SyntheticCameras",
     "initial_estimate",
 ]
 
@@ -97,30 +97,6 @@ def world_params(sc: Scenario) -> WorldParams:
         rel=sc.sensors.relative,
         phi_trans=hcw_phi(n_e, sc.dt_s),
         chol_trans=_psd_chol(Qt),
-    )
-
-
-def filter_params(sc: Scenario, own: int) -> FilterParams:
-    """The filter of satellite ``own`` as the scenario configures it."""
-    f = sc.filter
-    return FilterParams(
-        n=sc.n_sats,
-        own=own,
-        dt=sc.dt_s,
-        mean_motion=sc.orbit.mean_motion_rad_s,
-        J=sc.spacecraft.J(),
-        arw=sc.sensors.gyro.arw_rad_sqrt_s,
-        rrw=sc.sensors.gyro.rrw_rad_s15,
-        torque=sc.disturbances.torque_sigma_Nm_sqrt_s,
-        accel=sc.disturbances.accel_sigma_m_s15,
-        att_rw_other=f.att_rw_other_rad_sqrt_s,
-        pos_rw=f.pos_rw_m_sqrt_s,
-        gate_threshold=f.gate.threshold(),
-        update_method=f.update,
-        rk4_substeps=f.rk4_substeps,
-        max_iterations=f.max_iterations,
-        iterate_above_rad=f.iterate_above_rad,
-        missing_gyro_rate_sigma=f.initial_sigma.rate_rad_s,
     )
 
 
@@ -203,63 +179,45 @@ def absolute_measurements(wp: WorldParams, s: TruthState) -> list[AbsoluteMeasur
     ]
 
 
-def relative_truth(mean_motion: float, t: float, q_BI, r_H, observer, target):
-    """True ``q_BjBi`` (m, 4) and ``r_ij_Bi`` (m, 3) for the given pairs."""
-    T_i = quat.attitude_matrix(q_BI[observer])
-    C = T_i @ T_IH(mean_motion, t)
-    r = np.einsum("mab,mb->ma", C, r_H[target] - r_H[observer])
-    q = quat.qmul(q_BI[target], quat.qconj(q_BI[observer]))
-    return quat.normalize(q), r
+class SyntheticCameras:
+    """World side of the synthetic camera model (chapters 4 and 6): what each observer's
+    face cameras report of the pairs scheduled for a step, with noise drawn from the
+    sensor model at the TRUE position (stream 'rel'; all n×n pairs are drawn every step,
+    so which pairs are taken never changes the numbers of the others)."""
 
+    def __init__(self, wp: WorldParams):
+        self.wp = wp
 
-def relative_noise_cov(rel, r_ij_Bi: np.ndarray) -> np.ndarray:
-    """Noise covariance (m, 6, 6) in B_i, ``[attitude, position]``, of relative measurements.
+    def close(self) -> None:
+        pass
 
-    ``isotropic`` (chapter 4): ``diag(σ_q² I, σ_p² I)``. ``camera`` (chapter 6): per-axis σ in
-    the frame of the face camera that sees the target, scaled by
-    ``(range / reference_range) ** range_exponent``, rotated into B_i.
-    """
-    r = np.atleast_2d(np.asarray(r_ij_Bi, dtype=float))
-    m = r.shape[0]
-    R = np.zeros((m, 6, 6))
-    if rel.model == "isotropic":
-        R[:, 0:3, 0:3] = rel.sigma_att_rad**2 * np.eye(3)
-        R[:, 3:6, 3:6] = rel.sigma_pos_m**2 * np.eye(3)
-        return R
-    rng_m = np.linalg.norm(r, axis=1)
-    scale = (rng_m / rel.reference_range_m) ** rel.range_exponent  # (m,)
-    cam = best_camera(r)
-    T_BC = np.swapaxes(T_CB[cam], -1, -2)  # (m, 3, 3) camera → body
-    sa = np.asarray(rel.sigma_att_camera_rad) ** 2
-    sp = np.asarray(rel.sigma_pos_camera_m) ** 2
-    s2 = scale[:, None] ** 2
-    R[:, 0:3, 0:3] = T_BC @ (np.eye(3) * (sa * s2)[:, None, :]) @ np.swapaxes(T_BC, -1, -2)
-    R[:, 3:6, 3:6] = T_BC @ (np.eye(3) * (sp * s2)[:, None, :]) @ np.swapaxes(T_BC, -1, -2)
-    return R
-
-
-def relative_measurements(wp: WorldParams, s: TruthState, observer: np.ndarray, target: np.ndarray) -> RelativeMeasurements:
-    """Noisy relative poses for the given pairs, with the noise covariance the sensor reports.
-
-    The reported covariance is computed from the *measured* position (what a camera
-    pipeline knows); the noise itself is drawn with the covariance at the true position.
-    """
-    observer = np.asarray(observer, dtype=int)
-    target = np.asarray(target, dtype=int)
-    if observer.size == 0:
-        return RelativeMeasurements.empty()
-    q_true, r_true = relative_truth(wp.mean_motion, s.t, s.q_BI, s.r_H, observer, target)
-    z_all = stream(wp.seed, "rel", s.step).standard_normal((wp.n, wp.n, 6))
-    z = z_all[observer, target]
-    L = np.linalg.cholesky(relative_noise_cov(wp.rel, r_true))
-    nu = np.einsum("mab,mb->ma", L, z)
-    q_meas = quat.normalize(quat.qmul(q_true, quat.dq_from_err(nu[:, 0:3])))
-    r_meas = r_true + nu[:, 3:6]
-    return RelativeMeasurements(observer, target, q_meas, r_meas, relative_noise_cov(wp.rel, r_meas))
+    def observe(self, s: TruthState, observer, target, camera_ok: np.ndarray | None = None, predicted=None) -> dict[int, Detections]:
+        """``observer → Detections`` for the scheduled pairs; a pair whose face camera is
+        off (``camera_ok[i, c]`` False) produces nothing."""
+        wp = self.wp
+        observer = np.asarray(observer, dtype=int)
+        target = np.asarray(target, dtype=int)
+        if observer.size == 0:
+            return {}
+        q_true, r_true = relative_pose(wp.mean_motion, s.t, s.q_BI, s.r_H, observer, target)
+        z_all = stream(wp.seed, "rel", s.step).standard_normal((wp.n, wp.n, 6))
+        z = z_all[observer, target]
+        L = np.linalg.cholesky(relative_noise_cov(wp.rel, r_true))
+        nu = np.einsum("mab,mb->ma", L, z)
+        q_meas = quat.normalize(quat.qmul(q_true, quat.dq_from_err(nu[:, 0:3])))
+        r_meas = r_true + nu[:, 3:6]
+        cams = best_camera(r_true)
+        keep = np.ones(observer.size, dtype=bool) if camera_ok is None else camera_ok[observer, cams]
+        out = {}
+        for i in np.unique(observer[keep]):
+            rows = np.flatnonzero((observer == i) & keep)
+            out[int(i)] = Detections(int(i), target[rows], cams[rows], q_meas[rows], r_meas[rows])
+        return out
 
 
 def initial_estimate(sc: Scenario, truth0: TruthState, own: int) -> SwarmEstimate:
-    """Filter ``own``'s prior: truth minus an error drawn from its initial covariance.
+    """Filter ``own``'s prior from ground operations: truth minus an error drawn from its
+    initial covariance (stream 'init_est').
 
     In the distributed emulator the world hands this to the agent (a prior from ground
     operations); agents never see the truth itself.

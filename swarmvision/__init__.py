@@ -1,8 +1,27 @@
 """Rendered cameras and vision pipelines (dissertation chapter 5).
 
-Modules: :mod:`config` (VisionConfig), :mod:`tags` (AprilTag ids), :mod:`models` (cube and
-procedural spacecraft), :mod:`render` (headless pyrender), :mod:`noise` (camera noise),
-:mod:`mono` (fiducial pose), :mod:`stereo` (disparity + ICP), :mod:`characterize`
-(Monte Carlo error statistics), :mod:`bench`, :mod:`pipeline` (VisionSystem).
-Heavy imports (OpenGL, OpenCV, Open3D) happen inside the modules that need them.
+Truth side: :mod:`camera_sim` (``RenderedCameras``: what each camera sees, rendered
+headless by :mod:`render` with the camera noise of :mod:`noise`, of the bodies in
+:mod:`models`). Flight side: :mod:`pose_estimator` (``VisionPoseEstimator``: AprilTag +
+PnP in :mod:`mono` with the tag ids of :mod:`tags`, stereo + ICP in :mod:`stereo`, each
+measurement's R from :mod:`covariance`). Shared: :mod:`views`. Studies: :mod:`characterize`
+(Monte Carlo error statistics), :mod:`bench`. The configuration model is the scenario's
+(:mod:`swarmcore.vision_config`). Heavy imports (OpenGL, OpenCV, Open3D) happen inside the
+modules that need them.
 """
+
+from __future__ import annotations
+
+from swarmcore.measurement import MeasurementModel
+from swarmcore.scenario import Scenario
+
+__all__ = ["measurement_model"]
+
+
+def measurement_model(sc: Scenario) -> MeasurementModel:
+    """Rendered cameras (world side) and the pose pipelines (agent side) of a scenario."""
+    from .camera_sim import RenderedCameras
+    from .pose_estimator import VisionPoseEstimator
+
+    args = (sc.vision, sc.n_sats, sc.spacecraft.half_size_m, sc.seed, sc.orbit.mean_motion_rad_s)
+    return MeasurementModel(cameras=lambda: RenderedCameras(*args), estimator=lambda: VisionPoseEstimator(*args))

@@ -15,7 +15,7 @@ import numpy as np
 
 from swarmcore import quat
 
-from .config import VisionConfig
+from swarmcore.vision_config import VisionConfig
 
 __all__ = ["bench_vision", "scenario_rtf"]
 
@@ -38,7 +38,7 @@ def bench_vision(cfg: VisionConfig | None = None, repeats: int = 10, log=None) -
     from .mono import MonoPipeline
     from .models import cube_satellite, model_radius, reference_cloud, spacecraft_model
     from .noise import apply_noise
-    from .pipeline import face_intrinsics
+    from .views import face_intrinsics
     from .render import SceneRenderer
     from .stereo import StereoPipeline, stereo_intrinsics
 
@@ -113,20 +113,22 @@ def bench_vision(cfg: VisionConfig | None = None, repeats: int = 10, log=None) -
     return out
 
 
-def scenario_rtf(paths, steps: int = 10, log=None) -> list[dict]:
+def scenario_rtf(scenarios, steps: int = 10, log=None) -> list[dict]:
     """Real-time factor (simulated s per wall s) of rendered scenarios: the first ``steps``
     steps of each through :func:`swarmcore.sim.simulate` (render + pipelines + every
-    filter), not counting step 0 (shader compilation, the model cloud)."""
+    filter), not counting step 0 (shader compilation, the model cloud). ``scenarios``:
+    (path, Scenario) pairs, each cut to ``steps`` steps here."""
     import time
 
-    from swarm.scenario_files import load_scenario
     from swarmcore.sim import simulate
 
+    from . import measurement_model
+
     rows = []
-    for path in paths:
-        sc = load_scenario(path, [f"duration_s={steps * 1.0}"])
+    for path, sc in scenarios:
+        sc = sc.model_copy(update={"duration_s": steps * sc.dt_s})
         stamps = []
-        simulate(sc, progress=lambda k, K: stamps.append(time.perf_counter()))
+        simulate(sc, measurement_model(sc), progress=lambda k, K: stamps.append(time.perf_counter()))
         wall = stamps[-1] - stamps[0]  # steps 1..K (step 0 excluded)
         step_s = np.diff(stamps)
         row = {

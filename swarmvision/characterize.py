@@ -28,7 +28,7 @@ import numpy as np
 from swarmcore import quat
 from swarmcore.streams import stream
 
-from .config import VisionConfig
+from swarmcore.vision_config import VisionConfig
 
 __all__ = ["characterize", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
 
@@ -45,7 +45,7 @@ def fibonacci_sphere(n: int) -> np.ndarray:
 
 
 def camera_signature(cfg: VisionConfig, pipeline: str) -> dict:
-    from .pipeline import face_intrinsics
+    from .views import face_intrinsics
     from .stereo import stereo_intrinsics
 
     if pipeline == "mono":
@@ -91,7 +91,7 @@ def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_
     ``progress(done, total)`` is called after every rendered sample."""
     from .mono import MonoPipeline
     from .noise import apply_noise
-    from .pipeline import face_intrinsics
+    from .views import face_intrinsics
     from .render import SceneRenderer
 
     cfg = (cfg or VisionConfig()).model_copy(deep=True)
@@ -304,25 +304,20 @@ def write(result: dict, out_dir: Path) -> dict:
     return {"json": str(path), "plots": [str(p) for p in pngs]}
 
 
-def vision_config_for(pipeline: str, scenario: str | Path | None = None, sets=()) -> VisionConfig:
-    """The VisionConfig to characterize: a scenario's ``vision`` section (with ``--set``
-    overrides) or the defaults, with ``pipeline`` forced."""
-    if scenario is None:
-        cfg = VisionConfig()
-    else:
-        from swarm.scenario_files import load_scenario
-
-        cfg = load_scenario(Path(scenario), list(sets)).vision
-    cfg = cfg.model_copy(deep=True)
+def vision_config_for(pipeline: str, vision: VisionConfig | None = None) -> VisionConfig:
+    """The VisionConfig to characterize: a scenario's ``vision`` section or the defaults,
+    with ``pipeline`` forced."""
+    cfg = (vision or VisionConfig()).model_copy(deep=True)
     cfg.pipeline = pipeline
     return cfg
 
 
-def run_cli(pipeline: str, out: Path, scenario: Path | None = None, sets=(), ranges=None, orientations: int = 6,
+def run_cli(pipeline: str, out: Path, vision: VisionConfig | None = None, ranges=None, orientations: int = 6,
             suns: int = 6, illuminations=("solar", "global"), ambient_global: float | None = None, seed: int = 0,
             log=print, progress=None) -> dict:
-    """What ``swarm characterize`` does: run, write JSON + plots, print a summary table."""
-    cfg = vision_config_for(pipeline, scenario, sets)
+    """What ``swarm characterize`` does: run, write JSON + plots, print a summary table.
+    ``vision``: the scenario's vision section to characterize (default: the defaults)."""
+    cfg = vision_config_for(pipeline, vision)
     amb = ambient_global if ambient_global is not None else (cfg.lighting.ambient if cfg.lighting.ambient > 0 else 0.25)
     res = characterize(pipeline, cfg, ranges, orientations, suns, tuple(illuminations), amb, seed, log=log, progress=progress)
     files = write(res, out)

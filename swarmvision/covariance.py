@@ -1,5 +1,8 @@
 """Measurement noise R of a vision measurement, in the camera frame then in B_i.
 
+The camera-frame law and the rotation into B_i are the core's
+(:mod:`swarmcore.sensors`); this module adds the vision-specific sources.
+
 Camera-frame error vector ``[a_C, e_C]``: ``R̃_CBj = exp([a_C×]) R_CBj`` (rad) and
 ``p̃_C = p_C + e_C`` (m). The filter's measurement noise (``q̃_BjBi = q_BjBi ⊗ δq(a)``,
 ``r̃_ij_Bi = r_ij_Bi + e``, both in B_i) is the same error rotated by ``T_BC``:
@@ -21,9 +24,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .config import CovarianceConfig
+from swarmcore.sensors import camera_axis_variances, camera_to_body
+from swarmcore.vision_config import CovarianceConfig
 
-__all__ = ["camera_to_body", "fixed_cov_C", "CharacterizedNoise", "load_table", "default_table_path", "sun_angle_deg"]
+__all__ = ["camera_to_body", "floor_cov", "fixed_cov_C", "CharacterizedNoise", "load_table", "default_table_path", "sun_angle_deg"]
 
 DATA = Path(__file__).parent / "data"
 
@@ -33,16 +37,6 @@ def default_table_path(pipeline: str, camera: dict) -> Path:
     from .characterize import table_name
 
     return DATA / table_name(pipeline, camera)
-
-
-def camera_to_body(cov_C: np.ndarray, T_CB: np.ndarray) -> np.ndarray:
-    """(…, 6, 6) camera-frame covariance of ``[a_C, e_C]`` → B_i (``T_CB``: body → camera)."""
-    G = np.zeros(np.shape(T_CB)[:-2] + (6, 6))
-    T_BC = np.swapaxes(T_CB, -1, -2)
-    G[..., :3, :3] = T_BC
-    G[..., 3:, 3:] = T_BC
-    out = G @ cov_C @ np.swapaxes(G, -1, -2)
-    return 0.5 * (out + np.swapaxes(out, -1, -2))
 
 
 def sun_angle_deg(los_I: np.ndarray, sun_I: np.ndarray) -> float:
@@ -56,7 +50,7 @@ def sun_angle_deg(los_I: np.ndarray, sun_I: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
-def _floor(cov: np.ndarray, cfg: CovarianceConfig) -> np.ndarray:
+def floor_cov(cov: np.ndarray, cfg: CovarianceConfig) -> np.ndarray:
     d = np.diag(cov).copy()
     d[:3] = np.maximum(d[:3], cfg.min_sigma_att_rad**2)
     d[3:] = np.maximum(d[3:], cfg.min_sigma_pos_m**2)
@@ -66,9 +60,10 @@ def _floor(cov: np.ndarray, cfg: CovarianceConfig) -> np.ndarray:
 
 
 def fixed_cov_C(cfg: CovarianceConfig, range_m: float) -> np.ndarray:
-    s = (range_m / cfg.reference_range_m) ** cfg.range_exponent
-    var = np.r_[np.asarray(cfg.sigma_att_camera_rad) ** 2, np.asarray(cfg.sigma_pos_camera_m) ** 2] * s**2
-    return _floor(np.diag(var), cfg)
+    """The chapter-6 camera noise law (:func:`swarmcore.sensors.camera_axis_variances`)
+    with this configuration's σ, floored and inflated."""
+    var = camera_axis_variances(cfg.sigma_att_camera_rad, cfg.sigma_pos_camera_m, range_m, cfg.reference_range_m, cfg.range_exponent)
+    return floor_cov(np.diag(var), cfg)
 
 
 @lru_cache(maxsize=8)
@@ -128,4 +123,4 @@ class CharacterizedNoise:
             var = self.v[-1] * (r / self.r[-1]) ** 2
         if sun_deg is not None:
             var = var * np.array([np.interp(sun_deg, self.sun, self.f[:, k]) for k in range(6)])
-        return _floor(np.diag(var), self.cfg)
+        return floor_cov(np.diag(var), self.cfg)

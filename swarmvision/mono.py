@@ -36,7 +36,7 @@ from swarmcore import quat
 from swarmcore.cameras import BORESIGHT_B, Intrinsics
 
 from . import tags
-from .config import MonoConfig
+from swarmcore.vision_config import MonoConfig
 
 __all__ = [
     "TagDetection",

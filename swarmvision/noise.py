@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .config import NoiseConfig
+from swarmcore.vision_config import NoiseConfig
 
 __all__ = ["apply_noise"]
 

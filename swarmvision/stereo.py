@@ -27,7 +27,7 @@ import numpy as np
 
 from swarmcore.cameras import Intrinsics
 
-from .config import StereoConfig
+from swarmcore.vision_config import StereoConfig
 
 __all__ = ["StereoPipeline", "StereoResult", "tracking_camera_T_CB", "stereo_intrinsics"]
 

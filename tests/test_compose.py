@@ -64,9 +64,11 @@ def _summary(out):
 
 def _sim(n, sets):
     from swarm.scenario_files import load_scenario
+    from swarm.models import measurement_model
     from swarmcore.sim import simulate
 
-    return simulate(load_scenario(ROOT / "scenarios" / "demo.yaml", [f"n_sats={n}", *sets])).summary()
+    sc = load_scenario(ROOT / "scenarios" / "demo.yaml", [f"n_sats={n}", *sets])
+    return simulate(sc, measurement_model(sc)).summary()
 
 
 def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):

@@ -18,7 +18,7 @@ from swarmcore.mekf import (
     attitude_F,
     relative_residuals,
 )
-from swarmcore.world import relative_truth
+from swarmcore.sensors import relative_pose
 
 N_E = 1.08e-3
 J = np.diag([1.67, 8.33, 3.67])
@@ -42,7 +42,7 @@ def test_relative_measurement_jacobians(seed):
     obs, tgt = np.array([0, 2, 1]), np.array([2, 1, 0])
 
     def meas(q, r):
-        qm, rm = relative_truth(N_E, est.t, q, r, obs, tgt)
+        qm, rm = relative_pose(N_E, est.t, q, r, obs, tgt)
         return RelativeMeasurements(obs, tgt, qm, rm, np.tile(np.eye(6), (3, 1, 1)))
 
     y0, Hi, Hj = relative_residuals(est, p, meas(est.q_BI, est.r_H))

@@ -75,7 +75,8 @@ def test_compiled_attitude_kernels_equal_numpy_twins(seed):
     from swarmcore.dynamics import T_IH
     from swarmcore.mekf import RelativeMeasurements, relative_residuals, relative_residuals_numpy
     from swarmcore.scenario import Scenario
-    from swarmcore.world import filter_params, initial_estimate, initial_truth
+    from swarmcore.agent import filter_params
+    from swarmcore.world import initial_estimate, initial_truth
 
     rng = np.random.default_rng(seed)
     n, m = 5, 11

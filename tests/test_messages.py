@@ -13,7 +13,7 @@ from swarm.bus.convert import (
     full_estimate_msg,
     images_msg,
     relative_from_batches,
-    views_from_images,
+    observation_from_images,
 )
 from swarmcore import quat
 from swarmcore.mekf import RelativeMeasurements, SwarmEstimate
@@ -120,7 +120,7 @@ def test_images_carry_pixels_exactly_and_refuse_a_short_payload():
 
 def test_views_round_trip_through_an_images_message():
     from swarmcore.cameras import T_CB, Intrinsics
-    from swarmvision.pipeline import View
+    from swarmvision.views import View
 
     intr = Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5)
     views = [
@@ -129,8 +129,9 @@ def test_views_round_trip_through_an_images_message():
     ]
     msg = M.decode("img", M.encode(images_msg(views, run=RUN, k=7, t_s=7.0, sat=1, targets=np.array([2, 0]))))
     assert msg.targets == [0, 2]
-    back = views_from_images(msg)
-    for a, b in zip(views, back):
+    back = observation_from_images(msg)
+    assert back.targets.tolist() == [0, 2]
+    for a, b in zip(views, back.views, strict=True):
         assert (a.observer, a.camera, a.step, a.t, a.target, a.baseline_m, a.intrinsics) == (b.observer, b.camera, b.step, b.t, b.target, b.baseline_m, b.intrinsics)
         np.testing.assert_array_equal(a.T_CB, b.T_CB)
         np.testing.assert_array_equal(a.r_C_B, b.r_C_B)

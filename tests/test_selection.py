@@ -16,12 +16,12 @@ from swarmcore.mekf import SOLVERS, Linearized, SwarmEstimate, observed_indices,
 from swarmcore.scenario import Scenario
 from swarmcore.sim import simulate
 from swarmcore.streams import stream
+from swarmcore.agent import filter_params
+from swarmcore.measurement import synthetic_batch
 from swarmcore.world import (
     absolute_measurements,
-    filter_params,
     initial_estimate,
     initial_truth,
-    relative_measurements,
     step_truth,
     world_params,
 )
@@ -58,7 +58,7 @@ def _converged(sc: Scenario, steps: int = 4, own: int = 0):
     for _ in range(steps):
         truth, gyro = step_truth(wp, truth)
         est = predict(est, p, gyro[own])
-        est, _ = update(est, p, absolute_measurements(wp, truth)[own], relative_measurements(wp, truth, obs, tgt).canonical())
+        est, _ = update(est, p, absolute_measurements(wp, truth)[own], synthetic_batch(wp, truth, obs, tgt))
     return predict(est, p, None), p
 
 

@@ -7,12 +7,12 @@ from swarmcore import graphs
 from swarmcore.mekf import SOLVERS, choose_method, predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.sim import simulate
+from swarmcore.agent import filter_params
+from swarmcore.measurement import synthetic_batch
 from swarmcore.world import (
     absolute_measurements,
-    filter_params,
     initial_estimate,
     initial_truth,
-    relative_measurements,
     step_truth,
     world_params,
 )
@@ -29,11 +29,11 @@ def _setup(n, graph="complete", steps=5, seed=3, **kw):
     for _ in range(steps):
         truth, gyro = step_truth(wp, truth)
         est = predict(est, p, gyro[1])
-        est, _ = update(est, p, absolute_measurements(wp, truth)[1], relative_measurements(wp, truth, obs, tgt).canonical())
+        est, _ = update(est, p, absolute_measurements(wp, truth)[1], synthetic_batch(wp, truth, obs, tgt))
     if steps:
         truth, gyro = step_truth(wp, truth)
         est = predict(est, p, gyro[1])
-    return est, p, absolute_measurements(wp, truth)[1], relative_measurements(wp, truth, obs, tgt).canonical()
+    return est, p, absolute_measurements(wp, truth)[1], synthetic_batch(wp, truth, obs, tgt)
 
 
 def _close(a, b, P_scale):

@@ -34,7 +34,7 @@ def _table(ranges, var_pos, var_att, sun_factor=None):
 
 
 def test_characterized_noise_interpolates_range_and_sun():
-    from swarmvision.config import CovarianceConfig
+    from swarmcore.vision_config import CovarianceConfig
     from swarmvision.covariance import CharacterizedNoise
 
     tab = _table([3.0, 6.0], [[1e-4, 1e-4, 4e-4], [4e-4, 4e-4, 16e-4]], [[1e-4] * 3, [4e-4] * 3],
@@ -60,7 +60,7 @@ def test_small_characterization_writes_statistics_and_plots(tmp_path):
     """A 2-range × 2-attitude × 3-Sun monocular run: JSON with per-axis statistics per range
     and Sun bin, the Figure 5.7 plots, and errors that grow with range."""
     from swarmvision.characterize import run_cli
-    from swarmvision.config import CovarianceConfig
+    from swarmcore.vision_config import CovarianceConfig
     from swarmvision.covariance import CharacterizedNoise
 
     files = run_cli("mono", tmp_path, ranges=[3.0, 6.0], orientations=2, suns=3, illuminations=("global",),
@@ -80,11 +80,11 @@ def test_small_characterization_writes_statistics_and_plots(tmp_path):
 
 
 def test_missing_table_fails_early_with_a_hint():
-    from swarmvision.config import VisionConfig
-    from swarmvision.pipeline import VisionSystem
+    from swarmcore.vision_config import VisionConfig
+    from swarmvision.pose_estimator import VisionPoseEstimator
 
     cfg = VisionConfig.model_validate({"pipeline": "mono", "mono_camera": {"width_px": 640, "height_px": 480}})
     with pytest.raises(ValueError, match="swarm characterize"):
-        VisionSystem(cfg, 3, 0.2, 0, 1.08e-3)
-    VisionSystem(VisionConfig.model_validate({"pipeline": "mono"}), 3, 0.2, 0, 1.08e-3)  # shipped table
-    VisionSystem(VisionConfig.model_validate({"pipeline": "stereo"}), 3, 0.2, 0, 1.08e-3)
+        VisionPoseEstimator(cfg, 3, 0.2, 0, 1.08e-3)
+    VisionPoseEstimator(VisionConfig.model_validate({"pipeline": "mono"}), 3, 0.2, 0, 1.08e-3)  # shipped table
+    VisionPoseEstimator(VisionConfig.model_validate({"pipeline": "stereo"}), 3, 0.2, 0, 1.08e-3)

@@ -10,6 +10,7 @@ import pytest
 
 from swarm.mcaplog import iter_messages
 from swarm.scenario_files import load_scenario
+from swarm.models import measurement_model
 from swarmcore.sim import simulate
 
 from swarm_harness import run_swarm
@@ -27,7 +28,7 @@ SMALL_STEREO = ["n_sats=3", "duration_s=2", "vision.covariance.source=fixed", "e
 
 
 def _same_as_in_process(sc, rec, summary):
-    res = simulate(sc)
+    res = simulate(sc, measurement_model(sc))
     ref = res.summary()
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis"):
         assert summary[key] == ref[key], key

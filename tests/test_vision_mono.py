@@ -21,7 +21,7 @@ def test_apriltag_corner_refinement_is_unbiased():
     homography (no renderer involved): mean corner error under 0.1 px per axis, RMS under
     0.3 px (measured: about −0.04 mean and 0.13 px RMS; uncorrected the mean is +0.46)."""
     from swarmvision import tags
-    from swarmvision.config import MonoConfig
+    from swarmcore.vision_config import MonoConfig
     from swarmvision.mono import MonoPipeline
 
     img = tags.tag_image(7, 20)  # 200 px face, black square from pixel 20 to 179
@@ -57,7 +57,7 @@ def test_planar_ambiguity_resolved_by_the_prediction():
     near the truth, it returns a pose much nearer the truth than the other branch is
     (< 6°, and under half the branch separation: the 0.15 px corner noise on a 13 px
     tag alone moves the attitude by a few degrees)."""
-    from swarmvision.config import MonoConfig
+    from swarmcore.vision_config import MonoConfig
     from swarmvision.mono import MonoPipeline, TagDetection
 
     intr = Intrinsics.from_fov(1024, 1024, 90)
@@ -84,7 +84,7 @@ def test_planar_ambiguity_resolved_by_the_prediction():
 
 
 def _render_setup(width, focal, n=2):
-    from swarmvision.config import MonoConfig
+    from swarmcore.vision_config import MonoConfig
     from swarmvision.models import cube_satellite
     from swarmvision.mono import MonoPipeline
     from swarmvision.render import SceneRenderer
@@ -97,7 +97,7 @@ def _render_setup(width, focal, n=2):
 def _pose_errors(intr, r, mp, dist, trials, seed):
     """Target at ``dist`` in random attitudes, directions within ±20° of the boresight and
     Sun directions from the camera's hemisphere; noise on. Returns (errors, misses)."""
-    from swarmvision.config import NoiseConfig
+    from swarmcore.vision_config import NoiseConfig
     from swarmvision.noise import apply_noise
 
     rng = np.random.default_rng(seed)
@@ -157,18 +157,18 @@ def test_mono_pose_at_10m_dissertation_camera():
 
 @pytest.mark.render
 def test_vision_system_mono_measurements_in_the_filter_frames():
-    """End to end through VisionSystem: three satellites 3–5 m apart, every scheduled pair
+    """End to end through the rendered cameras and the pose estimator: three satellites 3–5 m apart, every scheduled pair
     rendered from the face cameras that see it, measured in the observer body frame and
-    compared with ``relative_truth`` (q_BjBi, r_ij_Bi): < 5 cm, < 2° (ambient light on, so
+    compared with ``relative_pose`` (q_BjBi, r_ij_Bi): < 5 cm, < 2° (ambient light on, so
     no tag is lost in shadow); covariances are
     symmetric positive definite 6×6 in B_i; order canonical; images deterministic."""
-    from swarmcore.world import relative_truth
-    from swarmvision.config import VisionConfig
-    from swarmvision.pipeline import VisionSystem
+    from swarmcore.sensors import relative_pose
+    from swarmcore.vision_config import VisionConfig
+    from vision_helpers import VisionChain
 
     cfg = VisionConfig.model_validate({"pipeline": "mono", "covariance": {"source": "pnp"}, "lighting": {"ambient": 0.3}})
     n = 3
-    vs = VisionSystem(cfg, n, 0.2, seed=5, mean_motion=1.08e-3)
+    vs = VisionChain(cfg, n, 0.2, seed=5, mean_motion=1.08e-3)
     rng = np.random.default_rng(8)
     q = quat.random_quaternion(rng, n)
     r_H = np.array([[0.0, 0.0, 0.0], [2.5, 1.5, 0.5], [-1.0, 3.0, -1.5]])
@@ -178,7 +178,7 @@ def test_vision_system_mono_measurements_in_the_filter_frames():
     meas = vs.relative_measurements(7, t, q, r_H, (obs, tgt))
     assert len(meas) == 6
     assert list(zip(meas.observer, meas.target)) == sorted(zip(obs.tolist(), tgt.tolist()))
-    q_t, r_t = relative_truth(1.08e-3, t, q, r_H, meas.observer, meas.target)
+    q_t, r_t = relative_pose(1.08e-3, t, q, r_H, meas.observer, meas.target)
     assert np.all(np.linalg.norm(meas.r_ij_Bi - r_t, axis=1) < 0.05)
     assert np.all(np.degrees(quat.angle_between(meas.q_BjBi, q_t)) < 2.0)
     np.testing.assert_allclose(meas.R_Bi, np.swapaxes(meas.R_Bi, 1, 2))
@@ -198,12 +198,12 @@ def test_losing_and_regaining_a_target():
     """Satellite 1 is measured, then drifts out to 60 m (tags < 12 px: not decoded, so
     no measurement and the track is lost), then comes back to 4 m: it is regained and
     measured correctly again."""
-    from swarmcore.world import relative_truth
-    from swarmvision.config import VisionConfig
-    from swarmvision.pipeline import VisionSystem
+    from swarmcore.sensors import relative_pose
+    from swarmcore.vision_config import VisionConfig
+    from vision_helpers import VisionChain
 
     cfg = VisionConfig.model_validate({"pipeline": "mono", "covariance": {"source": "pnp"}, "lighting": {"ambient": 0.3}})
-    vs = VisionSystem(cfg, 2, 0.2, seed=1, mean_motion=1.08e-3)
+    vs = VisionChain(cfg, 2, 0.2, seed=1, mean_motion=1.08e-3)
     q = quat.random_quaternion(np.random.default_rng(2), 2)
     pairs = (np.array([0]), np.array([1]))
     counts = []
@@ -212,7 +212,7 @@ def test_losing_and_regaining_a_target():
         meas = vs.relative_measurements(step, 0.0, q, r_H, pairs)
         counts.append(len(meas))
         if len(meas):
-            _q, r_t = relative_truth(1.08e-3, 0.0, q, r_H, meas.observer, meas.target)
+            _q, r_t = relative_pose(1.08e-3, 0.0, q, r_H, meas.observer, meas.target)
             assert np.linalg.norm(meas.r_ij_Bi[0] - r_t[0]) < 0.05
     assert counts == [1, 0, 1]
     assert [e[3] for e in vs.mono.events] == ["acquired", "lost", "regained"]
@@ -222,7 +222,7 @@ def test_camera_frame_covariance_rotates_into_the_body_frame():
     """R_Bi = diag(T_BC, T_BC) Σ_C diag(T_BC, T_BC)ᵀ: a line-of-sight-dominated error of a
     +x face camera is along body +x."""
     from swarmcore.cameras import T_CB
-    from swarmvision.covariance import camera_to_body
+    from swarmcore.sensors import camera_to_body
 
     cov_C = np.diag([1e-4, 1e-4, 4e-4, 1e-4, 1e-4, 9e-2])  # z_C: line of sight
     R = camera_to_body(cov_C, T_CB[1])  # face +x

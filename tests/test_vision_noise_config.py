@@ -12,7 +12,7 @@ from swarmcore.streams import stream
 def test_noise_statistics_match_the_model():
     """Flat 100 DN field: mean 100 + black level, σ² = 100·255/full_well + read² (shot +
     read), to 2 %; blur alone leaves a flat field flat; every term switches off."""
-    from swarmvision.config import NoiseConfig
+    from swarmcore.vision_config import NoiseConfig
     from swarmvision.noise import apply_noise
 
     img = np.full((400, 400), 100, np.uint8)
@@ -30,7 +30,7 @@ def test_noise_statistics_match_the_model():
 
 
 def test_blur_spreads_an_edge():
-    from swarmvision.config import NoiseConfig
+    from swarmcore.vision_config import NoiseConfig
     from swarmvision.noise import apply_noise
 
     img = np.zeros((64, 64), np.uint8)
@@ -42,7 +42,7 @@ def test_blur_spreads_an_edge():
 
 
 def test_noise_is_a_deterministic_function_of_the_stream():
-    from swarmvision.config import NoiseConfig
+    from swarmcore.vision_config import NoiseConfig
     from swarmvision.noise import apply_noise
 
     img = np.random.default_rng(1).integers(0, 255, (120, 160), dtype=np.uint8)
@@ -53,7 +53,7 @@ def test_noise_is_a_deterministic_function_of_the_stream():
 
 
 def test_vision_config_validates():
-    from swarmvision.config import VisionConfig
+    from swarmcore.vision_config import VisionConfig
 
     cfg = VisionConfig()
     assert cfg.pipeline == "none" and cfg.mono_camera.width_px == 1024
@@ -65,16 +65,3 @@ def test_vision_config_validates():
     with pytest.raises(ValidationError):
         VisionConfig.model_validate({"lighting": {"sun_direction": [0, 0, 0]}})
     assert VisionConfig().stereo_camera.focal_px == pytest.approx(1024 * 45 / 32)  # Table 5.1
-
-
-def test_view_bytes_roundtrip():
-    from swarmcore.cameras import T_CB, Intrinsics
-    from swarmvision.pipeline import View, decode_view, encode_view
-
-    ims = (np.arange(12, dtype=np.uint8).reshape(3, 4), np.full((3, 4), 7, np.uint8))
-    v = View(2, 8, 5, 5.0, ims, T_CB[1], np.array([0.0, 0, 0]), Intrinsics(4, 3, 2.0, 2.0, 1.5, 1.0), target=2, baseline_m=0.5)
-    w = decode_view(encode_view(v))
-    assert (w.observer, w.camera, w.step, w.target, w.baseline_m) == (2, 8, 5, 2, 0.5)
-    assert all(np.array_equal(a, b) for a, b in zip(v.images, w.images))
-    np.testing.assert_array_equal(w.T_CB, T_CB[1])
-    assert w.intrinsics == v.intrinsics

@@ -29,6 +29,7 @@ def test_short_rendered_mono_run_stays_converged():
     (it rejects the heavy tail: oblique tags at 6 m with 2–4° errors), and every filter's
     error on the other satellites stays under 5 cm and 0.01 rad (measured ≤ 1.2 cm,
     ≤ 2.4 mrad; initial σ 0.1 m, 0.01 rad)."""
+    from swarm.models import measurement_model
     from swarmcore.sim import simulate
 
     sc = load_scenario(
@@ -36,7 +37,7 @@ def test_short_rendered_mono_run_stays_converged():
         ["n_sats=3", "duration_s=5", "vision.mono_camera.width_px=1024", "vision.mono_camera.height_px=1024",
          "vision.mono_camera.focal_px=512", "vision.lighting.ambient=0.25"],
     )
-    res = simulate(sc)
+    res = simulate(sc, measurement_model(sc))
     scheduled = int(res.schedule.sum())
     measured = int(res.gate_accepted[:, 0].sum() + res.gate_rejected[:, 0].sum())  # filter 0 sees every batch
     assert measured >= 0.9 * scheduled

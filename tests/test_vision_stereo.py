@@ -42,7 +42,7 @@ def test_reference_cloud_covers_the_model():
 
 
 def _stereo_setup(cfg=None):
-    from swarmvision.config import StereoCameraConfig, StereoConfig
+    from swarmcore.vision_config import StereoCameraConfig, StereoConfig
     from swarmvision.models import model_radius, reference_cloud, spacecraft_model
     from swarmvision.render import SceneRenderer
     from swarmvision.stereo import StereoPipeline, stereo_intrinsics
@@ -57,7 +57,7 @@ def _stereo_setup(cfg=None):
 
 
 def _pair(r, intr, b, q, p, sun, rng, noise=True):
-    from swarmvision.config import NoiseConfig
+    from swarmcore.vision_config import NoiseConfig
     from swarmvision.noise import apply_noise
 
     r.set_bodies(q[None, :], p[None, :])
@@ -131,17 +131,17 @@ def test_stereo_recovers_a_known_pose():
 @pytest.mark.render
 @pytest.mark.slow
 def test_vision_system_stereo_measurements_in_the_filter_frames():
-    """VisionSystem (stereo): tracking pairs aimed at each scheduled target, the observer's
-    own body hidden, ICP seeded with a prediction; measurements match ``relative_truth``
+    """Rendered stereo cameras and the stereo pose estimator: tracking pairs aimed at each scheduled target, the observer's
+    own body hidden, ICP seeded with a prediction; measurements match ``relative_pose``
     in B_i within 10 cm and 2° at 9–14 m."""
     from swarmcore.mekf import init_estimate
-    from swarmcore.world import relative_truth
-    from swarmvision.config import VisionConfig
-    from swarmvision.pipeline import VisionSystem
+    from swarmcore.sensors import relative_pose
+    from swarmcore.vision_config import VisionConfig
+    from vision_helpers import VisionChain
 
     cfg = VisionConfig.model_validate({"pipeline": "stereo", "covariance": {"source": "fixed"}, "lighting": {"ambient": 0.1}})
     n = 3
-    vs = VisionSystem(cfg, n, 0.2, seed=2, mean_motion=1.08e-3)
+    vs = VisionChain(cfg, n, 0.2, seed=2, mean_motion=1.08e-3)
     rng = np.random.default_rng(3)
     q = quat.random_quaternion(rng, n)
     r_H = np.array([[0.0, 0, 0], [9.0, 4.0, 1.0], [-3.0, -10.0, 6.0]])
@@ -152,7 +152,7 @@ def test_vision_system_stereo_measurements_in_the_filter_frames():
     obs, tgt = np.array([0, 0, 1]), np.array([1, 2, 2])
     meas = vs.relative_measurements(3, t, q, r_H, (obs, tgt), {0: pred, 1: pred})
     assert len(meas) == 3
-    q_t, r_t = relative_truth(1.08e-3, t, q, r_H, meas.observer, meas.target)
+    q_t, r_t = relative_pose(1.08e-3, t, q, r_H, meas.observer, meas.target)
     assert np.all(np.linalg.norm(meas.r_ij_Bi - r_t, axis=1) < 0.10), meas.r_ij_Bi - r_t
     assert np.all(np.degrees(quat.angle_between(meas.q_BjBi, q_t)) < 2.0)
     views = vs.render_views(3, t, q, r_H, (obs, tgt))

@@ -57,7 +57,7 @@ def test_rendered_tag_decodes_to_the_right_satellite_and_face():
     projects (< 1 px: the face texture is laid out the right way round)."""
     from swarmvision import tags
     from swarmvision.mono import MonoPipeline
-    from swarmvision.config import MonoConfig
+    from swarmcore.vision_config import MonoConfig
     from swarmvision.models import cube_satellite
     from swarmvision.render import SceneRenderer
 

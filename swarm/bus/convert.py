@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from swarmcore.agent import Detections
 from swarmcore.mekf import AbsoluteMeasurement, RelativeMeasurements, SwarmEstimate, UpdateReport
-from swarmcore.sim import pose_cov_blocks
+from swarmcore.metrics import pose_cov_blocks
 
-from .messages import B64Array, Detection, Estimate, FullEstimate, Images, MeasBatch, RelMeas, Sensors, ViewMeta
+from .messages import B64Array, CameraOutput, Detection, Estimate, FullEstimate, Images, MeasBatch, RelMeas, Sensors, ViewMeta
 
 __all__ = [
     "estimate_msg",
@@ -18,8 +19,9 @@ __all__ = [
     "batch_msg",
     "relative_from_batches",
     "detections",
+    "detections_from_msg",
     "images_msg",
-    "views_from_images",
+    "observation_from_images",
 ]
 
 
@@ -114,11 +116,25 @@ def absolute_from_sensors(msg: Sensors) -> AbsoluteMeasurement | None:
     )
 
 
-def detections(rel: RelativeMeasurements, cameras: np.ndarray) -> list[Detection]:
+def detections(d: Detections) -> list[Detection]:
+    """An observer's synthetic camera detections as message rows."""
     return [
-        Detection(target=int(rel.target[m]), camera=int(cameras[m]), q_BjBi=_l(rel.q_BjBi[m]), r_ij_Bi_m=_l(rel.r_ij_Bi[m]))
-        for m in range(len(rel))
+        Detection(target=int(d.target[m]), camera=int(d.camera[m]), q_BjBi=_l(d.q_BjBi[m]), r_ij_Bi_m=_l(d.r_ij_Bi[m]))
+        for m in range(len(d))
     ]
+
+
+def detections_from_msg(msg: CameraOutput, camera_ok=None) -> Detections:
+    """The detections of a camera-output message, keeping those of cameras ``camera_ok``
+    says work (the agent's own belief of its camera health)."""
+    rows = [d for d in msg.detections if camera_ok is None or camera_ok[d.camera]]
+    return Detections(
+        observer=msg.sat,
+        target=np.array([d.target for d in rows], dtype=int),
+        camera=np.array([d.camera for d in rows], dtype=int),
+        q_BjBi=np.array([d.q_BjBi for d in rows], dtype=float).reshape(-1, 4),
+        r_ij_Bi=np.array([d.r_ij_Bi_m for d in rows], dtype=float).reshape(-1, 3),
+    )
 
 
 def batch_msg(rel: RelativeMeasurements, cameras: np.ndarray, *, run: str, sender: str, k: int, t_s: float, observer: int) -> MeasBatch:
@@ -156,7 +172,7 @@ def relative_from_batches(batches: list[MeasBatch]) -> RelativeMeasurements:
 
 
 def images_msg(views, *, run: str, k: int, t_s: float, sat: int, targets) -> Images:
-    """One observer's rendered views (:class:`swarmvision.pipeline.View`) as an Images message."""
+    """One observer's rendered views (:class:`swarmvision.views.View`) as an Images message."""
     metas, pixels = [], []
     for v in views:
         it = v.intrinsics
@@ -181,10 +197,10 @@ def images_msg(views, *, run: str, k: int, t_s: float, sat: int, targets) -> Ima
     return msg.with_pixels(pixels)
 
 
-def views_from_images(msg: Images) -> list:
-    """The views of an Images message, as the vision pipelines take them."""
+def observation_from_images(msg: Images):
+    """An Images message as the pose pipelines take it (:class:`swarmvision.views.Observation`)."""
     from swarmcore.cameras import Intrinsics
-    from swarmvision.pipeline import View
+    from swarmvision.views import Observation, View
 
     out, pix = [], iter(msg.pixels)
     for m in msg.views:
@@ -194,4 +210,4 @@ def views_from_images(msg: Images) -> list:
             View(msg.sat, m.camera, msg.k, msg.t_s, ims, np.array(m.T_CB, dtype=float).reshape(3, 3), np.array(m.r_C_B_m, dtype=float),
                  intr, target=m.target, baseline_m=m.baseline_m)
         )
-    return out
+    return Observation(out, np.asarray(msg.targets, dtype=int))

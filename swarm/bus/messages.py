@@ -35,6 +35,8 @@ from typing import Annotated, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator
 
+from swarmcore.scenario import FaultAction
+
 SCHEMA_VERSION = 1
 
 __all__ = [
@@ -229,19 +231,6 @@ class Select(_Header):
     ref_agent: SatId | None = None
     fallback: bool = False
     select_ms: float = 0.0
-
-
-FaultAction = Literal[
-    "kill-agent",
-    "restart-agent",
-    "stop-agent",
-    "camera",
-    "kill-selector",
-    "restart-selector",
-    "drop",
-    "partition",
-    "heal",
-]
 
 
 class Fault(_Header):

@@ -1,0 +1,294 @@
+"""One satellite's side of the lockstep protocol, as a bus-free state machine.
+
+The agent hears only what its satellite would: its own sensors (``sat/<i>/sensors``), its
+own cameras (``sat/<i>/cam`` detections, or ``sat/<i>/img`` rendered images), the
+relative-measurement batches its peers broadcast, the clock, and fault commands; never
+the truth. Step k:
+
+1. wait for its own sensors and camera delivery of k (when the clock lists it live);
+2. its pose estimator turns its camera delivery into relative measurements (covariance
+   attached; the image pipelines start from this step's prediction); broadcast them as
+   one batch (an empty one too);
+3. wait for the batch of every live peer — or until the peer has said it is past k and a
+   short grace has passed (its batch is lost), or the step timeout;
+4. run its filter (:class:`swarmcore.agent.AgentFilter`: the same calls the in-process
+   simulator makes) and publish the estimate and a health report.
+
+Start: the world's prior (a query on ``init/<i>``) or, for a restarted agent or one that
+comes late, a live peer's full estimate (``cov/<j>``), re-framed for this satellite.
+:class:`AgentProtocol` is driven by :class:`swarm.node.Node` in ``python -m sat_agent``
+and by scripted events in ``tests/test_protocol_agent.py``.
+"""
+
+from __future__ import annotations
+
+import logging
+import socket
+import time
+from typing import Callable
+
+import numpy as np
+
+from swarm.bus.convert import (
+    absolute_from_sensors,
+    batch_msg,
+    detections_from_msg,
+    estimate_from_full,
+    estimate_msg,
+    full_estimate_msg,
+    observation_from_images,
+    relative_from_batches,
+)
+from swarm.bus.messages import Fault, Health, Keys
+from swarm.protocol import Event, Query, Send, Wait
+from swarmcore.agent import AgentFilter, filter_params
+from swarmcore.measurement import PoseEstimator
+from swarmcore.mekf import RelativeMeasurements, reframe
+from swarmcore.scenario import Scenario
+from swarmcore.streams import stream
+
+__all__ = ["AgentProtocol"]
+
+_HOST = socket.gethostname()
+
+
+class AgentProtocol:
+    """Satellite ``sat``'s flight software on the bus (see the module docstring)."""
+
+    def __init__(self, sc: Scenario, sat: int, run: str, estimator: PoseEstimator, restart: bool = False,
+                 clock: Callable[[], float] = time.monotonic, malformed: Callable[[], int] = lambda: 0):
+        if not 0 <= sat < sc.n_sats:
+            raise ValueError(f"satellite {sat} is not one of this {sc.n_sats}-satellite swarm (0..{sc.n_sats - 1})")
+        self.sc = sc
+        self.i = sat
+        self.n = sc.n_sats
+        self.name = f"agent-{sat}"
+        self.run_id = run
+        self.keys = Keys(run)
+        self.estimator = estimator
+        self.rendered = sc.vision.pipeline != "none"
+        self.clock = clock
+        self.log = logging.getLogger(self.name)
+        self.params = filter_params(sc, sat)
+        self.restart = restart
+        self.filter: AgentFilter | None = None
+        self.camera_ok = np.ones(6, dtype=bool)
+        self.drop_rate = 0.0
+        self.clocks: dict[int, object] = {}
+        self.sensors: dict[int, object] = {}
+        self.cams: dict[int, object] = {}
+        self.imgs: dict[int, object] = {}
+        self.batches: dict[int, dict[int, object]] = {}
+        self.peers_alive: set[int] = set()
+        self.peer_est_steps: dict[int, int] = {}
+        self.finished: dict[int, dict[int, float]] = {}  # step → {peer: when we learnt it is past it}
+        self.batches_missing = 0
+        self.batches_late = 0
+        self.malformed = malformed  # the shell's count of malformed messages, reported in health
+        self.last_step = -1  # the last step this agent has processed (updated at)
+        self.done = False
+
+    @property
+    def est(self):
+        return None if self.filter is None else self.filter.est
+
+    # -- queries and events -----------------------------------------------------
+    def serve_cov(self, key: str):
+        """``cov/<i>``: this agent's full estimate (an immutable value: safe to read from
+        the bus's thread)."""
+        est = self.est
+        if est is None:
+            return None
+        return full_estimate_msg(est, run=self.run_id, sender=self.name, own=self.i)
+
+    def handle(self, ev: Event) -> list[Send]:
+        k = getattr(ev.msg, "k", None)
+        if ev.kind == "alive":
+            if ev.sat is not None and ev.sat != self.i:
+                (self.peers_alive.add if ev.alive else self.peers_alive.discard)(ev.sat)
+        elif ev.kind == "clock":
+            if ev.msg.done:
+                self.done = True
+            else:
+                self.clocks[k] = ev.msg
+        elif ev.kind == "sensors":
+            self.sensors[k] = ev.msg
+        elif ev.kind == "cam":
+            self.cams[k] = ev.msg
+        elif ev.kind == "img":
+            self.imgs[k] = ev.msg
+        elif ev.kind == "meas":
+            if ev.msg.observer != self.i:
+                if k <= self.last_step:
+                    self.batches_late += 1
+                else:
+                    self.batches.setdefault(k, {})[ev.msg.observer] = ev.msg
+        elif ev.kind == "est":
+            if ev.msg.own != self.i and ev.msg.phase == "posterior":
+                self.peer_est_steps[ev.msg.own] = max(k, self.peer_est_steps.get(ev.msg.own, -1))
+                self.finished.setdefault(k, {}).setdefault(ev.msg.own, self.clock())
+        elif ev.kind == "health":
+            # A peer reports after its update, so its batch for k went out before; each
+            # subscription has its own thread, so the batch may still be a moment behind.
+            # Past a short grace it is lost, and waiting longer is pointless.
+            if ev.msg.sat != self.i:
+                self.finished.setdefault(k, {}).setdefault(ev.msg.sat, self.clock())
+        elif ev.kind == "fault":
+            return self._on_fault(ev.msg)
+        return []
+
+    def _on_fault(self, f: Fault) -> list[Send]:
+        if f.phase != "command" or f.target != self.i:
+            return []
+        if f.action == "camera" and f.camera is not None:
+            self.camera_ok[f.camera] = f.state == "on"
+            self.log.info("camera %d %s", f.camera, f.state)
+        elif f.action == "drop":
+            self.drop_rate = float(f.rate or 0.0)
+            self.log.info("dropping %.0f%% of outgoing messages", 100 * self.drop_rate)
+            k = -1 if self.est is None else self.est.step
+            return [Send(self.keys.fault(), f.model_copy(update={"phase": "done", "sender": self.name, "k": max(k, 0)}))]
+        return []
+
+    # -- start ------------------------------------------------------------------
+    def _filter_from(self, est, prior: bool) -> AgentFilter:
+        f = self.sc.filter
+        return AgentFilter(self.params, est, f.mode, prior_pending=prior)
+
+    def initialise(self):
+        em = self.sc.emulator
+        if not self.restart:
+            deadline = self.clock() + em.startup_timeout_s
+            while self.filter is None and self.clock() < deadline:
+                msg = yield Query(self.keys.init(self.i), "full_est", 2.0)
+                if msg is not None:
+                    self.filter = self._filter_from(estimate_from_full(msg, self.n), prior=True)
+                    break
+                yield Wait(lambda: False, 0.0)
+                if self.peer_est_steps:
+                    # The world serves priors only before the run starts: we are late.
+                    self.log.info("the run is under way; initialising from a peer")
+                    self.restart = True
+                    break
+            if self.filter is None and not self.restart:
+                raise SystemExit(f"agent {self.i}: no prior from the world within {em.startup_timeout_s} s")
+            if self.filter is not None:
+                self.log.info("initialised from the world's prior at step %d", self.est.step)
+        if self.restart:
+            # A restarted agent borrows a live peer's latest full estimate.
+            yield Wait(lambda: bool(self.peer_est_steps), em.startup_timeout_s)
+            while self.filter is None:
+                if not self.peer_est_steps:
+                    raise SystemExit(f"agent {self.i}: no live peer to initialise from")
+                peer = max(self.peer_est_steps, key=lambda j: (self.peer_est_steps[j], -j))
+                msg = yield Query(self.keys.cov(peer), "full_est", 5.0)
+                if msg is None:
+                    self.peer_est_steps.pop(peer, None)
+                    continue
+                s = self.sc.filter.initial_sigma
+                est = reframe(estimate_from_full(msg, self.n), msg.own, self.i, s.bias_rad_s, s.rate_rad_s)
+                self.filter = self._filter_from(est, prior=False)
+                self.last_step = est.step
+                self.log.info("restarted from agent %d's estimate at step %d", msg.own, est.step)
+        yield Send(self.keys.est(self.i), estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, phase="prior"))
+
+    # -- steps --------------------------------------------------------------------
+    def _gyro_of(self, s: int):
+        msg = self.sensors.pop(s, None)
+        return _gyro(msg)
+
+    def _dropped(self, k: int, what: int) -> bool:
+        if self.drop_rate <= 0:
+            return False
+        return bool(stream(self.sc.seed, "drop", self.i, k, what).random() < self.drop_rate)
+
+    def _own_measurements(self, k: int, sens):
+        """Predict first when the estimator needs it, then measure our own camera delivery."""
+        f = self.filter
+        if not self.estimator.needs_prediction:
+            return self.estimator.measure(self.i, detections_from_msg(self.cams.pop(k), self.camera_ok) if k in self.cams else None,
+                                          f.est, k)
+        f.coast_to(k, self._gyro_of)
+        if k > 0 and f.est.step < k:
+            f.predict_to(k, _gyro(sens))
+        msg = self.imgs.pop(k, None)
+        obs = None
+        if msg is not None and msg.views:
+            obs = observation_from_images(msg)
+            obs.views = [v for v in obs.views if v.camera >= 6 or self.camera_ok[v.camera]]
+        rel, cams = self.estimator.measure(self.i, obs, f.est, k)
+        rep = getattr(self.estimator, "last_reports", {}).get(self.i)
+        if rep is not None and rep.missed:
+            self.log.debug("step %d: no pose of %s from the images", k, rep.missed)
+        return rel, cams
+
+    def step(self, k: int):
+        em = self.sc.emulator
+        clock = self.clocks.pop(k)
+        t = clock.t_s
+        timeout = em.step_timeout_s if em.time_mode == "lockstep" else 0.8 * self.sc.dt_s / em.realtime_factor
+        if self.i in clock.live_agents:  # otherwise the world sends us nothing this step
+            mine = self.imgs if self.rendered else self.cams
+            yield Wait(lambda: k in self.sensors and k in mine, timeout)
+        sens = self.sensors.pop(k, None)
+        t0 = time.perf_counter()
+        rel_own, cams = self._own_measurements(k, sens)
+        ms_own = (time.perf_counter() - t0) * 1e3
+        if not self._dropped(k, 0):
+            yield Send(self.keys.meas(self.i), batch_msg(rel_own, cams, run=self.run_id, sender=self.name, k=k, t_s=t, observer=self.i))
+        expected = [j for j in clock.live_agents if j != self.i]
+        grace = em.lost_batch_grace_s
+
+        def lost(j):
+            t_done = self.finished.get(k, {}).get(j)
+            return t_done is not None and self.clock() - t_done >= grace
+
+        def next_wake():
+            pending = [self.finished.get(k, {}).get(j) for j in expected if j not in self.batches.get(k, {})]
+            times = [t + grace for t in pending if t is not None]
+            return min(times) if times else None
+
+        yield Wait(lambda: all(j in self.batches.get(k, {}) or j not in self.peers_alive or lost(j) for j in expected), timeout,
+                   wake=next_wake)
+        got = self.batches.pop(k, {})
+        missing = [j for j in expected if j not in got]
+        self.batches_missing += len(missing)
+        rel = RelativeMeasurements.concat([rel_own, relative_from_batches([got[j] for j in sorted(got)])])
+        t0 = time.perf_counter()
+        self.filter.coast_to(k, self._gyro_of)
+        report, _late = self.filter.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel)
+        self.last_step = k
+        ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
+        msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
+                           batches_used=sorted(got), batches_missing=missing, batches_late=self.batches_late)
+        if not self._dropped(k, 1):
+            yield Send(self.keys.est(self.i), msg)
+        yield Send(self.keys.health(self.i), Health(
+            run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in self.camera_ok],
+            malformed=self.malformed(), batches_missing=self.batches_missing, batches_late=self.batches_late,
+            drop_rate=self.drop_rate, host=_HOST,
+        ))
+        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished):
+            for old in [s for s in store if s < k - 2]:
+                store.pop(old, None)
+
+    def run(self):
+        yield from self.initialise()
+        while not self.done:
+            nxt = sorted(s for s in self.clocks if s > self.last_step)
+            if nxt:
+                # The newest step: in lockstep there is only ever one ahead, unless this
+                # agent fell behind (cut off the bus, stalled); then it predicts across the
+                # gap and rejoins the swarm's present rather than replaying stale steps.
+                k = nxt[-1]
+                for s in [s for s in self.clocks if s < k]:
+                    self.clocks.pop(s, None)
+                yield from self.step(k)
+                continue
+            yield Wait(lambda: self.done or any(s > self.last_step for s in self.clocks), 0.5)
+        self.log.info("done at step %d; %d malformed, %d missing, %d late batches", self.est.step, self.malformed(),
+                      self.batches_missing, self.batches_late)
+
+
+def _gyro(sens):
+    return None if sens is None or sens.gyro_rate_B_rad_s is None else np.asarray(sens.gyro_rate_B_rad_s, dtype=float)

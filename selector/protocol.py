@@ -1,0 +1,135 @@
+"""The selector's side of the protocol, as a bus-free state machine.
+
+It plans step k from a reference agent's estimate — the lowest-numbered live agent —
+exactly as the in-process simulator does (:func:`swarmcore.selection.choose_pairs`): the
+agent's posterior at k−1 carried to k without its gyro (its prior at k = 0), fetched in
+full from ``cov/<ref>``. Camera health (fault commands, agents' health reports) and dead
+satellites (liveliness) remove candidates (:func:`swarmcore.selection.mask_dead`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+
+from swarm.bus.convert import estimate_from_full
+from swarm.bus.messages import Fault, Keys, Select
+from swarm.protocol import Event, Query, Send, Wait
+from swarmcore.agent import filter_params
+from swarmcore.graphs import scenario_graph
+from swarmcore.scenario import Scenario
+from swarmcore.selection import NEEDS_STATE, choose_pairs, mask_dead
+
+__all__ = ["SelectorProtocol"]
+
+log = logging.getLogger("selector")
+
+
+class SelectorProtocol:
+    def __init__(self, sc: Scenario, run: str, clock: Callable[[], float] = time.monotonic):
+        self.sc = sc
+        self.clock = clock
+        self._startup_deadline = clock() + sc.emulator.startup_timeout_s
+        self.n = sc.n_sats
+        self.run_id = run
+        self.keys = Keys(run)
+        self.G = scenario_graph(sc)
+        self.params = [filter_params(sc, i) for i in range(sc.n_sats)]
+        self.camera_ok = np.ones((sc.n_sats, 6), dtype=bool)
+        self.alive: set[int] = set()
+        self.done = False
+        self.planned: set[int] = set()
+        self.next_plan: dict[int, int] = {}  # agent → the step its latest estimate lets us plan
+        self.clock_seen = False  # the run has started
+        self._asked_first: int | None = None  # the agent last asked for its step-0 prior
+
+    def ref_agent(self) -> int | None:
+        return min(self.alive) if self.alive else None
+
+    def handle(self, ev: Event) -> list[Send]:
+        if ev.kind == "alive" and ev.sat is not None:
+            (self.alive.add if ev.alive else self.alive.discard)(ev.sat)
+        elif ev.kind == "est":
+            m = ev.msg
+            plan_k = m.k if m.phase == "prior" else m.k + 1
+            self.next_plan[m.own] = max(plan_k, self.next_plan.get(m.own, -1))
+        elif ev.kind == "health":
+            self.camera_ok[ev.msg.sat] = ev.msg.camera_ok
+        elif ev.kind == "fault":
+            f: Fault = ev.msg
+            if f.action == "camera" and f.phase == "command" and f.target is not None and f.camera is not None:
+                self.camera_ok[f.target, f.camera] = f.state == "on"
+        elif ev.kind == "clock":
+            self.clock_seen = True
+            self.done = self.done or ev.msg.done
+        return []
+
+    def plan(self, k: int, ref: int, msg=None):
+        sc = self.sc
+        t0 = time.perf_counter()
+        est = None
+        if sc.selection.strategy in NEEDS_STATE:
+            if msg is None:
+                msg = yield Query(self.keys.cov(ref), "full_est", sc.emulator.step_timeout_s)
+            if msg is None:
+                log.warning("step %d: agent %d did not serve its estimate", k, ref)
+                return
+            est = estimate_from_full(msg, self.n)
+        obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(self.camera_ok, self.alive))
+        ms = (time.perf_counter() - t0) * 1e3
+        yield Send(self.keys.select(), Select(run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
+                                              pairs=[(int(a), int(b)) for a, b in zip(obs, tgt, strict=True)],
+                                              strategy=sc.selection.strategy, ref_agent=ref, select_ms=ms))
+        self.planned.add(k)
+
+    def plan_first(self, ref: int):
+        """Plan step 0 from the reference agent's prior, fetched rather than awaited: an
+        agent publishes its prior once, when it initialises, and a selector that came up
+        later (or whose subscription was still propagating) never sees it."""
+        self._asked_first = ref
+        msg = yield Query(self.keys.cov(ref), "full_est", 2.0)
+        if msg is None or msg.own != ref:
+            return  # not initialised yet: its prior will arrive as an event, or we ask again
+        if msg.k == 0 and not self.clock_seen:
+            yield from self.plan(0, ref, msg)
+
+    def run(self):
+        if self.sc.selection.strategy == "none":
+            log.info("the scenario takes every measurement of its graph: nothing to select")
+            yield Wait(lambda: self.done, float("inf"))
+            return
+        while not self.done:
+            # Wake for work, or for step 0 once a new reference agent appears (asking the same
+            # one again is paced by the timeout).
+            yield Wait(lambda: self.done or self._work() is not None or (self._first_pending() and self.ref_agent() != self._asked_first),
+                       0.5)
+            # Plan from the reference agent's latest estimate only (the lowest live id).
+            ref = self.ref_agent()
+            if self._first_pending():
+                yield from self.plan_first(ref)
+                continue
+            k = self._work()
+            if k is not None:
+                yield from self.plan(k, self.ref_agent())
+
+    def _first_pending(self) -> bool:
+        """Step 0 is still to plan, the reference agent's prior has not been heard, and the
+        reference is settled: every agent is up (so it is the one the in-process simulator
+        plans with), or the start-up allowance is over."""
+        ref = self.ref_agent()
+        settled = len(self.alive) == self.n or self.clock() > self._startup_deadline
+        return ref is not None and settled and ref not in self.next_plan and not self.clock_seen and 0 not in self.planned
+
+    def _work(self):
+        """The step there is something to plan for now, if any (step 0 only once the
+        reference is settled, as for :meth:`_first_pending`)."""
+        ref = self.ref_agent()
+        if ref is None:
+            return None
+        k = self.next_plan.get(ref, -1)
+        if k == 0 and not (len(self.alive) == self.n or self.clock() > self._startup_deadline or self.clock_seen):
+            return None
+        return k if 0 <= k < self.sc.steps and k not in self.planned else None

@@ -1,0 +1,19 @@
+"""The relative-measurement model a scenario asks for: the one place that decides between
+the core's synthetic cameras and the rendered ones (which import the vision stack)."""
+
+from __future__ import annotations
+
+from swarmcore.measurement import MeasurementModel, synthetic_model
+from swarmcore.scenario import Scenario
+
+__all__ = ["measurement_model"]
+
+
+def measurement_model(sc: Scenario) -> MeasurementModel:
+    """Synthetic (``vision.pipeline: none``) or rendered (mono, stereo) relative sensing.
+    Vision libraries are imported only when the scenario renders."""
+    if sc.vision.pipeline == "none":
+        return synthetic_model(sc)
+    import swarmvision
+
+    return swarmvision.measurement_model(sc)

@@ -1,0 +1,287 @@
+"""Flight software of one satellite: its filter's set-up, its step, and late measurements.
+
+What a ``sat_agent`` runs and what the in-process simulator runs for every satellite,
+with the same calls in the same order (that is what makes their numbers equal). Nothing
+here reads truth: inputs are the satellite's own sensor readings, its own camera
+outputs and the relative measurement batches its radio delivered.
+
+One step k of satellite ``own`` (t_k = k dt):
+
+1. predict from k−1 to k with its own gyro sample of that interval (none at k = 0);
+2. update with its own absolute reading (star tracker, GPS) and every relative
+   measurement of step k it holds, in canonical order (by observer, then target).
+
+Late (out-of-sequence) measurements: a batch taken at step s < k that arrives at k.
+``late: replay`` keeps a bounded history (``history_steps``) of each step's prior, gyro
+input and applied measurements, inserts the late ones at their own step and re-runs the
+filter forward from there (reprocessing: exact for the filter's linearisation schedule,
+so delivering a batch late gives the posterior of delivering it on time, to round-off).
+Older than the history, or ``late: drop``: dropped and counted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from .cameras import best_camera
+from .mekf import (
+    AbsoluteMeasurement,
+    FilterParams,
+    RelativeMeasurements,
+    SwarmEstimate,
+    UpdateReport,
+    predict,
+    update,
+)
+from .scenario import Scenario
+from .sensors import relative_noise_cov
+
+__all__ = [
+    "filter_params",
+    "usable",
+    "filter_step",
+    "Detections",
+    "SyntheticPoseEstimator",
+    "AgentFilter",
+    "LateReport",
+]
+
+
+def filter_params(sc: Scenario, own: int) -> FilterParams:
+    """The filter of satellite ``own`` as the scenario configures it."""
+    f = sc.filter
+    return FilterParams(
+        n=sc.n_sats,
+        own=own,
+        dt=sc.dt_s,
+        mean_motion=sc.orbit.mean_motion_rad_s,
+        J=sc.spacecraft.J(),
+        arw=sc.sensors.gyro.arw_rad_sqrt_s,
+        rrw=sc.sensors.gyro.rrw_rad_s15,
+        torque=sc.disturbances.torque_sigma_Nm_sqrt_s,
+        accel=sc.disturbances.accel_sigma_m_s15,
+        att_rw_other=f.att_rw_other_rad_sqrt_s,
+        pos_rw=f.pos_rw_m_sqrt_s,
+        gate_threshold=f.gate.threshold(),
+        update_method=f.update,
+        rk4_substeps=f.rk4_substeps,
+        max_iterations=f.max_iterations,
+        iterate_above_rad=f.iterate_above_rad,
+        missing_gyro_rate_sigma=f.initial_sigma.rate_rad_s,
+    )
+
+
+def filter_step(
+    est: SwarmEstimate,
+    params: FilterParams,
+    gyro_rate_B: np.ndarray | None,
+    absolute: AbsoluteMeasurement | None,
+    relative: RelativeMeasurements,
+    mode: str = "cooperative",
+    propagate: bool = True,
+) -> tuple[SwarmEstimate, UpdateReport]:
+    """One step of one filter: predict (unless ``propagate`` is False), then update with
+    the measurements this filter uses (``isolated``: only its own) in canonical order."""
+    if propagate:
+        est = predict(est, params, gyro_rate_B)
+    return update(est, params, absolute, usable(relative, params.own, mode))
+
+
+def usable(relative: RelativeMeasurements, own: int, mode: str) -> RelativeMeasurements:
+    """The relative measurements a filter in ``mode`` applies, in canonical order."""
+    if mode == "isolated":
+        relative = relative.subset(relative.observer == own)
+    return relative.canonical()
+
+
+# --------------------------------------------------------------------- camera outputs
+@dataclass(frozen=True)
+class Detections:
+    """What an observer's face cameras report at one step (synthetic camera model):
+    relative poses of targets, with the camera that saw each. No covariance: the agent's
+    pose estimator attaches the one it believes (:class:`SyntheticPoseEstimator`)."""
+
+    observer: int
+    target: np.ndarray  # (m,) int
+    camera: np.ndarray  # (m,) int, 0..5
+    q_BjBi: np.ndarray  # (m, 4)
+    r_ij_Bi: np.ndarray  # (m, 3) m
+
+    def __len__(self) -> int:
+        return int(self.target.shape[0])
+
+    def subset(self, idx) -> "Detections":
+        return Detections(self.observer, self.target[idx], self.camera[idx], self.q_BjBi[idx], self.r_ij_Bi[idx])
+
+
+class SyntheticPoseEstimator:
+    """Agent side of the synthetic camera model: a detection becomes a relative
+    measurement with the noise covariance the sensor model gives for the MEASURED
+    position (what a camera pipeline knows), :func:`swarmcore.sensors.relative_noise_cov`."""
+
+    needs_prediction = False
+
+    def __init__(self, sc: Scenario):
+        self.rel = sc.sensors.relative
+
+    @classmethod
+    def from_relative(cls, rel) -> "SyntheticPoseEstimator":
+        """From the ``sensors.relative`` section alone."""
+        self = cls.__new__(cls)
+        self.rel = rel
+        return self
+
+    def measure(self, observer: int, dets: Detections | None, predicted: SwarmEstimate | None = None, step: int | None = None):
+        """``(RelativeMeasurements, camera ids)`` of this observer's detections."""
+        if dets is None or not len(dets):
+            return RelativeMeasurements.empty(), np.zeros(0, dtype=int)
+        m = len(dets)
+        rel = RelativeMeasurements(
+            np.full(m, observer, dtype=int),
+            np.asarray(dets.target, dtype=int),
+            np.asarray(dets.q_BjBi, dtype=float),
+            np.asarray(dets.r_ij_Bi, dtype=float),
+            relative_noise_cov(self.rel, dets.r_ij_Bi),
+        )
+        return rel, np.asarray(dets.camera, dtype=int)
+
+
+def face_cameras_of(r_ij_Bi: np.ndarray) -> np.ndarray:
+    """The face camera that sees each line of sight (the one nearest its boresight)."""
+    return best_camera(r_ij_Bi) if len(r_ij_Bi) else np.zeros(0, dtype=int)
+
+
+# --------------------------------------------------------------------- the agent's filter
+@dataclass
+class _Record:
+    """What the filter did at one step: enough to do it again with more measurements."""
+
+    step: int
+    prior: SwarmEstimate  # after predicting to this step, before its update
+    absolute: AbsoluteMeasurement | None
+    relative: RelativeMeasurements  # applied, canonical
+    updated: bool = True  # False: a coasted step (posterior = prior) until measurements come
+    gyro_next: np.ndarray | None = None  # the gyro sample used to predict to step + 1
+
+
+@dataclass
+class LateReport:
+    """What became of the late measurements handed to one :meth:`AgentFilter.step`."""
+
+    used: int = 0  # measurements inserted at their own step (replay)
+    dropped: int = 0  # older than the history, or ``late: drop``
+    replayed_steps: int = 0  # filter steps re-run
+    oldest_step: int | None = None  # the earliest step replayed from
+
+
+@dataclass
+class AgentFilter:
+    """One satellite's full-swarm filter with its history (see the module docstring).
+
+    ``est`` is either the posterior of step ``est.step`` or, while ``prior_pending``, its
+    prior (just predicted, or the initial estimate), whose update :meth:`step` applies.
+    """
+
+    params: FilterParams
+    est: SwarmEstimate
+    mode: str = "cooperative"
+    late: Literal["replay", "drop"] = "drop"
+    history_steps: int = 0
+    prior_pending: bool = True
+    _hist: dict[int, _Record] = field(default_factory=dict, repr=False)
+
+    def predict_to(self, k: int, gyro: np.ndarray | None) -> SwarmEstimate:
+        """Predict the current posterior to step ``k = est.step + 1`` with the gyro sample
+        of that interval; the update of step ``k`` follows in :meth:`step`."""
+        if k != self.est.step + 1 or self.prior_pending:
+            raise ValueError(f"predict_to({k}) from step {self.est.step} (prior pending: {self.prior_pending})")
+        rec = self._hist.get(self.est.step)
+        if rec is not None:
+            rec.gyro_next = None if gyro is None else np.array(gyro, dtype=float)
+        self.est = predict(self.est, self.params, gyro)
+        self.prior_pending = True
+        return self.est
+
+    def coast_to(self, k: int, gyro_of) -> None:
+        """Bring the filter to a posterior at step ``k − 1`` across steps it missed:
+        predictions only (no measurements). ``gyro_of(s)`` gives the gyro sample for the
+        interval s−1 → s (or None)."""
+        if self.prior_pending and self.est.step < k:
+            self._close_pending()
+        while self.est.step < k - 1:
+            self.predict_to(self.est.step + 1, gyro_of(self.est.step + 1))
+            self._close_pending()
+
+    def _close_pending(self) -> None:
+        """A step without measurements: its posterior is its prior."""
+        self._record(self.est.step, self.est, None, RelativeMeasurements.empty(), updated=False)
+        self.prior_pending = False
+
+    def step(
+        self,
+        k: int,
+        gyro: np.ndarray | None,
+        absolute: AbsoluteMeasurement | None,
+        relative: RelativeMeasurements,
+        late: dict[int, RelativeMeasurements] | None = None,
+    ) -> tuple[UpdateReport, LateReport]:
+        """Step ``k``: insert ``late`` measurements (taken at earlier steps) and replay,
+        then predict to k (unless :meth:`predict_to` already did) and update."""
+        lrep = self._insert_late(late or {})
+        if not self.prior_pending:
+            self.predict_to(k, gyro)
+        if self.est.step != k:
+            raise ValueError(f"step({k}) with the filter at step {self.est.step}")
+        prior = self.est
+        rel = usable(relative, self.params.own, self.mode)
+        self.est, rep = update(prior, self.params, absolute, rel)
+        self.prior_pending = False
+        self._record(k, prior, absolute, rel)
+        return rep, lrep
+
+    # -- history ------------------------------------------------------------------
+    def _record(self, k: int, prior: SwarmEstimate, absolute, rel: RelativeMeasurements, updated: bool = True) -> None:
+        if self.late != "replay" or self.history_steps <= 0:
+            return
+        self._hist[k] = _Record(k, prior, absolute, rel, updated)
+        for s in [s for s in self._hist if s < k - self.history_steps]:
+            del self._hist[s]
+
+    def _insert_late(self, late: dict[int, RelativeMeasurements]) -> LateReport:
+        rep = LateReport()
+        last = self.est.step - 1 if self.prior_pending else self.est.step  # the last updated step
+        first = None
+        for s in sorted(late):
+            m = usable(late[s], self.params.own, self.mode)
+            if not len(m):
+                continue
+            if s > last:
+                raise ValueError(f"measurements of step {s} are not late: the filter has updated up to step {last}")
+            rec = self._hist.get(s)
+            if self.late != "replay" or rec is None:
+                rep.dropped += len(m)
+                continue
+            rec.relative = RelativeMeasurements.concat([rec.relative, m]).canonical()
+            rec.updated = True
+            rep.used += len(m)
+            first = s if first is None else first
+        if first is None:
+            return rep
+        rep.oldest_step = first
+        # Re-run from the first changed step to the last updated one, with the same inputs.
+        est = self._hist[first].prior
+        for s in range(first, last + 1):
+            rec = self._hist[s]
+            if s > first:
+                rec.prior = predict(est, self.params, self._hist[s - 1].gyro_next)
+            est = rec.prior
+            if rec.updated:
+                est, _ = update(rec.prior, self.params, rec.absolute, rec.relative)
+            rep.replayed_steps += 1
+        if self.prior_pending:
+            est = predict(est, self.params, self._hist[last].gyro_next)
+        self.est = est
+        return rep

@@ -1,0 +1,88 @@
+"""Drive a role's protocol machine (:mod:`swarm.protocol`) without a bus: scripted events
+in, the messages it sends out, a fake clock. What :meth:`swarm.node.Node.drive` does with a
+real Zenoh session, done by hand so tests can say exactly what arrives and when."""
+
+from __future__ import annotations
+
+from swarm.protocol import Event, Query, Send, Wait
+
+
+class FakeClock:
+    def __init__(self, t: float = 1000.0):
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+class Driver:
+    """Runs ``machine.run()`` until it blocks on a :class:`Wait` that does not hold yet.
+
+    ``answer(query) -> reply`` answers its queries (default: nothing). Events are handed in
+    with :meth:`feed`; :meth:`elapse` moves the fake clock and times waits out.
+    """
+
+    def __init__(self, machine, clock: FakeClock, answer=None):
+        self.m = machine
+        self.clock = clock
+        self.answer = answer or (lambda q: None)
+        self.sent: list[Send] = []
+        self.queries: list[Query] = []
+        self.gen = machine.run()
+        self.wait: Wait | None = None
+        self.deadline = None
+        self.finished = False
+        self._resume(None)
+
+    # -- what the machine did ----------------------------------------------------------
+    def sent_on(self, key: str) -> list:
+        return [s.msg for s in self.sent if s.key == key]
+
+    def take(self) -> list[Send]:
+        out, self.sent = self.sent, []
+        return out
+
+    # -- what happens to it --------------------------------------------------------------
+    def feed(self, *events: Event) -> None:
+        for ev in events:
+            self.sent.extend(self.m.handle(ev))
+            self._check()
+
+    def elapse(self, dt: float) -> None:
+        """Let ``dt`` seconds pass with nothing arriving."""
+        self.clock.t += dt
+        self._check()
+
+    def _check(self) -> None:
+        while self.wait is not None and not self.finished:
+            if self.wait.until():
+                self._resume(True)
+            elif self.clock() >= self.deadline:
+                self._resume(False)
+            else:
+                return
+
+    def _resume(self, value) -> None:
+        while True:
+            try:
+                action = self.gen.send(value)
+            except StopIteration:
+                self.finished, self.wait = True, None
+                return
+            value = None
+            if isinstance(action, Send):
+                self.sent.append(action)
+            elif isinstance(action, Query):
+                self.queries.append(action)
+                value = self.answer(action)
+            elif isinstance(action, Wait):
+                if action.until():
+                    value = True
+                    continue
+                if action.timeout_s <= 0:
+                    value = False
+                    continue
+                self.wait, self.deadline = action, self.clock() + action.timeout_s
+                return
+            else:
+                raise TypeError(action)

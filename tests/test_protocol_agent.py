@@ -1,0 +1,187 @@
+"""An agent's lockstep protocol, driven without a bus: events in, messages out.
+
+The world side of each step is computed with the core (truth, sensors, synthetic
+cameras), so the agent's posterior can be held against the same filter run directly."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol_driver import Driver, FakeClock
+from sat_agent.protocol import AgentProtocol
+from swarm.bus.convert import batch_msg, detections, full_estimate_msg, sensors_msg
+from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Keys
+from swarm.protocol import Event, Query
+from swarmcore.agent import AgentFilter, SyntheticPoseEstimator, filter_params
+from swarmcore.graphs import scenario_graph
+from swarmcore.mekf import RelativeMeasurements
+from swarmcore.scenario import Scenario
+from swarmcore.world import SyntheticCameras, absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
+
+RUN = "t"
+K = Keys(RUN)
+
+
+def scenario(**over) -> Scenario:
+    base = {"name": "proto", "seed": 4, "n_sats": 3, "duration_s": 5, "graph": {"kind": "complete"}}
+    base.update(over)
+    return Scenario.model_validate(base)
+
+
+class WorldScript:
+    """Truth and what every satellite's sensors and cameras deliver, step by step."""
+
+    def __init__(self, sc: Scenario):
+        self.sc = sc
+        self.wp = world_params(sc)
+        self.truth = initial_truth(sc)
+        self.G = scenario_graph(sc)
+        self.cams = SyntheticCameras(self.wp)
+        self.gyro = None
+
+    def advance(self, k: int) -> None:
+        if k > 0:
+            self.truth, self.gyro = step_truth(self.wp, self.truth)
+
+    def events_for(self, i: int, k: int, live=(0, 1, 2)) -> list[Event]:
+        t = self.truth.t
+        absm = absolute_measurements(self.wp, self.truth)
+        obs, tgt = np.nonzero(self.G & ~np.eye(self.sc.n_sats, dtype=bool))
+        seen = self.cams.observe(self.truth, obs, tgt)
+        clock = Clock(run=RUN, sender="world", k=k, t_s=t, live_agents=list(live))
+        sens = sensors_msg(run=RUN, k=k, t_s=t, sat=i, gyro=None if self.gyro is None else self.gyro[i], absm=absm[i],
+                           sigma_star=self.wp.star_sigma, sigma_gps=self.wp.gps_sigma)
+        cam = CameraOutput(run=RUN, sender="world", k=k, t_s=t, sat=i, detections=detections(seen[i]))
+        return [Event(K.clock(), "clock", None, msg=clock), Event(K.sensors(i), "sensors", i, msg=sens), Event(K.cam(i), "cam", i, msg=cam)]
+
+    def batch(self, j: int, k: int):
+        obs, tgt = np.nonzero(self.G & ~np.eye(self.sc.n_sats, dtype=bool))
+        rel, cams = SyntheticPoseEstimator(self.sc).measure(j, self.cams.observe(self.truth, obs, tgt)[j])
+        return batch_msg(rel, cams, run=RUN, sender=f"agent-{j}", k=k, t_s=self.truth.t, observer=j)
+
+
+def prior_answer(sc: Scenario, truth0):
+    def answer(q: Query):
+        i = int(q.key.rsplit("/", 1)[1])
+        return full_estimate_msg(initial_estimate(sc, truth0, i), run=RUN, sender="world", own=i)
+
+    return answer
+
+
+def meas_event(msg) -> Event:
+    return Event(K.meas(msg.observer), "meas", msg.observer, msg=msg)
+
+
+def test_agent_steps_equal_the_filter_run_directly():
+    """Three steps of agent 0 fed by the world and two peers give, bit for bit, the
+    posterior of the same AgentFilter calls made directly (what ``swarm sim`` does)."""
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    d = Driver(a, clock, answer=prior_answer(sc, world.truth))
+    assert [q.key for q in d.queries] == [K.init(0)]
+    (prior,) = d.sent_on(K.est(0))
+    assert prior.phase == "prior" and prior.k == 0
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), Event(K.alive("agent", 2), "alive", 2, alive=True))
+    ref = AgentFilter(filter_params(sc, 0), initial_estimate(sc, world.truth, 0), sc.filter.mode)
+    for k in range(3):
+        world.advance(k)
+        d.take()
+        d.feed(*world.events_for(0, k))
+        (own,) = d.sent_on(K.meas(0))
+        assert own.k == k and sorted(m.target for m in own.meas) == [1, 2]
+        assert not d.sent_on(K.est(0)), "the agent waits for its peers' batches"
+        peers = [world.batch(1, k), world.batch(2, k)]
+        d.feed(*(meas_event(b) for b in peers))
+        (est,) = d.sent_on(K.est(0))
+        (health,) = d.sent_on(K.health(0))
+        assert est.k == k and est.batches_used == [1, 2] and health.batches_missing == 0
+        from swarm.bus.convert import relative_from_batches
+
+        rel = RelativeMeasurements.concat([relative_from_batches([own]), relative_from_batches(peers)])
+        absm = absolute_measurements(world.wp, world.truth)[0]
+        ref.step(k, None if world.gyro is None else world.gyro[0], absm, rel)
+        np.testing.assert_array_equal(np.asarray(est.q_BI), ref.est.q_BI)
+        np.testing.assert_array_equal(np.asarray(est.r_H_m), ref.est.r_H)
+        np.testing.assert_array_equal(a.est.P, ref.est.P)
+
+
+def test_a_peer_done_without_its_batch_is_given_up_after_the_grace():
+    sc = scenario(emulator={"lost_batch_grace_s": 0.5, "step_timeout_s": 10.0})
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    d = Driver(a, clock, answer=prior_answer(sc, world.truth))
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), Event(K.alive("agent", 2), "alive", 2, alive=True))
+    world.advance(0)
+    d.feed(*world.events_for(0, 0), meas_event(world.batch(1, 0)))
+    h2 = Health(run=RUN, sender="agent-2", k=0, t_s=0.0, sat=2, camera_ok=[True] * 6)
+    d.feed(Event(K.health(2), "health", 2, msg=h2))
+    d.elapse(0.4)
+    assert not d.sent_on(K.est(0)) or d.sent_on(K.est(0))[-1].phase == "prior"
+    d.elapse(0.2)
+    est = d.sent_on(K.est(0))[-1]
+    assert est.phase == "posterior" and est.batches_missing == [2] and est.batches_used == [1]
+
+
+def test_a_dead_peer_is_not_waited_for_and_a_late_batch_is_counted():
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    d = Driver(a, clock, answer=prior_answer(sc, world.truth))
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True))  # 2 never comes up
+    world.advance(0)
+    d.feed(*world.events_for(0, 0), meas_event(world.batch(1, 0)))
+    est = d.sent_on(K.est(0))[-1]
+    assert est.phase == "posterior" and est.batches_missing == [2]
+    d.feed(meas_event(world.batch(2, 0)))  # step 0 is done: too late
+    assert a.batches_late == 1
+
+
+def test_restarted_agent_initialises_from_the_freshest_peer():
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    peer_est = initial_estimate(sc, world.truth, 1)
+
+    def answer(q: Query):
+        assert q.key == K.cov(1)
+        return full_estimate_msg(peer_est, run=RUN, sender="agent-1", own=1)
+
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), restart=True, clock=clock)
+    d = Driver(a, clock, answer=answer)
+    assert not d.queries, "a restarted agent first waits to hear of a live peer"
+    from swarm.bus.convert import estimate_msg
+
+    d.feed(Event(K.est(1), "est", 1, msg=estimate_msg(peer_est, run=RUN, sender="agent-1", own=1)))
+    assert [q.key for q in d.queries] == [K.cov(1)]
+    (prior,) = d.sent_on(K.est(0))
+    assert prior.phase == "prior" and prior.own == 0 and not a.filter.prior_pending
+
+
+def test_drop_and_camera_faults_addressed_to_this_agent():
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    d = Driver(a, clock, answer=prior_answer(sc, world.truth))
+    d.take()
+    cam_off = Fault(run=RUN, sender="cli", k=0, t_s=0.0, action="camera", target=0, camera=2, state="off")
+    other = Fault(run=RUN, sender="cli", k=0, t_s=0.0, action="drop", target=1, rate=1.0)
+    drop = Fault(run=RUN, sender="cli", k=0, t_s=0.0, action="drop", target=0, rate=1.0)
+    d.feed(*(Event(K.fault(), "fault", None, msg=f) for f in (cam_off, other, drop)))
+    assert not a.camera_ok[2] and a.camera_ok[[0, 1, 3, 4, 5]].all()
+    (done,) = d.sent_on(K.fault())
+    assert (done.action, done.phase, done.target, done.sender) == ("drop", "done", 0, "agent-0")
+    world.advance(0)
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), *world.events_for(0, 0, live=(0, 1)), meas_event(world.batch(1, 0)))
+    assert not d.sent_on(K.meas(0)) and not d.sent_on(K.est(0)[:-1] + "0"), "rate 1: every outgoing batch and estimate lost"
+    assert d.sent_on(K.health(0))[-1].drop_rate == 1.0
+
+
+def test_unknown_satellite_is_refused():
+    with pytest.raises(ValueError, match="not one of this 3-satellite swarm"):
+        AgentProtocol(scenario(), 3, RUN, SyntheticPoseEstimator(scenario()))

@@ -1,0 +1,197 @@
+"""The world's lockstep protocol, driven without a bus: events in, messages out."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from protocol_driver import Driver, FakeClock
+from swarm.bus.messages import Estimate, Fault, Health, Keys, Select
+from swarm.protocol import Event
+from swarmcore.measurement import synthetic_model
+from swarmcore.scenario import Scenario
+from world_sim.protocol import WorldProtocol
+
+RUN = "t"
+K = Keys(RUN)
+
+
+def scenario(**over) -> Scenario:
+    base = {"name": "proto", "seed": 3, "n_sats": 3, "duration_s": 4, "graph": {"kind": "complete"}}
+    base.update(over)
+    return Scenario.model_validate(base)
+
+
+def alive(role: str, sat: int | None = None, up: bool = True) -> Event:
+    key = K.alive(role, 0 if sat is None else sat)
+    return Event(key, "alive", sat, alive=up, role=role)
+
+
+def est(i: int, k: int, phase: str = "posterior") -> Event:
+    q = [[0.0, 0.0, 0.0, 1.0]] * 3
+    v = [[0.0, 0.0, 0.0]] * 3
+    from swarm.bus.messages import B64Array
+
+    m = Estimate(run=RUN, sender=f"agent-{i}", k=k, t_s=float(k), own=i, phase=phase, q_BI=q, omega_BI_B_rad_s=v, r_H_m=v,
+                 v_H_m_s=v, bias_B_rad_s=[0.0, 0.0, 0.0], P_pose=B64Array.of(np.tile(np.eye(6), (3, 1, 1))),
+                 P_diag=B64Array.of(np.ones(36)))
+    return Event(K.est(i), "est", i, msg=m)
+
+
+def started_world(sc: Scenario, **kw) -> tuple[Driver, WorldProtocol, FakeClock]:
+    clock = FakeClock()
+    w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock, **kw)
+    d = Driver(w, clock)
+    assert not d.sent, "nothing is published before every agent and the recorder are up"
+    d.feed(alive("recorder"))
+    for i in range(sc.n_sats):
+        d.feed(alive("agent", i), est(i, 0, "prior"))
+    return d, w, clock
+
+
+def test_step_publishes_truth_clock_sensors_and_cameras_then_waits_for_every_estimate():
+    sc = scenario()
+    d, w, _ = started_world(sc)
+    keys = [s.key for s in d.take()]
+    assert keys[:2] == [K.truth(), K.clock()]
+    assert keys[2:5] == [K.sensors(0), K.sensors(1), K.sensors(2)]
+    assert keys[5:] == [K.cam(0), K.cam(1), K.cam(2)]
+    d.feed(est(0, 0), est(1, 0))
+    assert not d.sent, "the world waits for agent 2's estimate of step 0"
+    d.feed(est(2, 0))
+    clocks = d.sent_on(K.clock())
+    assert [c.k for c in clocks] == [1] and clocks[0].live_agents == [0, 1, 2]
+
+
+def test_camera_outputs_carry_each_observers_detections_of_every_other_satellite():
+    sc = scenario()
+    d, _w, _ = started_world(sc)
+    for i in range(3):
+        (cam,) = d.sent_on(K.cam(i))
+        assert cam.sat == i and sorted(x.target for x in cam.detections) == sorted(set(range(3)) - {i})
+
+
+def test_a_dead_agent_is_not_waited_for_and_gets_nothing():
+    sc = scenario()
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(alive("agent", 1, up=False))
+    d.feed(est(0, 0), est(2, 0))
+    sent = d.take()
+    (clock,) = [s.msg for s in sent if s.key == K.clock()]
+    assert clock.k == 1 and clock.live_agents == [0, 2]
+    assert K.sensors(1) not in {s.key for s in sent} and K.cam(1) not in {s.key for s in sent}
+
+
+def test_a_silent_agent_costs_one_step_timeout_then_the_world_moves_on():
+    sc = scenario(emulator={"step_timeout_s": 5.0})
+    d, _w, clock = started_world(sc)
+    d.take()
+    d.feed(est(0, 0), est(1, 0))
+    d.elapse(4.9)
+    assert not d.sent_on(K.clock())
+    d.elapse(0.2)
+    assert [c.k for c in d.sent_on(K.clock())] == [1]
+
+
+def test_health_report_counts_as_finished_when_the_estimate_was_dropped():
+    sc = scenario()
+    d, _w, _ = started_world(sc)
+    d.take()
+    h = Health(run=RUN, sender="agent-2", k=0, t_s=0.0, sat=2, camera_ok=[True] * 6)
+    d.feed(est(0, 0), est(1, 0), Event(K.health(2), "health", 2, msg=h))
+    assert [c.k for c in d.sent_on(K.clock())] == [1]
+
+
+def test_scheduled_camera_fault_is_announced_and_silences_that_camera():
+    sc = scenario(faults=[{"at_step": 1, "action": "camera", "target": 0, "camera": 0, "state": "off"}])
+    d, w, _ = started_world(sc)
+    d.take()
+    d.feed(est(0, 0), est(1, 0), est(2, 0))
+    faults = d.sent_on(K.fault())
+    assert [(f.phase, f.action, f.target, f.camera) for f in faults] == [("command", "camera", 0, 0), ("done", "camera", 0, 0)]
+    (cam,) = d.sent_on(K.cam(0))
+    assert cam.cameras_off == [0] and all(x.camera != 0 for x in cam.detections)
+    assert not w.camera_ok[0, 0] and w.camera_ok[1].all()
+
+
+def test_selector_choice_is_used_and_a_dead_selector_brings_the_fallback():
+    sc = scenario(selection={"strategy": "greedy", "budget": 2}, emulator={"select_timeout_s": 1.0})
+    clock = FakeClock()
+    w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock)
+    d = Driver(w, clock)
+    d.feed(alive("recorder"), alive("selector"))
+    for i in range(3):
+        d.feed(alive("agent", i), est(i, 0, "prior"))
+    assert not d.sent, "the world waits for the selector's plan of step 0"
+    sel = Select(run=RUN, sender="selector", k=0, t_s=0.0, pairs=[(0, 1), (2, 0)], strategy="greedy")
+    d.feed(Event(K.select(), "select", None, msg=sel))
+    cams = {i: d.sent_on(K.cam(i))[0] for i in range(3)}
+    assert [x.target for x in cams[0].detections] == [1] and [x.target for x in cams[2].detections] == [0]
+    assert cams[1].detections == []
+    d.take()
+    d.feed(alive("selector", up=False), est(0, 0), est(1, 0), est(2, 0))
+    (fb,) = d.sent_on(K.select())
+    assert fb.fallback and fb.sender == "world" and fb.k == 1 and fb.strategy == sc.selection.fallback
+    assert len(fb.pairs) >= 1
+
+
+def test_fallback_never_schedules_a_dead_observer():
+    sc = scenario(n_sats=4, selection={"strategy": "random", "budget": 12, "require_visible": False})
+    clock = FakeClock()
+    w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock)
+    d = Driver(w, clock)
+    d.feed(alive("recorder"))
+    for i in range(4):
+        d.feed(alive("agent", i), est(i, 0, "prior"))
+    d.elapse(sc.emulator.startup_timeout_s + 1)  # no selector ever comes: fallback from step 0
+    d.feed(alive("agent", 3, up=False))
+    d.feed(*[est(i, 0) for i in range(3)])
+    sels = d.sent_on(K.select())
+    assert sels[-1].k == 1 and all(o != 3 for o, _t in sels[-1].pairs)
+
+
+def test_scheduled_kill_waits_until_the_agent_is_gone():
+    sc = scenario(faults=[{"at_step": 1, "action": "kill-agent", "target": 2}])
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(est(0, 0), est(1, 0), est(2, 0))
+    assert [f.action for f in d.sent_on(K.fault())] == ["kill-agent"]
+    assert not d.sent_on(K.clock()), "step 1 starts only once agent 2 is gone"
+    d.feed(alive("agent", 2, up=False))
+    assert d.sent_on(K.clock())[0].live_agents == [0, 1]
+
+
+def test_the_run_ends_with_a_done_clock_and_queries_stop_serving_priors():
+    sc = scenario(duration_s=1)
+    d, w, _ = started_world(sc)
+    assert w.serve_prior(K.init(0)) is None, "once started, the world serves no priors"
+    for k in range(sc.steps):
+        d.feed(*[est(i, k) for i in range(3)])
+    assert d.finished and d.sent_on(K.clock())[-1].done
+
+
+def test_prior_and_claim_queries():
+    sc = scenario()
+    clock = FakeClock()
+    w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock)
+    p = w.serve_prior(K.init(1))
+    assert p.own == 1 and p.k == 0
+    assert w.serve_prior(K.init(7)) is None
+    a = w.serve_claim(K.claim("tok-a"))
+    b = w.serve_claim(K.claim("tok-b"))
+    assert (a.sat, b.sat) == (0, 1) and w.serve_claim(K.claim("tok-a")).sat == 0
+
+
+@pytest.mark.parametrize("bad", [{"at_step": 0, "action": "partition", "target": 1}])
+def test_network_faults_cannot_be_scheduled(bad):
+    with pytest.raises(ValueError, match="swarm fault --compose"):
+        scenario(faults=[bad])
+
+
+def test_fault_events_from_others_are_kept():
+    sc = scenario()
+    d, w, _ = started_world(sc)
+    f = Fault(run=RUN, sender="supervisor", k=0, t_s=0.0, action="kill-agent", target=1, phase="done")
+    d.feed(Event(K.fault(), "fault", None, msg=f))
+    assert w.fault_done == [f]

@@ -1,0 +1,279 @@
+"""The world's side of the lockstep protocol, as a bus-free state machine.
+
+The world owns truth and time. Lockstep step k:
+
+1. apply the faults scheduled for k (and wait until each has taken effect);
+2. (k > 0) advance the truth; publish the truth (recorder only), the clock with the live
+   set, and each live agent's own sensors;
+3. take the selector's choice for k (or fall back when it is dead or late);
+4. publish each live agent's camera delivery (synthetic detections, or rendered images);
+5. wait until every live agent has published its estimate for k (or the step timeout);
+   optionally pace against wall time.
+
+Free-running mode paces the clock at ``realtime_factor`` × wall time instead of step 5.
+Everything the world computes (truth, images) reaches an agent only as what its own
+sensors and cameras deliver. :class:`WorldProtocol` is driven by :class:`swarm.node.Node`
+in ``python -m world_sim`` and by scripted events in ``tests/test_protocol_world.py``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Callable
+
+import numpy as np
+
+from swarm.bus.convert import detections, full_estimate_msg, images_msg, sensors_msg
+from swarm.bus.messages import CameraOutput, Claim, Clock, Fault, Keys, Select, Truth
+from swarm.protocol import Event, Send, Wait
+from swarmcore.graphs import edges, scenario_graph
+from swarmcore.measurement import CameraModel
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, Scenario
+from swarmcore.selection import mask_dead, select_for_scenario
+from swarmcore.world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
+
+__all__ = ["WorldProtocol"]
+
+log = logging.getLogger("world")
+
+
+class WorldProtocol:
+    """Truth, time, sensors and cameras of the swarm (see the module docstring)."""
+
+    def __init__(self, sc: Scenario, run: str, cameras: CameraModel, expect_recorder: bool = True,
+                 expect_selector: bool | None = None, clock: Callable[[], float] = time.monotonic):
+        self.sc = sc
+        self.run_id = run
+        self.n = sc.n_sats
+        self.keys = Keys(run)
+        self.cameras = cameras
+        self.rendered = sc.vision.pipeline != "none"
+        self.clock = clock
+        self.wp = world_params(sc)
+        self.G = scenario_graph(sc)
+        self.truth = initial_truth(sc)
+        self._priors = {i: initial_estimate(sc, self.truth, i) for i in range(sc.n_sats)}
+        self.expect_recorder = expect_recorder
+        self.use_selector = sc.selection.strategy != "none" if expect_selector is None else expect_selector
+        self.alive_agents: set[int] = set()
+        self.ready: set[int] = set()  # agents with an estimate for the current step
+        self.alive_roles: set[str] = set()
+        self.camera_ok = np.ones((sc.n_sats, 6), dtype=bool)
+        self.selections: dict[int, Select] = {}
+        self.est_seen: dict[int, set[int]] = {}
+        self.fault_done: list[Fault] = []
+        self.k = 0
+        self.fallback_active = False
+        self.started = False
+        self.finished = False
+        self._claims: dict[str, int] = {}
+        self._claimed_at: dict[int, float] = {}
+        self.progress: Callable[[int, int], None] | None = None
+
+    # -- queries (answered on the bus's thread: read-only or self-contained) -------
+    def serve_prior(self, key: str):
+        """``init/<i>``: agent i's prior from ground operations, until the run starts."""
+        i = int(key.rsplit("/", 1)[1])
+        if not 0 <= i < self.n or self.started:
+            return None  # once the run is under way, a (re)starting agent asks a peer
+        return full_estimate_msg(self._priors[i], run=self.run_id, sender="world", own=i)
+
+    def serve_claim(self, key: str):
+        """Give an agent started with ``--id auto`` a satellite: the lowest one with no
+        live agent and no recent claim (so scaled or restarted containers need no ids)."""
+        token = key.rsplit("/", 1)[1]
+        now = self.clock()
+        sat = self._claims.get(token)
+        if sat is None:
+            alive = set(self.alive_agents)
+            free = [i for i in range(self.n) if i not in alive and now - self._claimed_at.get(i, -1e9) > 30.0]
+            if not free:
+                return None
+            sat = free[0]
+            self._claims[token] = sat
+            self._claimed_at[sat] = now
+        return Claim(run=self.run_id, sender="world", k=self.k, t_s=self.k * self.sc.dt_s, sat=sat, token=token, running=self.started)
+
+    # -- events -------------------------------------------------------------------
+    def handle(self, ev: Event) -> list[Send]:
+        if ev.kind == "alive":
+            if ev.role == "agent" and ev.sat is not None:
+                if ev.alive:
+                    self.alive_agents.add(ev.sat)
+                else:
+                    self.alive_agents.discard(ev.sat)
+                    self.ready.discard(ev.sat)
+                    self._claimed_at.pop(ev.sat, None)  # its satellite may be claimed again at once
+            elif ev.role:
+                (self.alive_roles.add if ev.alive else self.alive_roles.discard)(ev.role)
+        elif ev.kind == "est":
+            m = ev.msg
+            self.ready.add(m.own)  # a prior too: the agent is initialised
+            if m.phase == "posterior":
+                self.est_seen.setdefault(m.k, set()).add(m.own)
+        elif ev.kind == "health":
+            # An agent's health report follows its update: it has finished step k even
+            # when its estimate was lost (the drop fault).
+            self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
+        elif ev.kind == "select":
+            if ev.msg.sender != "world":
+                self.selections[ev.msg.k] = ev.msg
+        elif ev.kind == "fault":
+            return self._on_fault(ev.msg)
+        return []
+
+    def _on_fault(self, f: Fault) -> list[Send]:
+        if f.phase != "command":
+            self.fault_done.append(f)
+            return []
+        if f.action == "camera" and f.target is not None and f.camera is not None:
+            self.camera_ok[f.target, f.camera] = f.state == "on"
+            log.info("camera %d of satellite %d %s", f.camera, f.target, f.state)
+            done = f.model_copy(update={"phase": "done", "sender": "world", "k": self.k, "t_s": self.k * self.sc.dt_s})
+            return [Send(self.keys.fault(), done)]
+        return []
+
+    def live(self) -> list[int]:
+        return sorted(self.alive_agents & self.ready)
+
+    # -- the run ---------------------------------------------------------------------
+    def run(self):
+        sc, em = self.sc, self.sc.emulator
+        yield from self._startup()
+        self.started = True
+        t_wall0 = self.clock()
+        gyro = None
+        for k in range(sc.steps):
+            self.k = k
+            yield from self._apply_scheduled_faults(k)
+            if k > 0:
+                self.truth, gyro = step_truth(self.wp, self.truth)
+            tr = self.truth
+            t = tr.t
+            yield Send(self.keys.truth(), self._truth_msg(k))
+            yield Wait(lambda: False, 0.0)  # take in what has arrived: the live set reflects deaths up to now
+            live = self.live()
+            yield Send(self.keys.clock(), Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode))
+            absm = absolute_measurements(self.wp, tr)
+            for i in live:
+                yield Send(self.keys.sensors(i), sensors_msg(
+                    run=self.run_id, k=k, t_s=t, sat=i, gyro=None if gyro is None else gyro[i],
+                    absm=absm[i] if self.G[i, i] else None, sigma_star=self.wp.star_sigma, sigma_gps=self.wp.gps_sigma,
+                ))
+            obs, tgt = yield from self._selection(k)
+            yield from self._deliver_cameras(k, t, live, obs, tgt)
+            if em.time_mode == "lockstep":
+                ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live),
+                                em.step_timeout_s)
+                if not ok:
+                    missing = [i for i in live if i not in self.est_seen.get(k, set())]
+                    log.warning("step %d: no estimate from %s within %.1f s", k, missing, em.step_timeout_s)
+                if em.lockstep_max_realtime_factor:
+                    yield from self._pace(t_wall0 + (k + 1) * sc.dt_s / em.lockstep_max_realtime_factor)
+            else:
+                yield from self._pace(t_wall0 + (k + 1) * sc.dt_s / em.realtime_factor)
+            self.est_seen.pop(k - 2, None)
+            if self.progress is not None:
+                self.progress(k + 1, sc.steps)
+        self.finished = True
+        yield Send(self.keys.clock(), self.done_clock())
+
+    def done_clock(self) -> Clock:
+        """The clock that tells everyone the run is over."""
+        return Clock(run=self.run_id, sender="world", k=self.k, t_s=self.truth.t, live_agents=self.live(),
+                     mode=self.sc.emulator.time_mode, done=True)
+
+    def _pace(self, deadline: float):
+        rem = deadline - self.clock()
+        if rem > 0:
+            yield Wait(lambda: False, rem)
+
+    def _truth_msg(self, k: int) -> Truth:
+        tr = self.truth
+        return Truth(run=self.run_id, sender="world", k=k, t_s=tr.t, q_BI=tr.q_BI.tolist(), omega_BI_B_rad_s=tr.omega_BI_B.tolist(),
+                     r_H_m=tr.r_H.tolist(), v_H_m_s=tr.v_H.tolist(), gyro_bias_B_rad_s=tr.bias_B.tolist())
+
+    def _startup(self):
+        em = self.sc.emulator
+        need_roles = set()
+        if self.expect_recorder:
+            need_roles.add("recorder")
+        if self.use_selector:
+            need_roles.add("selector")
+        ok = yield Wait(lambda: len(self.ready) == self.n and need_roles <= self.alive_roles and self.alive_agents >= self.ready,
+                        em.startup_timeout_s)
+        if not ok:
+            log.warning("startup: ready agents %s, alive roles %s after %.0f s; starting anyway",
+                        sorted(self.ready), sorted(self.alive_roles), em.startup_timeout_s)
+        if self.use_selector:
+            # The selector plans step 0 from agent 0's prior: give a live selector the
+            # start-up allowance (a loaded machine starts processes slowly), not the step one.
+            yield Wait(lambda: 0 in self.selections or "selector" not in self.alive_roles, em.startup_timeout_s)
+
+    def _apply_scheduled_faults(self, k: int):
+        em = self.sc.emulator
+        for spec in [f for f in self.sc.faults if f.at_step == k]:
+            cmd = Fault(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s, action=spec.action, target=spec.target,
+                        camera=spec.camera, state=spec.state, rate=spec.rate, detail="scheduled")
+            log.info("step %d: fault %s target=%s", k, spec.action, spec.target)
+            yield Send(self.keys.fault(), cmd)
+            t = spec.target
+            if spec.action == "camera":
+                for s in self._on_fault(cmd):
+                    yield s
+            elif spec.action in AGENT_PROCESS_FAULTS and spec.action != "restart-agent":
+                yield Wait(lambda: t not in self.alive_agents, em.step_timeout_s)
+            elif spec.action == "restart-agent":
+                self.ready.discard(t)
+                yield Wait(lambda: t in self.alive_agents and t in self.ready, em.startup_timeout_s)
+            elif spec.action == "kill-selector":
+                yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
+            elif spec.action == "restart-selector":
+                yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
+            elif spec.action == "drop":
+                yield Wait(lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done)
+                           or t not in self.alive_agents, em.step_timeout_s)
+
+    def _selection(self, k: int):
+        """The pairs of step k: the graph's, the selector's, or (selector dead or late) a
+        state-free fallback the world chooses itself and announces."""
+        if not self.use_selector:
+            return edges(self.G)
+        em = self.sc.emulator
+        if "selector" in self.alive_roles:
+            yield Wait(lambda: k in self.selections or "selector" not in self.alive_roles, em.select_timeout_s)
+        sel = self.selections.pop(k, None)
+        if sel is not None:
+            if self.fallback_active:
+                log.info("step %d: selector is back", k)
+            self.fallback_active = False
+            pairs = np.array(sel.pairs, dtype=int).reshape(-1, 2)
+            return pairs[:, 0], pairs[:, 1]
+        if not self.fallback_active:
+            log.warning("step %d: no selection from the selector; falling back to %s", k, self.sc.selection.fallback)
+        self.fallback_active = True
+        fb = self.sc.model_copy(update={"selection": self.sc.selection.model_copy(update={"strategy": self.sc.selection.fallback})})
+        t0 = time.perf_counter()
+        obs, tgt = select_for_scenario(fb, k, self.G, None, None, mask_dead(self.camera_ok, self.live()))
+        yield Send(self.keys.select(), Select(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s,
+                                              pairs=[(int(a), int(b)) for a, b in zip(obs, tgt, strict=True)],
+                                              strategy=self.sc.selection.fallback, fallback=True,
+                                              select_ms=(time.perf_counter() - t0) * 1e3))
+        return obs, tgt
+
+    def _deliver_cameras(self, k: int, t: float, live: list[int], obs, tgt):
+        """Each live agent's camera delivery of step k (an empty one when it has nothing
+        scheduled: every agent waits for one every step)."""
+        keep = np.isin(obs, live)
+        seen = self.cameras.observe(self.truth, obs[keep], tgt[keep], self.camera_ok)
+        off_of = {i: [int(c) for c in np.flatnonzero(~self.camera_ok[i])] for i in live}
+        for i in live:
+            got = seen.get(i)
+            if self.rendered:
+                views, targets = (got.views, got.targets) if got is not None else ([], [])
+                yield Send(self.keys.img(i), images_msg(views, run=self.run_id, k=k, t_s=t, sat=i, targets=targets))
+            else:
+                dets = [] if got is None else detections(got)
+                yield Send(self.keys.cam(i), CameraOutput(run=self.run_id, sender="world", k=k, t_s=t, sat=i, detections=dets,
+                                                          cameras_off=off_of[i]))
