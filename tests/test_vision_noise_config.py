@@ -75,6 +75,7 @@ def test_view_bytes_roundtrip():
     v = View(2, 8, 5, 5.0, ims, T_CB[1], np.array([0.0, 0, 0]), Intrinsics(4, 3, 2.0, 2.0, 1.5, 1.0), target=2, baseline_m=0.5)
     w = decode_view(encode_view(v))
     assert (w.observer, w.camera, w.step, w.target, w.baseline_m) == (2, 8, 5, 2, 0.5)
-    assert all(np.array_equal(a, b) for a, b in zip(v.images, w.images))
+    assert len(w.images) == len(v.images) == 2
+    assert all(np.array_equal(a, b) for a, b in zip(v.images, w.images, strict=True))
     np.testing.assert_array_equal(w.T_CB, T_CB[1])
     assert w.intrinsics == v.intrinsics
