@@ -21,9 +21,13 @@ def test_linear_map_is_recovered_exactly_for_any_step(rng):
     x = rng.normal(size=7)
     for eps in (1e-6, 1e-2, 0.5):
         np.testing.assert_allclose(numerical_jacobian(lambda z: A @ z + b, x, eps=eps), A, rtol=0, atol=1e-9)
-    # Array-shaped inputs and outputs are flattened in C order.
+    # Array-shaped inputs and outputs are flattened in C order: 2 Xᵀ moves X[i, j] to row 2j + i.
     X = rng.normal(size=(2, 3))
-    np.testing.assert_allclose(numerical_jacobian(lambda Z: 2.0 * Z.T, X), 2.0 * np.eye(6).reshape(2, 3, 6).transpose(1, 0, 2).reshape(6, 6), atol=1e-9)
+    expect = np.zeros((6, 6))
+    for i in range(2):
+        for j in range(3):
+            expect[2 * j + i, 3 * i + j] = 2.0
+    np.testing.assert_allclose(numerical_jacobian(lambda Z: 2.0 * Z.T, X), expect, atol=1e-9)
 
 
 def test_rotation_action_on_a_vector(rng):
