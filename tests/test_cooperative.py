@@ -17,7 +17,8 @@ def test_cooperative_beats_isolated_on_others():
     # Paired by seed: every run, both halves. Others' attitude gains most (an isolated
     # filter sees another satellite's attitude only through σ_q = 0.03 rad of its own
     # camera); position gains less (each observer's own position is uncertain to others).
-    for c, i in zip(coop, iso):
+    assert len(coop) == len(iso) == 3
+    for c, i in zip(coop, iso, strict=True):
         for block in ("rms", "rms_second_half"):
             assert c[block]["others"]["att_rad"] < 0.5 * i[block]["others"]["att_rad"]
             assert c[block]["others"]["pos_m"] < 0.95 * i[block]["others"]["pos_m"]

@@ -134,7 +134,7 @@ def _walk(a, b, path=""):
             out += _walk(a[k], b[k], f"{path}.{k}")
         return out
     if isinstance(a, list) and isinstance(b, list) and len(a) == len(b):
-        return [d for i, (x, y) in enumerate(zip(a, b)) for d in _walk(x, y, f"{path}[{i}]")]
+        return [d for i, (x, y) in enumerate(zip(a, b, strict=True)) for d in _walk(x, y, f"{path}[{i}]")]
     return [] if a == b else [(path, a, b)]
 
 

@@ -34,7 +34,60 @@ def test_distributed_run_equals_in_process_run(tmp_path):
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean"):
         assert summary[key] == ref[key], key
     assert summary["steps"] == sc.steps and rec.alive.all()
-    assert (tmp_path / "run" / "run.mcap").stat().st_size > 0
+    _check_complete_recording(tmp_path / "run" / "run.mcap", sc)
+
+
+def _check_complete_recording(path, sc):
+    """A fault-free lockstep run's recording holds exactly its protocol: one channel per key
+    of the run (nothing malformed, no selector, no faults), every message valid under the
+    schema its channel names, stamped with its simulation time, and one message per step
+    and satellite on each per-step channel — plus the derived Foxglove channels."""
+    from collections import defaultdict
+
+    from swarm.bus.messages import decode, parse_key
+    from swarm.mcaplog import iter_messages
+
+    n, K = sc.n_sats, sc.steps
+    chans = defaultdict(list)
+    for topic, schema, data, _log_ns, pub_ns in iter_messages(path):
+        chans[topic].append((schema, data, pub_ns))
+    runs = {t.split("/")[1] for t in chans if t.startswith("swarm/")}
+    assert len(runs) == 1, runs
+    run = runs.pop()
+    root = f"swarm/{run}"
+    per_sat = [f"{root}/{kind}" for i in range(n) for kind in (f"sat/{i}/sensors", f"sat/{i}/cam", f"meas/{i}", f"est/{i}", f"health/{i}")]
+    assert {t for t in chans if t.startswith("swarm/")} == {f"{root}/clock", f"{root}/truth", f"{root}/alive", *per_sat}
+    steps = defaultdict(list)  # topic -> [(k, message)]
+    for topic in chans:
+        if not topic.startswith("swarm/") or topic.endswith("/alive"):
+            continue
+        _run, kind, ident = parse_key(topic)
+        for schema, data, pub_ns in chans[topic]:
+            m = decode(kind, data)
+            assert schema == f"swarm.{type(m).__name__}", (topic, schema)
+            assert m.run == run and pub_ns == round(m.t_s * 1e9), (topic, m.k)
+            if ident is not None:
+                assert ident == getattr(m, {"meas": "observer", "est": "own"}.get(kind, "sat")), (topic, m.k)
+            steps[topic].append((m.k, m))
+    every_step = list(range(K))
+    assert sorted(k for k, _m in steps[f"{root}/truth"]) == every_step
+    for i in range(n):
+        for kind in (f"sat/{i}/sensors", f"sat/{i}/cam", f"meas/{i}", f"health/{i}"):
+            assert sorted(k for k, _m in steps[f"{root}/{kind}"]) == every_step, kind
+        est = steps[f"{root}/est/{i}"]
+        assert sorted(k for k, m in est if m.phase == "posterior") == every_step
+        assert [k for k, m in est if m.phase == "prior"] == [0]
+    clocks = [(k, m.done, tuple(m.live_agents)) for k, m in steps[f"{root}/clock"]]
+    assert sorted(clocks) == [(k, False, tuple(range(n))) for k in every_step] + [(K - 1, True, tuple(range(n)))]
+    # Every role came up (liveliness), and the recorder derived the Foxglove 3-D channels.
+    up = {(r["role"], r["id"]) for r in (json.loads(d) for _s, d, _p in chans[f"{root}/alive"]) if r["alive"]}
+    assert {("world", "0"), ("recorder", "0"), *(("agent", str(i)) for i in range(n))} <= up, up
+    fox = {t: len(v) for t, v in chans.items() if not t.startswith("swarm/")}
+    assert fox.pop("/foxglove/tf") == fox.pop("/foxglove/truth") == K
+    for i in range(n):
+        assert fox.pop(f"/foxglove/est/{i}") == K
+    assert fox.pop("/foxglove/measurements") == K * n  # one scene per measurement batch
+    assert not fox, f"unexpected channels {sorted(fox)}"
 
 
 def test_distributed_selection_equals_in_process_selection(tmp_path):

@@ -86,7 +86,7 @@ def test_compiled_attitude_kernels_equal_numpy_twins(seed):
     obs = rng.integers(0, n, m)
     tgt = (obs + rng.integers(1, n, m)) % n
     meas = RelativeMeasurements(obs, tgt, quat.random_quaternion(rng, m), rng.normal(size=(m, 3)), np.tile(np.eye(6), (m, 1, 1)))
-    for a, b in zip(relative_residuals(est, params, meas), relative_residuals_numpy(est, params, meas)):
+    for a, b in zip(relative_residuals(est, params, meas), relative_residuals_numpy(est, params, meas), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
     # The inputs really reach the kernel (not a pass-through of the numpy form).
     y, _, _ = kernels.relative_residuals(est.q_BI, est.r_H, T_IH(params.mean_motion, est.t), obs, tgt, meas.q_BjBi, meas.r_ij_Bi)

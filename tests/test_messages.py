@@ -129,13 +129,15 @@ def test_views_round_trip_through_an_images_message():
     ]
     msg = M.decode("img", M.encode(images_msg(views, run=RUN, k=7, t_s=7.0, sat=1, targets=np.array([2, 0]))))
     assert msg.targets == [0, 2]
-    back = observation_from_images(msg)
-    assert back.targets.tolist() == [0, 2]
-    for a, b in zip(views, back.views, strict=True):
+    obs = observation_from_images(msg)
+    assert obs.targets.tolist() == [0, 2]
+    back = obs.views
+    assert len(back) == len(views)
+    for a, b in zip(views, back, strict=True):
         assert (a.observer, a.camera, a.step, a.t, a.target, a.baseline_m, a.intrinsics) == (b.observer, b.camera, b.step, b.t, b.target, b.baseline_m, b.intrinsics)
         np.testing.assert_array_equal(a.T_CB, b.T_CB)
         np.testing.assert_array_equal(a.r_C_B, b.r_C_B)
-        assert len(a.images) == len(b.images) and all(np.array_equal(x, y) for x, y in zip(a.images, b.images))
+        assert len(a.images) == len(b.images) and all(np.array_equal(x, y) for x, y in zip(a.images, b.images, strict=True))
 
 
 def test_bad_array_payload():

@@ -47,8 +47,9 @@ def test_unknown_field_is_named(tmp_path):
 def test_yaml_syntax_error_names_the_file(tmp_path):
     f = tmp_path / "broken.yaml"
     f.write_text("n_sats: [4\n")
-    with pytest.raises(ScenarioError, match="not valid YAML"):
+    with pytest.raises(ScenarioError, match="not valid YAML") as exc:
         load_scenario(f)
+    assert str(f) in str(exc.value) and "line 1" in str(exc.value)
 
 
 def test_set_overrides_any_field(tmp_path):
@@ -73,7 +74,7 @@ def test_graph_matrix_validated_and_used():
     sc = Scenario(n_sats=3, graph={"kind": "matrix", "matrix": M})
     G = graphs.incidence(3, "matrix", matrix=sc.graph.matrix)
     i, j = graphs.edges(G)
-    assert list(zip(i.tolist(), j.tolist())) == [(0, 1), (1, 2), (2, 0)]
+    assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(0, 1), (1, 2), (2, 0)]
     assert G.diagonal().tolist() == [True, False, True]
 
 

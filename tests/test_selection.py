@@ -106,7 +106,7 @@ def test_greedy_picks_largest_trace_reduction_by_hand():
     # Measuring r_j − r_i (noise 1) with independent priors σ_i², σ_j² (per axis) removes
     # (σ_i⁴ + σ_j⁴) / (σ_i² + σ_j² + 1) from each axis' trace: ×3 axes.
     sc, est, p, cand = _line_of_three()
-    assert list(zip(cand.observer, cand.target)) == [(0, 1), (0, 2), (1, 2)]
+    assert list(zip(cand.observer, cand.target, strict=True)) == [(0, 1), (0, 2), (1, 2)]
     c = np.ones(36)
     red = sel.trace_reductions(est.P, cand, c)
     np.testing.assert_allclose(red, [3 * 5 / 4, 3 * 17 / 6, 3 * 20 / 7], rtol=1e-9)
@@ -311,7 +311,7 @@ def test_random_tree_orientations_are_uniform():
     for _ in range(N):
         obs, tgt = sel.random_tree_select(mask, None, rng)
         assert obs.size == 3
-        key = tuple(zip(obs.tolist(), tgt.tolist()))
+        key = tuple(zip(obs.tolist(), tgt.tolist(), strict=True))
         counts[key] = counts.get(key, 0) + 1
     assert len(counts) == 128
     assert chisquare(list(counts.values())).pvalue > 1e-3
@@ -415,7 +415,7 @@ def test_every_strategy_respects_the_budget(budget):
     G = graphs.incidence(7, "complete")
     n_cand = int(sel.candidate_mask(G, est, p, ok, cfg).sum())
     for s, obs, tgt in _all_selections(sc, est, p, ok, budget, seeds=range(3)):
-        pairs = list(zip(obs.tolist(), tgt.tolist()))
+        pairs = list(zip(obs.tolist(), tgt.tolist(), strict=True))
         assert len(set(pairs)) == len(pairs), s
         assert pairs == sorted(pairs), s  # canonical order
         assert obs.dtype.kind == "i" and tgt.dtype.kind == "i"
@@ -445,7 +445,7 @@ def test_select_for_scenario_is_deterministic_and_uses_the_select_stream():
     ref = sel.select("random", est, p, 4, G, ok, stream(21, "select", 7), sel.config_for_scenario(sc))
     np.testing.assert_array_equal(a[0], ref[0])
     np.testing.assert_array_equal(a[1], ref[1])
-    others = {tuple(zip(*sel.select_for_scenario(sc, k, G, est, p, ok))) for k in range(8)}
+    others = {tuple(zip(*sel.select_for_scenario(sc, k, G, est, p, ok), strict=True)) for k in range(8)}
     assert len(others) > 1  # a fresh draw per step
 
 

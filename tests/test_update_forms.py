@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from swarmcore import graphs
+from swarmcore import graphs, quat
 from swarmcore.mekf import SOLVERS, choose_method, predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.sim import simulate
@@ -70,10 +70,18 @@ def test_equal_with_rejections_and_without_absolute():
     r[[1, 5]] += 5.0
     rel = type(rel)(rel.observer, rel.target, rel.q_BjBi, r, rel.R_Bi)
     a, rep_a = update(est, p, None, rel, method="stacked")
-    b, rep_b = update(est, p, None, rel, method="information")
     assert rep_a.n_rejected >= 2 and not rep_a.accepted[1] and not rep_a.accepted[5]
-    assert _close(a.P, b.P, a.P) < 1e-9
-    np.testing.assert_allclose(a.r_H, b.r_H, atol=1e-9)
+    for m in ("sequential", "information"):
+        b, rep_b = update(est, p, None, rel, method=m)
+        np.testing.assert_array_equal(rep_b.accepted, rep_a.accepted)
+        assert rep_b.nis == pytest.approx(rep_a.nis, rel=1e-8) and rep_b.nis_dof == rep_a.nis_dof
+        assert _close(b.P, a.P, a.P) < 1e-9, m
+        # Round-off is ~1e-16 of each quantity's scale (m, m/s, rad/s); these leave 100×.
+        np.testing.assert_allclose(b.r_H, a.r_H, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(b.v_H, a.v_H, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(b.omega_BI_B, a.omega_BI_B, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(b.bias_B, a.bias_B, rtol=0, atol=1e-17)
+        np.testing.assert_allclose(quat.angle_between(b.q_BI, a.q_BI), 0.0, atol=1e-12)
 
 
 def test_no_measurements_leaves_state_and_covariance_alone():
@@ -81,7 +89,10 @@ def test_no_measurements_leaves_state_and_covariance_alone():
     for m in SOLVERS:
         e, rep = update(est, p, None, rel.subset(np.zeros(len(rel), bool)), method=m)
         np.testing.assert_array_equal(e.P, 0.5 * (est.P + est.P.T))
-        np.testing.assert_allclose(e.r_H, est.r_H, atol=0)
+        for key in ("r_H", "v_H", "omega_BI_B", "bias_B"):
+            np.testing.assert_array_equal(getattr(e, key), getattr(est, key), err_msg=f"{m}: {key}")
+        np.testing.assert_allclose(e.q_BI, est.q_BI, rtol=0, atol=1e-15, err_msg=m)
+        assert (e.step, e.t) == (est.step, est.t) and rep.d2.size == 0 and rep.nis_dof == 0
 
 
 def test_auto_chooses_sequential_for_few_measurements():

@@ -26,7 +26,7 @@ def _table(ranges, var_pos, var_att, sun_factor=None):
         "illuminations": {
             "solar": {
                 "by_range": {"range_m": list(ranges), "count": [10] * n,
-                             "mse_trimmed": [list(a) + list(p) for a, p in zip(var_att, var_pos)]},
+                             "mse_trimmed": [list(a) + list(p) for a, p in zip(var_att, var_pos, strict=True)]},
                 "by_sun": {"sun_deg": [45.0, 135.0], "factor": sun_factor or [[1.0] * 6, [1.0] * 6]},
             }
         },

@@ -177,7 +177,7 @@ def test_vision_system_mono_measurements_in_the_filter_frames():
     t = 30.0
     meas = vs.relative_measurements(7, t, q, r_H, (obs, tgt))
     assert len(meas) == 6
-    assert list(zip(meas.observer, meas.target)) == sorted(zip(obs.tolist(), tgt.tolist()))
+    assert list(zip(meas.observer, meas.target, strict=True)) == sorted(zip(obs.tolist(), tgt.tolist(), strict=True))
     q_t, r_t = relative_pose(1.08e-3, t, q, r_H, meas.observer, meas.target)
     assert np.all(np.linalg.norm(meas.r_ij_Bi - r_t, axis=1) < 0.05)
     assert np.all(np.degrees(quat.angle_between(meas.q_BjBi, q_t)) < 2.0)
