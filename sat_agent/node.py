@@ -28,8 +28,9 @@ class Agent(Node):
         super().__init__("agent", sat, run, sc.n_sats, bus, announce=False)
         estimator = measurement_model(sc).estimator()  # vision libraries only when the scenario renders
         self.machine = AgentProtocol(sc, sat, run, estimator, restart=restart, malformed=lambda: self.malformed)
-        for key in (self.keys.clock(), self.keys.sensors(sat), self.keys.meas(), self.keys.fault(), self.keys.est(),
-                    self.keys.health()):
+        # With links, peers' batches reach us only through the radio (the world's rx/<i>).
+        peers = self.keys.rx(sat) if sc.links.enabled else self.keys.meas()
+        for key in (self.keys.clock(), self.keys.sensors(sat), peers, self.keys.fault(), self.keys.est(), self.keys.health()):
             self.subscribe(key)
         self.subscribe(self.keys.img(sat) if sc.vision.pipeline != "none" else self.keys.cam(sat))
         self.watch_liveliness(self.keys.alive("agent"))

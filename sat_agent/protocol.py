@@ -85,6 +85,9 @@ class AgentProtocol:
         self.batches_missing = 0
         self.batches_late = 0
         self.malformed = malformed  # the shell's count of malformed messages, reported in health
+        self.linked = sc.links.enabled  # peers' batches come through the radio (rx/<i>), not straight off the bus
+        self.rx: dict[int, object] = {}
+        self.late_used = self.late_dropped = self.replayed_steps = 0
         self.last_step = -1  # the last step this agent has processed (updated at)
         self.done = False
 
@@ -117,6 +120,8 @@ class AgentProtocol:
             self.cams[k] = ev.msg
         elif ev.kind == "img":
             self.imgs[k] = ev.msg
+        elif ev.kind == "rx":
+            self.rx[k] = ev.msg
         elif ev.kind == "meas":
             if ev.msg.observer != self.i:
                 if k <= self.last_step:
@@ -153,7 +158,8 @@ class AgentProtocol:
     # -- start ------------------------------------------------------------------
     def _filter_from(self, est, prior: bool) -> AgentFilter:
         f = self.sc.filter
-        return AgentFilter(self.params, est, f.mode, prior_pending=prior)
+        hist = int(np.ceil(f.history_s / self.sc.dt_s)) if self.linked and f.late == "replay" else 0
+        return AgentFilter(self.params, est, f.mode, late=f.late, history_steps=hist, prior_pending=prior)
 
     def initialise(self):
         em = self.sc.emulator
@@ -236,6 +242,9 @@ class AgentProtocol:
         ms_own = (time.perf_counter() - t0) * 1e3
         if not self._dropped(k, 0):
             yield Send(self.keys.meas(self.i), batch_msg(rel_own, cams, run=self.run_id, sender=self.name, k=k, t_s=t, observer=self.i))
+        if self.linked:
+            yield from self._finish_linked(k, t, sens, rel_own, ms_own, clock, timeout)
+            return
         expected = [j for j in clock.live_agents if j != self.i]
         grace = em.lost_batch_grace_s
 
@@ -263,14 +272,51 @@ class AgentProtocol:
                            batches_used=sorted(got), batches_missing=missing, batches_late=self.batches_late)
         if not self._dropped(k, 1):
             yield Send(self.keys.est(self.i), msg)
-        yield Send(self.keys.health(self.i), Health(
+        yield Send(self.keys.health(self.i), self._health(k, t))
+        self._prune(k)
+
+    def _prune(self, k: int) -> None:
+        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished, self.rx):
+            for old in [s for s in store if s < k - 2]:
+                store.pop(old, None)
+
+    def _finish_linked(self, k: int, t: float, sens, rel_own, ms_own: float, clock, timeout: float):
+        """Step k with the radio: what the world's link model delivered by t_k — on-time
+        batches of k, and late ones of earlier steps (replayed or dropped) — then update."""
+        if self.i in clock.live_agents:
+            yield Wait(lambda: k in self.rx, timeout)
+        rx = self.rx.pop(k, None)
+        items = [] if rx is None else [it.batch for it in rx.items if it.batch.observer != self.i]
+        on_time = [b for b in items if b.k == k]
+        late_by_step: dict[int, list] = {}
+        for b in items:
+            if b.k < k:
+                late_by_step.setdefault(b.k, []).append(b)
+        rel = RelativeMeasurements.concat([rel_own, relative_from_batches(sorted(on_time, key=lambda b: b.observer))])
+        late = {s: relative_from_batches(sorted(v, key=lambda b: b.observer)) for s, v in late_by_step.items()}
+        t0 = time.perf_counter()
+        self.filter.coast_to(k, self._gyro_of)
+        report, lrep = self.filter.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel, late=late)
+        self.last_step = k
+        self.late_used += lrep.used
+        self.late_dropped += lrep.dropped
+        self.replayed_steps += lrep.replayed_steps
+        self.batches_late += sum(len(v) for v in late_by_step.values())
+        ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
+        msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
+                           batches_used=sorted(b.observer for b in on_time), batches_late=self.batches_late,
+                           late_used=lrep.used, late_dropped=lrep.dropped, replayed_steps=lrep.replayed_steps)
+        if not self._dropped(k, 1):
+            yield Send(self.keys.est(self.i), msg)
+        yield Send(self.keys.health(self.i), self._health(k, t))
+        self._prune(k)
+
+    def _health(self, k: int, t: float) -> Health:
+        return Health(
             run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in self.camera_ok],
             malformed=self.malformed(), batches_missing=self.batches_missing, batches_late=self.batches_late,
             drop_rate=self.drop_rate, host=_HOST,
-        ))
-        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished):
-            for old in [s for s in store if s < k - 2]:
-                store.pop(old, None)
+        )
 
     def run(self):
         yield from self.initialise()

@@ -17,3 +17,15 @@ def measurement_model(sc: Scenario) -> MeasurementModel:
     import swarmvision
 
     return swarmvision.measurement_model(sc)
+
+
+def batch_wire_size(run: str):
+    """``wire_size(observer, k, t, rel, cameras)``: the bytes of an observer's measurement
+    batch as its agent publishes it on the bus (what the link model carries)."""
+    from .bus.convert import batch_msg
+    from .bus.messages import encode
+
+    def size(observer: int, k: int, t: float, rel, cameras) -> int:
+        return len(encode(batch_msg(rel, cameras, run=run, sender=f"agent-{observer}", k=k, t_s=t, observer=observer)))
+
+    return size

@@ -35,6 +35,8 @@ def _id_fields(kind: str, msg) -> list[int]:
         ids += [x for p in msg.pairs for x in p]
     if kind == "clock":
         ids += list(msg.live_agents)
+    if kind == "rx":
+        ids += [x for it in msg.items for x in (it.batch.observer, *[m.target for m in it.batch.meas])]
     return ids
 
 
@@ -164,7 +166,7 @@ class Node:
             own = getattr(msg, "sat", getattr(msg, "observer", getattr(msg, "own", None)))
             if sat is not None and own is not None and own != sat:
                 raise MessageError(f"key says satellite {sat}, message says {own}")
-            return Event(s.key, kind, sat, msg=msg)
+            return Event(s.key, kind, sat, msg=msg, size=len(s.payload))
         except MessageError as exc:
             self.count_malformed(s.key, exc)
             return None

@@ -32,6 +32,7 @@ class Event:
     msg: Any = None
     alive: bool | None = None
     role: str | None = None
+    size: int = 0  # the payload's encoded size on the bus (bytes)
 
 
 @dataclass(frozen=True)

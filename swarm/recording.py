@@ -8,7 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from swarmcore.links import LinkCounters
 from swarmcore.metrics import pose_errors, pose_nees, summarize
+from swarmcore.sim import late_summary, link_summary
 from swarmcore.scenario import Scenario
 
 from .bus.messages import MessageError, decode, parse_key
@@ -41,6 +43,12 @@ class Recording:
     select_ms: list = field(default_factory=list)
     counts: dict = field(default_factory=dict)
     liveliness: list = field(default_factory=list)
+    late_used: np.ndarray | None = None  # (K, F)
+    late_dropped: np.ndarray | None = None
+    replayed: np.ndarray | None = None
+    links: object = None  # the last LinkStats message (cumulative counters)
+    link_latencies: list = field(default_factory=list)  # (sender, receiver, sent step, latency s)
+    link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
 
     def errors(self):
         a, dr = pose_errors(self.est_q, self.est_r, self.truth_q[:, None], self.truth_r[:, None])
@@ -70,11 +78,18 @@ class Recording:
                 "scenario": sc.name,
                 "mode": sc.filter.mode,
                 "measurements_per_step_mean": float(self.taken.sum(axis=(1, 2)).mean()),
+                **(late_summary(self.late_used, self.late_dropped, self.replayed) if sc.links.enabled else {}),
+                **({"links": link_summary(self.link_counters(), self.link_latencies)} if self.links is not None else {}),
                 "faults": self.faults,
                 "selector_fallback_steps": self.fallback_steps,
                 "messages": self.counts,
             },
         )
+
+    def link_counters(self) -> LinkCounters:
+        """The cumulative per-link counters of the last step recorded."""
+        m = self.links
+        return LinkCounters(**{name: np.rint(getattr(m, name).array()).astype(int) for name in LinkCounters.__dataclass_fields__})
 
 
 def _shape(path) -> tuple[int, int]:
@@ -118,6 +133,9 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
         step_ms=np.full((K, F), nan),
         schedule=np.zeros((K, n, n), dtype=bool),
         taken=np.zeros((K, n, n), dtype=bool),
+        late_used=np.zeros((K, F), dtype=int),
+        late_dropped=np.zeros((K, F), dtype=int),
+        replayed=np.zeros((K, F), dtype=int),
     )
     counts: dict[str, int] = {}
     for topic, _schema, data, log_ns, _pub in iter_messages(path):
@@ -154,6 +172,16 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             rec.nis[k, f] = m.nis
             rec.nis_dof[k, f] = m.nis_dof
             rec.step_ms[k, f] = m.step_ms
+            rec.late_used[k, f] = m.late_used
+            rec.late_dropped[k, f] = m.late_dropped
+            rec.replayed[k, f] = m.replayed_steps
+        elif kind == "links":
+            if rec.links is None or m.k >= rec.links.k:
+                rec.links = m
+            rec.link_latencies.extend(tuple(x) for x in m.latencies)
+            tot = [int(np.rint(getattr(m, name).array()).sum()) for name in
+                   ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")]
+            rec.link_series.append((m.k, tot, list(m.queue_bytes)))
         elif kind == "select":
             for i, j in m.pairs:
                 rec.schedule[k, i, j] = True

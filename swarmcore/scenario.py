@@ -194,6 +194,14 @@ class Filter(_Model):
         0.01, description="iterate only when the first pass turns some attitude by more than this"
     )
     rk4_substeps: int = Field(1, ge=1, le=100, description="RK4 steps per dt for the others' attitude")
+    late: Literal["replay", "drop"] = Field(
+        "replay", description="a relative measurement older than the current step (delivered late by the "
+        "links): replay inserts it at its own step and re-runs the filter from there; drop discards it"
+    )
+    history_s: NonNegFloat = Field(
+        10.0, description="replay: how far back (s) each agent keeps its priors, inputs and measurements; "
+        "anything older is dropped and counted"
+    )
 
 
 class Cameras(_Model):
@@ -236,6 +244,81 @@ class Selection(_Model):
     fallback: FallbackStrategy = Field(
         "random_tree", description="state-free strategy used when the selector has no estimate"
     )
+
+
+class Jitter(_Model):
+    """Random extra latency of each delivered message, drawn per (link, message)."""
+
+    distribution: Literal["none", "uniform", "normal", "exponential"] = Field(
+        "none", description="none; uniform on [0, scale_s]; normal: |N(0, scale_s²)| (half-normal); "
+        "exponential with mean scale_s"
+    )
+    scale_s: NonNegFloat = Field(0.0, description="the distribution's scale (s)")
+
+
+class Latency(_Model):
+    """One-way latency of a message: fixed + range / c + per_m_s · range + jitter."""
+
+    fixed_s: NonNegFloat = Field(0.0, description="processing and access delay (s)")
+    speed_of_light: bool = Field(True, description="add range / c (the propagation delay)")
+    per_m_s: NonNegFloat = Field(0.0, description="extra delay per metre of range (store-and-forward radios), s/m")
+    jitter: Jitter = Jitter()
+
+
+class Loss(_Model):
+    """Message loss on a link: independent (Bernoulli) or bursty (Gilbert–Elliott: a Good and
+    a Bad state, every message lost in Bad; per message P(Good→Bad) = p, P(Bad→Good) = r,
+    so the mean burst is 1/r messages and the long-run loss rate p / (p + r))."""
+
+    model: Literal["none", "bernoulli", "gilbert_elliott"] = "none"
+    rate: float = Field(0.0, ge=0.0, lt=1.0, description="long-run fraction of messages lost")
+    mean_burst: float = Field(1.0, ge=1.0, description="gilbert_elliott: mean run of consecutive losses (messages)")
+
+
+class LinkOverride(_Model):
+    """Parameters of one directed link (``from`` transmits, ``to`` receives) that differ
+    from the defaults; a field left out keeps the default."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, populate_by_name=True)
+
+    src: int = Field(ge=0, alias="from", description="transmitting satellite")
+    dst: int = Field(ge=0, alias="to", description="receiving satellite")
+    dead: bool = Field(False, description="the link carries nothing")
+    latency: Latency | None = None
+    loss: Loss | None = None
+    max_range_m: PosFloat | None = None
+
+
+class Links(_Model):
+    """Inter-satellite links: what the radio does to the relative-measurement batches (and
+    to the state a restarted agent fetches from a peer). Defaults: the ideal network (every
+    batch reaches every live peer within its own step), which keeps every earlier result.
+
+    Every draw comes from a stream keyed by (seed, purpose, step) over all n×n links, so
+    the fate of a message never depends on arrival order: the same numbers in-process and
+    distributed. In lockstep, times are simulated; in free mode, real (scaled by
+    ``emulator.realtime_factor``)."""
+
+    enabled: bool = Field(False, description="false: the ideal network of earlier versions")
+    latency: Latency = Latency()
+    rate_Bps: PosFloat | None = Field(
+        None, description="each transmitter's data rate (bytes/s), shared by all its outgoing copies; "
+        "null: unlimited"
+    )
+    queue_bytes: Annotated[int, Field(ge=0)] = Field(
+        262_144, description="each transmitter's queue (bytes) while rate_Bps holds it back"
+    )
+    queue_policy: Literal["drop_tail", "drop_head"] = Field(
+        "drop_tail", description="a copy that does not fit: drop it (drop_tail), or drop the oldest "
+        "waiting copies until it fits (drop_head)"
+    )
+    loss: Loss = Loss()
+    max_range_m: PosFloat | None = Field(None, description="no link beyond this range (m); null: unlimited")
+    line_of_sight: bool = Field(
+        False, description="another satellite's body (a sphere of spacecraft.half_size_m · √3) between "
+        "two satellites blocks their link"
+    )
+    overrides: list[LinkOverride] = Field(default_factory=list, description="per directed link parameters")
 
 
 #: Every fault the emulator knows (scheduled in a scenario, or sent with ``swarm fault``).
@@ -335,6 +418,7 @@ class Scenario(_Model):
         description="rendered cameras and vision pipelines (chapter 5); pipeline none keeps sensors.relative",
     )
     emulator: Emulator = Emulator()
+    links: Links = Field(default_factory=Links, description="inter-satellite links (delay, data rate, loss, range)")
     faults: list[FaultSpec] = Field(default_factory=list, description="time-tagged faults (distributed runs)")
 
     @property
@@ -370,6 +454,15 @@ class Scenario(_Model):
                 raise ValueError(f"vision.pipeline: mono needs a unique AprilTag per face; 36h11 has 587 tags, enough for 97 satellites, not {n}")
             if self.vision.mono.tag_size_m >= 2 * self.spacecraft.half_size_m:
                 raise ValueError("vision.mono.tag_size_m: the tag must be smaller than the cube face")
+        for idx, o in enumerate(self.links.overrides):
+            for end, v in (("from", o.src), ("to", o.dst)):
+                if v >= n:
+                    raise ValueError(f"links.overrides.{idx}.{end}: {v} is not a satellite id (0..{n - 1})")
+            if o.src == o.dst:
+                raise ValueError(f"links.overrides.{idx}: a link joins two different satellites, not {o.src} to itself")
+        pairs = [(o.src, o.dst) for o in self.links.overrides]
+        if len(set(pairs)) != len(pairs):
+            raise ValueError("links.overrides: each directed link may be listed once")
         for idx, f in enumerate(self.faults):
             if f.target is not None and f.target >= n:
                 raise ValueError(f"faults.{idx}.target: {f.target} is not a satellite id (0..{n - 1})")

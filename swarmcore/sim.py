@@ -25,6 +25,7 @@ import numpy as np
 
 from .agent import AgentFilter, filter_params
 from .graphs import scenario_graph
+from .links import LinkCounters, LinkModel
 from .measurement import MeasurementModel, synthetic_model
 from .mekf import RelativeMeasurements, SwarmEstimate, UpdateReport
 from .metrics import pose_cov_blocks, pose_errors, pose_nees, summarize
@@ -32,7 +33,7 @@ from .scenario import Scenario
 from .selection import choose_pairs
 from .world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
 
-__all__ = ["SimResult", "simulate"]
+__all__ = ["SimResult", "simulate", "make_filters", "link_summary", "late_summary", "link_body_radius"]
 
 
 @dataclass
@@ -51,6 +52,10 @@ class SimResult:
     step_ms: np.ndarray  # (K, F)
     schedule: np.ndarray  # (K, n, n) bool: relative measurements taken
     extra: dict = field(default_factory=dict)
+    late_used: np.ndarray | None = None  # (K, F) late measurements inserted (replay)
+    late_dropped: np.ndarray | None = None  # (K, F) late measurements dropped
+    replayed: np.ndarray | None = None  # (K, F) filter steps re-run
+    link_series: np.ndarray | None = None  # (K, 6) cumulative sent, delivered, late, lost, dropped, unreachable
 
     def summary(self) -> dict:
         sc = self.scenario
@@ -70,6 +75,7 @@ class SimResult:
                 "scenario": sc.name,
                 "mode": sc.filter.mode,
                 "measurements_per_step_mean": float(self.schedule.sum(axis=(1, 2)).mean()),
+                **(late_summary(self.late_used, self.late_dropped, self.replayed) if sc.links.enabled else {}),
                 **self.extra,
             },
         )
@@ -105,6 +111,20 @@ class Recorder:
         self.nis_dof = np.zeros((K, F), dtype=int)
         self.step_ms = np.full((K, F), nan)
         self.schedule = np.zeros((K, n, n), dtype=bool)
+        self.late_used = np.zeros((K, F), dtype=int)
+        self.late_dropped = np.zeros((K, F), dtype=int)
+        self.replayed = np.zeros((K, F), dtype=int)
+        self.link_series = np.zeros((K, 6), dtype=int)  # cumulative sent, delivered, late, lost, dropped, unreachable
+
+    def late_at(self, k, f, lrep) -> None:
+        self.late_used[k, f] = lrep.used
+        self.late_dropped[k, f] = lrep.dropped
+        self.replayed[k, f] = lrep.replayed_steps
+
+    def links_at(self, k, lm) -> None:
+        c = lm.counters
+        self.link_series[k] = [c.sent.sum(), c.delivered.sum(), c.delivered_late.sum(), c.lost.sum(), c.dropped_queue.sum(),
+                               c.unreachable.sum()]
 
     def truth_at(self, k, truth):
         self.t[k] = truth.t
@@ -147,21 +167,50 @@ class Recorder:
             step_ms=self.step_ms,
             schedule=self.schedule,
             extra=extra or {},
+            late_used=self.late_used,
+            late_dropped=self.late_dropped,
+            replayed=self.replayed,
+            link_series=self.link_series,
         )
 
 
-def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Callable[[int, int], None] | None = None) -> SimResult:
+def link_body_radius(sc: Scenario) -> float:
+    """The sphere that blocks a line of sight (links.line_of_sight): the cube's corner radius."""
+    return float(sc.spacecraft.half_size_m * np.sqrt(3.0))
+
+
+def make_filters(sc: Scenario, truth) -> list[AgentFilter]:
+    """Every satellite's filter at its prior, with the history its late handling needs."""
+    f = sc.filter
+    hist = int(np.ceil(f.history_s / sc.dt_s)) if sc.links.enabled and f.late == "replay" else 0
+    return [AgentFilter(filter_params(sc, i), initial_estimate(sc, truth, i), f.mode, late=f.late, history_steps=hist)
+            for i in range(sc.n_sats)]
+
+
+WireSize = Callable[[int, int, float, RelativeMeasurements, np.ndarray], int]
+
+
+def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Callable[[int, int], None] | None = None,
+             wire_size: WireSize | None = None) -> SimResult:
     """Run every satellite's filter over the scenario in this process.
 
     ``model``: the relative-measurement model (default: the synthetic one; scenarios that
-    render need :func:`swarm.models.measurement_model`)."""
+    render need :func:`swarm.models.measurement_model`). ``wire_size(observer, k, t, rel,
+    cameras)``: the encoded size of an observer's batch on the bus, which the link model
+    needs when ``links.enabled`` (:func:`swarm.models.batch_wire_size`)."""
     n, K = sc.n_sats, sc.steps
     model = model or synthetic_model(sc)
     wp = world_params(sc)
     G = scenario_graph(sc)
     camera_ok = np.ones((n, 6), dtype=bool)
     truth = initial_truth(sc)
-    filters = [AgentFilter(filter_params(sc, i), initial_estimate(sc, truth, i), sc.filter.mode) for i in range(n)]
+    filters = make_filters(sc, truth)
+    lm = None
+    if sc.links.enabled:
+        if wire_size is None:
+            raise ValueError("links.enabled: the link model needs each batch's encoded size (pass wire_size, "
+                             "see swarm.models.batch_wire_size)")
+        lm = LinkModel(sc.links, n, sc.seed, link_body_radius(sc))
     cameras = model.cameras()
     estimator = model.estimator()
     rec = Recorder(K, n, n)
@@ -182,15 +231,60 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
                     f.predict_to(k, gyro[i])
                     ms_pred[i] = (time.perf_counter() - t0) * 1e3
             seen = cameras.observe(truth, obs, tgt, camera_ok, predicted=[f.est for f in filters])
-            batches = [estimator.measure(i, seen[i], filters[i].est, k)[0] for i in sorted(seen)]
-            rel = RelativeMeasurements.concat(batches)
+            if lm is None:
+                rel = RelativeMeasurements.concat([estimator.measure(i, seen[i], filters[i].est, k)[0] for i in sorted(seen)])
+                inputs = {i: (rel, None) for i in range(n)}
+            else:
+                inputs = _through_links(lm, k, truth, seen, estimator, filters, wire_size, rec)
             for i, f in enumerate(filters):
                 t0 = time.perf_counter()
-                rep, _late = f.step(k, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, rel)
+                rel_i, late_i = inputs[i]
+                rep, lrep = f.step(k, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, rel_i, late=late_i)
                 ms = (time.perf_counter() - t0) * 1e3 + ms_pred[i]
                 rec.estimate_at(k, i, f.est, rep, ms)
+                rec.late_at(k, i, lrep)
             if progress is not None:
                 progress(k + 1, K)
     finally:
         cameras.close()
-    return rec.result(sc)
+    extra = {} if lm is None else {"links": link_summary(lm.counters, lm.latencies)}
+    return rec.result(sc, extra)
+
+
+def _through_links(lm: LinkModel, k: int, truth, seen, estimator, filters, wire_size: WireSize, rec: "Recorder"):
+    """Every observer's batch through the radio; what each receiver holds at step k: its
+    own batch and the copies that arrived (on time), and the late ones by their step."""
+    n = len(filters)
+    own = {i: estimator.measure(i, seen.get(i), filters[i].est, k) for i in range(n)}
+    lm.at_step(k, truth.r_H)
+    for i in range(n):
+        rel_i, cams_i = own[i]
+        lm.send(i, range(n), rel_i, wire_size(i, k, truth.t, rel_i, cams_i), truth.t)
+    inputs = {}
+    arrived = lm.due(truth.t)
+    for i in range(n):
+        mine = [d for d in arrived if d.receiver == i]
+        on_time = RelativeMeasurements.concat([own[i][0], *[d.payload for d in mine if d.sent_step == k]])
+        late: dict[int, list] = {}
+        for d in mine:
+            if d.sent_step < k:
+                late.setdefault(d.sent_step, []).append(d.payload)
+        inputs[i] = (on_time, {s: RelativeMeasurements.concat(b) for s, b in late.items()})
+    rec.links_at(k, lm)
+    return inputs
+
+
+def late_summary(used: np.ndarray, dropped: np.ndarray, replayed: np.ndarray) -> dict:
+    """The ``late`` block of summary.json: what every filter did with late measurements."""
+    return {"late": {"used": int(used.sum()), "dropped": int(dropped.sum()), "replayed_steps": int(replayed.sum())}}
+
+
+def link_summary(counters: LinkCounters, latencies) -> dict:
+    """The ``links`` block of summary.json: totals, per directed link, delivered latency."""
+    lat = np.array([x[3] for x in latencies], dtype=float)
+    tot = {k: int(np.sum(v)) for k, v in counters.as_dict().items()}
+    stats = None
+    if lat.size:
+        stats = {"count": int(lat.size), "mean": float(lat.mean()), "p50": float(np.percentile(lat, 50)),
+                 "p95": float(np.percentile(lat, 95)), "max": float(lat.max())}
+    return {"totals": tot, "per_link": counters.as_dict(), "latency_s": stats}

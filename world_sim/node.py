@@ -29,6 +29,8 @@ class World(Node):
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())
         self.subscribe(self.keys.fault())
+        if sc.links.enabled:
+            self.subscribe(self.keys.meas())  # the radio channel carries the agents' batches
         self.watch_liveliness()
         self.queryable(self.keys.init(), self.machine.serve_prior)
         self.queryable(self.keys.claim(), self.machine.serve_claim)

@@ -25,17 +25,34 @@ from typing import Callable
 import numpy as np
 
 from swarm.bus.convert import detections, full_estimate_msg, images_msg, sensors_msg
-from swarm.bus.messages import CameraOutput, Claim, Clock, Fault, Keys, Select, Truth
+from swarm.bus.messages import (
+    B64Array,
+    CameraOutput,
+    Claim,
+    Clock,
+    Delivered,
+    Delivery,
+    Fault,
+    Keys,
+    LinkStats,
+    MeasBatch,
+    Select,
+    Truth,
+)
 from swarm.protocol import Event, Send, Wait
 from swarmcore.graphs import edges, scenario_graph
+from swarmcore.links import LinkCounters, LinkModel
 from swarmcore.measurement import CameraModel
 from swarmcore.scenario import AGENT_PROCESS_FAULTS, Scenario
 from swarmcore.selection import mask_dead, select_for_scenario
+from swarmcore.sim import link_body_radius
 from swarmcore.world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
 
 __all__ = ["WorldProtocol"]
 
 log = logging.getLogger("world")
+
+LINK_COUNTERS = tuple(LinkCounters.__dataclass_fields__)
 
 
 class WorldProtocol:
@@ -67,6 +84,10 @@ class WorldProtocol:
         self.fallback_active = False
         self.started = False
         self.finished = False
+        # The radio channel (links.enabled): the world carries the agents' batches.
+        self.links = LinkModel(sc.links, sc.n_sats, sc.seed, link_body_radius(sc)) if sc.links.enabled else None
+        self.batches: dict[int, dict[int, tuple[MeasBatch, int]]] = {}  # step → observer → (batch, bytes)
+        self._lat_sent = 0  # latencies already reported
         self._claims: dict[str, int] = {}
         self._claimed_at: dict[int, float] = {}
         self.progress: Callable[[int, int], None] | None = None
@@ -116,6 +137,9 @@ class WorldProtocol:
             # An agent's health report follows its update: it has finished step k even
             # when its estimate was lost (the drop fault).
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
+        elif ev.kind == "meas":
+            if self.links is not None:
+                self.batches.setdefault(ev.msg.k, {})[ev.msg.observer] = (ev.msg, ev.size)
         elif ev.kind == "select":
             if ev.msg.sender != "world":
                 self.selections[ev.msg.k] = ev.msg
@@ -163,6 +187,8 @@ class WorldProtocol:
                 ))
             obs, tgt = yield from self._selection(k)
             yield from self._deliver_cameras(k, t, live, obs, tgt)
+            if self.links is not None:
+                yield from self._radio(k, t, live)
             if em.time_mode == "lockstep":
                 ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live),
                                 em.step_timeout_s)
@@ -261,6 +287,32 @@ class WorldProtocol:
                                               strategy=self.sc.selection.fallback, fallback=True,
                                               select_ms=(time.perf_counter() - t0) * 1e3))
         return obs, tgt
+
+    def _radio(self, k: int, t: float, live: list[int]):
+        """The radio channel of step k (lockstep): take every live agent's batch of k, hand
+        each to the link model (copies for every other live agent, in observer order), and
+        deliver to each live agent what has arrived by t_k (an empty delivery too: every
+        agent waits for one)."""
+        em = self.sc.emulator
+        lm = self.links
+        yield Wait(lambda: all(i in self.batches.get(k, {}) or i not in self.alive_agents for i in live), em.step_timeout_s)
+        lm.at_step(k, self.truth.r_H)
+        # Batches of earlier steps that came after their step's radio (a stalled agent) go
+        # now; then this step's, in observer order.
+        for s in sorted(x for x in self.batches if x <= k):
+            for i, (msg, size) in sorted(self.batches.pop(s).items()):
+                lm.send(i, live, msg, size, t)
+        arrived = lm.due(t)
+        for j in live:
+            items = [Delivered(arrival_t_s=d.arrival_t, batch=d.payload) for d in arrived if d.receiver == j]
+            yield Send(self.keys.rx(j), Delivery(run=self.run_id, sender="world", k=k, t_s=t, sat=j, items=items))
+        c = lm.counters
+        yield Send(self.keys.links(), LinkStats(
+            run=self.run_id, sender="world", k=k, t_s=t, queue_bytes=lm.queue_bytes(t).tolist(),
+            latencies=[(int(a), int(b), int(s), float(x)) for a, b, s, x in lm.latencies[self._lat_sent:]],
+            **{name: B64Array.of(getattr(c, name).astype(float)) for name in LINK_COUNTERS},
+        ))
+        self._lat_sent = len(lm.latencies)
 
     def _deliver_cameras(self, k: int, t: float, live: list[int], obs, tgt):
         """Each live agent's camera delivery of step k (an empty one when it has nothing

@@ -23,6 +23,8 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/fault                CLI / roles → all     Fault
     swarm/<run>/health/<i>           agent i → all         Health
     swarm/<run>/truth                world → recorder      Truth   (agents never subscribe)
+    swarm/<run>/rx/<i>               world → agent i       Delivery (links.enabled: what the radio delivered)
+    swarm/<run>/links                world → recorder      LinkStats (links.enabled: per-link counters)
     swarm/<run>/alive/<role>/<id>    liveliness tokens
 """
 
@@ -56,6 +58,9 @@ __all__ = [
     "Health",
     "Truth",
     "Claim",
+    "Delivery",
+    "Delivered",
+    "LinkStats",
     "Images",
     "ViewMeta",
     "Keys",
@@ -207,6 +212,9 @@ class Estimate(_Header):
     batches_used: list[SatId] = []
     batches_missing: list[SatId] = []
     batches_late: int = 0
+    late_used: int = Field(0, ge=0, description="late measurements inserted at their own step (replay)")
+    late_dropped: int = Field(0, ge=0, description="late measurements dropped (older than the history, or late: drop)")
+    replayed_steps: int = Field(0, ge=0, description="filter steps re-run for late measurements")
 
 
 class FullEstimate(_Header):
@@ -257,6 +265,40 @@ class Health(_Header):
     batches_late: int = 0
     drop_rate: float = 0.0
     host: str = Field("", max_length=253, description="the agent's host name (its container id under Docker)")
+
+
+class Delivered(_Msg):
+    """One batch the radio delivered: when it arrived (simulated time) and the batch itself."""
+
+    arrival_t_s: float
+    batch: MeasBatch
+
+
+class Delivery(_Header):
+    """World (the radio channel) → agent i: the peer batches that reached it by step k
+    (``links.enabled``); ``batch.k < k`` marks a late one."""
+
+    kind: Literal["rx"] = "rx"
+    sat: SatId
+    items: list[Delivered] = []
+
+
+class LinkStats(_Header):
+    """World → recorder: the link counters (cumulative, per directed link, n × n, row =
+    sender) after step k, each transmitter's queue, and this step's delivered latencies."""
+
+    kind: Literal["links"] = "links"
+    sent: B64Array
+    delivered: B64Array
+    delivered_late: B64Array
+    lost: B64Array
+    dropped_queue: B64Array
+    unreachable: B64Array
+    bytes_delivered: B64Array
+    queue_bytes: list[Annotated[int, Field(ge=0)]]
+    latencies: list[tuple[SatId, SatId, Annotated[int, Field(ge=0)], float]] = Field(
+        default_factory=list, description="(sender, receiver, sent step, latency s) of each delivery of this step"
+    )
 
 
 class Claim(_Header):
@@ -354,6 +396,8 @@ MODELS: dict[str, type[_Header]] = {
     "truth": Truth,
     "claim": Claim,
     "img": Images,
+    "rx": Delivery,
+    "links": LinkStats,
 }
 
 
@@ -442,6 +486,12 @@ class Keys:
     def truth(self) -> str:
         return f"{self.root}/truth"
 
+    def rx(self, i: int | str = "*") -> str:
+        return f"{self.root}/rx/{i}"
+
+    def links(self) -> str:
+        return f"{self.root}/links"
+
     def claim(self, token: str = "*") -> str:
         return f"{self.root}/claim/{token}"
 
@@ -454,9 +504,9 @@ class Keys:
 
 _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
-    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)"
+    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)|(?P<links>links)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
-    r"|(?P<idkind>meas|est|health|cov|init)/(?P<id>\d+)"
+    r"|(?P<idkind>meas|est|health|cov|init|rx)/(?P<id>\d+)"
     r"|alive/(?P<role>[^/]+)/(?P<ident>[^/]+))$"
 )
 
@@ -467,7 +517,7 @@ def parse_key(key: str) -> tuple[str, str, int | None]:
     if not m:
         raise MessageError(f"unexpected key {key!r}")
     run = m["run"]
-    for k in ("clock", "select", "fault", "truth"):
+    for k in ("clock", "select", "fault", "truth", "links"):
         if m[k]:
             return run, k, None
     if m["satkind"]:
