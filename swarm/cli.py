@@ -93,16 +93,14 @@ def sim(
 
     Writes OUT/summary.json, OUT/truth.npz, OUT/estimates.npz and OUT/scenario.yaml.
     """
-    from swarmcore.sim import simulate
-
-    from .models import measurement_model
+    from .models import simulate_scenario
 
     from .outputs import write_run
 
     sc = _load(scenario, sets, seed)
     with _progress() as prog:
         task = prog.add_task(f"sim {sc.name} n={sc.n_sats}", total=sc.steps)
-        res = simulate(sc, measurement_model(sc), progress=lambda k, K: prog.update(task, completed=k))
+        res = simulate_scenario(sc, progress=lambda k, K: prog.update(task, completed=k))
     summary = write_run(res, out, arrays=arrays)
     console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed}"))
     console.print(

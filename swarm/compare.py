@@ -58,9 +58,7 @@ def _one(args) -> dict:
     point the simulator imports at call time (``swarmcore.selection.select_for_scenario``)."""
     data, strategy, seed = args
     from swarmcore import selection
-    from swarmcore.sim import simulate
-
-    from .models import measurement_model
+    from .models import simulate_scenario
 
     sc = Scenario.model_validate({**data, "seed": seed, "selection": {**data["selection"], "strategy": strategy}})
     times_ms: list[float] = []
@@ -75,7 +73,7 @@ def _one(args) -> dict:
     selection.select_for_scenario = timed
     try:
         t0 = time.perf_counter()
-        res = simulate(sc, measurement_model(sc))
+        res = simulate_scenario(sc)
         wall = time.perf_counter() - t0
     finally:
         selection.select_for_scenario = inner

@@ -18,12 +18,10 @@ __all__ = ["run_mc", "aggregate"]
 
 def _one(args):
     data, seed, out_dir, arrays = args
-    from swarmcore.sim import simulate
-
-    from .models import measurement_model
+    from .models import simulate_scenario
 
     sc = Scenario.model_validate({**data, "seed": seed})
-    res = simulate(sc, measurement_model(sc))
+    res = simulate_scenario(sc)
     return seed, write_run(res, Path(out_dir), arrays=arrays)
 
 

@@ -29,3 +29,18 @@ def batch_wire_size(run: str):
         return len(encode(batch_msg(rel, cameras, run=run, sender=f"agent-{observer}", k=k, t_s=t, observer=observer)))
 
     return size
+
+
+#: The run id the in-process simulator sizes its batches with. The link model counts a
+#: batch's bytes as encoded on the bus, so a distributed run gives the same numbers as
+#: ``swarm sim`` when it runs under the same id (``swarm run --run-id``).
+SIM_RUN_ID = "sim"
+
+
+def simulate_scenario(sc: Scenario, progress=None, run: str = SIM_RUN_ID):
+    """``swarmcore.sim.simulate`` with everything a scenario may need from outside the core:
+    its measurement model (rendered cameras when it renders) and, with links, the size of
+    each batch on the bus."""
+    from swarmcore.sim import simulate
+
+    return simulate(sc, measurement_model(sc), progress=progress, wire_size=batch_wire_size(run) if sc.links.enabled else None)
