@@ -181,16 +181,28 @@ class AgentProtocol:
             if self.filter is not None:
                 self.log.info("initialised from the world's prior at step %d", self.est.step)
         if self.restart:
-            # A restarted agent borrows a live peer's latest full estimate.
-            yield Wait(lambda: bool(self.peer_est_steps), em.startup_timeout_s)
+            # A restarted agent borrows a live peer's full estimate: it asks every peer it
+            # knows to be alive (in lockstep the world holds the clock until we are back, so
+            # no new estimate would come to tell us who is freshest) and takes the latest
+            # step, then the lowest id.
+            yield Wait(lambda: bool(self.peer_est_steps or self.peers_alive), em.startup_timeout_s)
+            yield Wait(lambda: False, 0.0)  # take in every liveliness token already announced
             while self.filter is None:
-                if not self.peer_est_steps:
+                peers = sorted(set(self.peer_est_steps) | self.peers_alive)
+                if not peers:
                     raise SystemExit(f"agent {self.i}: no live peer to initialise from")
-                peer = max(self.peer_est_steps, key=lambda j: (self.peer_est_steps[j], -j))
-                msg = yield Query(self.keys.cov(peer), "full_est", 5.0)
-                if msg is None:
-                    self.peer_est_steps.pop(peer, None)
+                got = []
+                for j in peers:
+                    msg = yield Query(self.keys.cov(j), "full_est", 5.0)
+                    if msg is not None and msg.own == j:
+                        got.append(msg)
+                    else:
+                        self.peer_est_steps.pop(j, None)
+                        self.peers_alive.discard(j)
+                if not got:
+                    yield Wait(lambda: bool(self.peer_est_steps or self.peers_alive), em.startup_timeout_s)
                     continue
+                msg = max(got, key=lambda m: (m.k, -m.own))
                 s = self.sc.filter.initial_sigma
                 est = reframe(estimate_from_full(msg, self.n), msg.own, self.i, s.bias_rad_s, s.rate_rad_s)
                 self.filter = self._filter_from(est, prior=False)

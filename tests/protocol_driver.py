@@ -44,9 +44,11 @@ class Driver:
 
     # -- what happens to it --------------------------------------------------------------
     def feed(self, *events: Event) -> None:
+        """Events that arrive together: all are handled before the machine looks again
+        (as when they sit in a process's inbox at once)."""
         for ev in events:
             self.sent.extend(self.m.handle(ev))
-            self._check()
+        self._check()
 
     def elapse(self, dt: float) -> None:
         """Let ``dt`` seconds pass with nothing arriving."""

@@ -47,6 +47,11 @@ EXAMPLES = {
         M.ViewMeta(camera=8, T_CB=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], r_C_B_m=[0, 0, 0], width_px=4, height_px=2, fx_px=9.0, fy_px=9.0, cx_px=1.5, cy_px=0.5, target=2, baseline_m=0.5, n_images=2),
     ]).with_pixels([rng.integers(0, 256, (3, 5), dtype=np.uint8), rng.integers(0, 256, (2, 4), dtype=np.uint8), np.zeros((2, 4), np.uint8)]),
     "truth": M.Truth(**H, q_BI=[[0, 0, 0, 1.0]], omega_BI_B_rad_s=[[0, 0, 0.1]], r_H_m=[[1, 2, 3.0]], v_H_m_s=[[0, 0, 0.0]], gyro_bias_B_rad_s=[[0, 0, 0.0]]),
+    "rx": M.Delivery(**H, sat=2, items=[M.Delivered(arrival_t_s=6.5, batch=M.MeasBatch(**{**H, "k": 5}, observer=1, meas=[
+        M.RelMeas(observer=1, target=2, camera=6, q_BjBi=[0, 0, 0, 1.0], r_ij_Bi_m=[1.0, 2, 3], R_Bi=list(np.eye(6).ravel()))]))]),
+    "links": M.LinkStats(**H, **{f: M.B64Array.of(np.arange(9.0).reshape(3, 3)) for f in (
+        "sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable", "bytes_delivered")},
+        queue_bytes=[0, 120, 5], latencies=[(0, 1, 6, 0.25)]),
 }
 
 

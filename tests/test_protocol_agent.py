@@ -185,3 +185,28 @@ def test_drop_and_camera_faults_addressed_to_this_agent():
 def test_unknown_satellite_is_refused():
     with pytest.raises(ValueError, match="not one of this 3-satellite swarm"):
         AgentProtocol(scenario(), 3, RUN, SyntheticPoseEstimator(scenario()))
+
+
+def test_restart_in_lockstep_asks_every_live_peer_and_takes_the_freshest():
+    """In lockstep the world holds the clock while an agent restarts, so no new estimate
+    comes to name the freshest peer: the agent asks every peer liveliness reports, takes
+    the latest step, and breaks ties by the lowest id (deterministic)."""
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    e1 = initial_estimate(sc, world.truth, 1)
+    e2 = initial_estimate(sc, world.truth, 2)
+    from dataclasses import replace as dc_replace
+
+    e2 = dc_replace(e2, step=4, t=4.0)
+
+    def answer(q: Query):
+        j = int(q.key.rsplit("/", 1)[1])
+        return full_estimate_msg({1: e1, 2: e2}[j], run=RUN, sender=f"agent-{j}", own=j)
+
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), restart=True, clock=clock)
+    d = Driver(a, clock, answer=answer)
+    d.feed(Event(K.alive("agent", 2), "alive", 2, alive=True), Event(K.alive("agent", 1), "alive", 1, alive=True))
+    assert sorted(q.key for q in d.queries) == [K.cov(1), K.cov(2)]
+    (prior,) = d.sent_on(K.est(0))
+    assert prior.k == 4 and a.last_step == 4

@@ -144,6 +144,8 @@ class WorldProtocol:
             if ev.msg.sender != "world":
                 self.selections[ev.msg.k] = ev.msg
         elif ev.kind == "fault":
+            if ev.msg.sender == "world" and ev.msg.phase == "command":
+                return []  # our own scheduled command coming back over the bus: already applied
             return self._on_fault(ev.msg)
         return []
 
