@@ -81,7 +81,8 @@ def _shape(path) -> tuple[int, int]:
     """(n, K) from the truth messages of a recording."""
     n, K = 0, 0
     for topic, _s, data, _lt, _pt in iter_messages(path):
-        if topic.endswith("/truth"):
+        # The run's own truth channel (swarm/<run>/truth), not the derived /foxglove/truth.
+        if not topic.startswith("/") and topic.endswith("/truth"):
             m = json.loads(data)
             n = max(n, len(m["q_BI"]))
             K = max(K, int(m["k"]) + 1)
