@@ -189,7 +189,10 @@ class LocalSwarm:
 
     # -- faults ------------------------------------------------------------------------
     def _report(self, f: Fault, phase: str, detail: str) -> None:
-        done = f.model_copy(update={"phase": phase, "sender": "supervisor", "k": self.k, "t_s": self.k * self.sc.dt_s, "detail": detail})
+        # A scheduled command is stamped with the step it opens, whose clock has not come
+        # yet: report at that step, not at the last clock seen here.
+        k = max(self.k, f.k)
+        done = f.model_copy(update={"phase": phase, "sender": "supervisor", "k": k, "t_s": k * self.sc.dt_s, "detail": detail})
         self.node.put(self.keys.fault(), done)
 
     def _handle(self, ev) -> None:
