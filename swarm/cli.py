@@ -200,11 +200,13 @@ def run(
         for f in summary["faults"]:
             t.add_row(*(str(f.get(c, "")) for c in ("k", "action", "target", "phase", "sender", "detail")))
         console.print(t)
-    console.print(f"wrote {out / 'run.mcap'} and {out / 'summary.json'}")
+    wrote = [f for f in (out / "run.mcap", out / "summary.json") if f.exists()]
+    console.print(f"wrote {' and '.join(map(str, wrote))}")
     if sig is not None:
+        when = f"after step {summary['steps'] - 1} of {sc.steps - 1}" if summary["steps"] else "before the first step"
         console.print(
-            f"[bold red]INTERRUPTED[/bold red] by {sig.name} after step {summary['steps'] - 1} of {sc.steps - 1}: every "
-            "process stopped, the recording closed; summary.json covers the steps recorded and says \"interrupted\"",
+            f"[bold red]INTERRUPTED[/bold red] by {sig.name} {when}: every process stopped, the recording closed; "
+            "summary.json covers the steps recorded and says \"interrupted\"",
             highlight=False,
         )
         raise typer.Exit(128 + int(sig))
