@@ -1,11 +1,25 @@
 # One command to set up and run the default swarm; one to set up and run the tests.
-.PHONY: setup demo test test-fast bench image clean
+.PHONY: setup demo sim test test-fast bench image clean
+
+SWARM ?= .venv/bin/swarm
+DEMO_OUT ?= runs/demo
 
 setup:
 	scripts/setup.sh
 
+# The distributed swarm, no Docker: a Zenoh router, the recorder, the world, the selector
+# and one process per satellite on loopback, with scheduled faults (scenarios/demo-faults.yaml:
+# the default demo.yaml swarm plus a selector, a camera off, an agent killed and restarted);
+# then the summary and fault tables, and the report page.
 demo: setup
-	.venv/bin/swarm sim scenarios/demo.yaml --out runs/demo
+	rm -rf $(DEMO_OUT)
+	$(SWARM) run scenarios/demo-faults.yaml --out $(DEMO_OUT)
+	$(SWARM) report $(DEMO_OUT)
+	@echo "demo: open $(DEMO_OUT)/report/report.html (recording $(DEMO_OUT)/run.mcap, summary $(DEMO_OUT)/summary.json, logs $(DEMO_OUT)/logs/)"
+
+# The same default swarm in one process (every filter in-process, no bus, no faults).
+sim: setup
+	$(SWARM) sim scenarios/demo.yaml --out runs/sim
 
 # Every test, slow and container ones included (what CI runs).
 test: setup

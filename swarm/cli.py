@@ -158,7 +158,7 @@ def run(
 
     While it runs, `swarm fault --run-dir OUT ...` injects faults.
     """
-    from .launch import LocalSwarm
+    from .launch import Interrupted, LocalSwarm
     from .outputs import write_json
     from .recording import load_recording
 
@@ -168,31 +168,62 @@ def run(
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
         raise typer.Exit(2)
-    code = 1
-    try:
-        swarm.start()
-        console.print(f"run {swarm.run}: {sc.n_sats} agents on {swarm.endpoint}; faults: swarm fault --run-dir {out} ...")
-        with _progress() as prog:
-            task = prog.add_task(f"run {sc.name} n={sc.n_sats} ({sc.emulator.time_mode})", total=sc.steps)
-            code = swarm.run_to_end(progress=lambda k, K: prog.update(task, completed=k), timeout=timeout)
-    finally:
-        swarm.stop()
-    rec = load_recording(out / "run.mcap", sc.n_sats, sc.steps)
-    summary = rec.summary(sc)
+    code: int | None = 1
+    # SIGINT (Ctrl-C), SIGTERM and SIGHUP interrupt the run: every process is stopped, the
+    # recording closed, and the summary of the steps recorded so far marked as interrupted.
+    with swarm.handling_signals():
+        try:
+            swarm.start()
+            console.print(f"run {swarm.run}: {sc.n_sats} agents on {swarm.endpoint}; faults: swarm fault --run-dir {out} ...")
+            with _progress() as prog:
+                task = prog.add_task(f"run {sc.name} n={sc.n_sats} ({sc.emulator.time_mode})", total=sc.steps)
+                code = swarm.run_to_end(progress=lambda k, K: prog.update(task, completed=k), timeout=timeout)
+        except Interrupted:
+            code = None
+        finally:
+            swarm.stop()
+    sig = swarm.interrupted if code is None else None
+    if sig is None:
+        summary = load_recording(out / "run.mcap", sc.n_sats, sc.steps).summary(sc)
+    else:
+        summary = _interrupted_summary(out / "run.mcap", sc)
+        summary["interrupted"] = {"reason": sig.name, "signal": int(sig), "last_step": summary["steps"] - 1, "steps_planned": sc.steps}
     summary["run"] = swarm.run
     summary["world_exit_code"] = code
     write_json(out / "summary.json", summary)
-    console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
-    if summary["faults"]:
+    if summary["steps"]:
+        console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
+    if summary.get("faults"):
         t = Table(title="faults")
         for col in ("k", "action", "target", "phase", "sender", "detail"):
             t.add_column(col)
         for f in summary["faults"]:
             t.add_row(*(str(f.get(c, "")) for c in ("k", "action", "target", "phase", "sender", "detail")))
         console.print(t)
-    console.print(f"wrote {out / 'run.mcap'} and {out / 'summary.json'}")
+    wrote = [f for f in (out / "run.mcap", out / "summary.json") if f.exists()]
+    console.print(f"wrote {' and '.join(map(str, wrote))}")
+    if sig is not None:
+        when = f"after step {summary['steps'] - 1} of {sc.steps - 1}" if summary["steps"] else "before the first step"
+        console.print(
+            f"[bold red]INTERRUPTED[/bold red] by {sig.name} {when}: every process stopped, the recording closed; "
+            "summary.json covers the steps recorded and says \"interrupted\"",
+            highlight=False,
+        )
+        raise typer.Exit(128 + int(sig))
     if code != 0:
         raise typer.Exit(code)
+
+
+def _interrupted_summary(path: Path, sc) -> dict:
+    """The summary of an interrupted run over the steps it recorded (0..last truth step),
+    or an empty one if it never got to step 0."""
+    from .recording import load_recording
+
+    try:
+        return load_recording(path, sc.n_sats, None).summary(sc)  # K from the recorded truth
+    except (ValueError, FileNotFoundError) as exc:
+        console.print(f"no step to summarise: {exc}", highlight=False)
+        return {"scenario": sc.name, "n_sats": sc.n_sats, "seed": sc.seed, "steps": 0, "faults": []}
 
 
 fault_app = typer.Typer(

@@ -7,10 +7,25 @@ agent or the selector — whether they come from the scenario (via the world) or
 ``swarm fault`` at any time, and reports each on the bus so it lands in the recording.
 When the world finishes, every process is stopped cleanly and ``summary.json`` is
 computed from the recording.
+
+Ownership: whatever ends the supervisor ends its processes within seconds.
+
+- Each child is started through :mod:`swarm.lifeline`, holding the read end of a pipe
+  whose write end only the supervisor holds: when the supervisor dies (even by SIGKILL)
+  the kernel closes it, the child reads EOF and stops itself (SIGTERM, then a hard exit
+  after a grace period). ``lifeline.py`` says why this and not ``PR_SET_PDEATHSIG``.
+- SIGINT, SIGTERM and SIGHUP to the supervisor (:meth:`LocalSwarm.handling_signals`)
+  interrupt the run: the world, the selector and the agents are stopped first, then the
+  recorder, which closes ``run.mcap`` (finalised and indexed), then the router; the
+  caller writes a summary marked as interrupted. A second signal kills everything at once.
+- Every child runs in its own session (its own process group): a Ctrl-C typed in the
+  terminal reaches only the supervisor, which stops the roles in the order above rather
+  than all at once; and a fault (``kill-agent 2``) signals one process, its target.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -24,13 +39,26 @@ from pathlib import Path
 
 import yaml
 
-from swarmcore.scenario import Scenario
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, Scenario
 
 from .bus.messages import Fault, Keys
 from .bus.session import BusConfig
 from .node import Node
 
-__all__ = ["LocalSwarm", "free_port"]
+__all__ = ["LocalSwarm", "Interrupted", "free_port"]
+
+# Grace periods (s): after SIGTERM, how long a role may take to stop before SIGKILL.
+_ROLE_GRACE_S = 15.0  # a normal end: the roles are finishing by themselves
+_INTERRUPT_GRACE_S = 5.0  # an interrupted run: "within a few seconds"
+_RECORDER_GRACE_S = 60.0  # the recorder rewrites run.mcap as an indexed file on close
+_ORPHAN_GRACE_S = 5.0  # lifeline: a child whose supervisor vanished
+_ORPHAN_RECORDER_GRACE_S = 15.0
+
+_INTERRUPT_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class Interrupted(RuntimeError):
+    """The run was interrupted by a signal while it was starting."""
 
 
 def free_port() -> int:
@@ -62,14 +90,26 @@ class LocalSwarm:
         self.faults: list[dict] = []
         self.k = 0
         self._lock = threading.Lock()
+        self.interrupted: signal.Signals | None = None  # the signal that interrupted the run
+        self._lifeline: tuple[int, int] | None = None  # (read end for children, write end kept here)
 
     # -- processes -----------------------------------------------------------------
+    def _popen(self, name: str, args: list[str], **kw) -> subprocess.Popen:
+        """``python -m swarm.lifeline --fd R MODULE ARGS`` in its own session (see the module
+        docstring). Only the read end of the lifeline is passed on; the write end is not
+        inheritable (``os.pipe``), so no child can keep its siblings' lifeline open."""
+        if self._lifeline is None:
+            self._lifeline = os.pipe()
+        r = self._lifeline[0]
+        grace = _ORPHAN_RECORDER_GRACE_S if name == "recorder" else _ORPHAN_GRACE_S
+        cmd = [self.python, "-m", "swarm.lifeline", "--fd", str(r), "--grace-s", str(grace), *args]
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, env=env, pass_fds=(r,), start_new_session=True, **kw)
+
     def _spawn(self, name: str, args: list[str]) -> subprocess.Popen:
         # A fresh log per run; a restarted process appends to its predecessor's.
-        logf = open(self.out / "logs" / f"{name}.log", "ab" if name in self.procs else "wb")
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        p = subprocess.Popen([self.python, "-m", *args], stdout=logf, stderr=subprocess.STDOUT, env=env, start_new_session=True)
-        logf.close()
+        with open(self.out / "logs" / f"{name}.log", "ab" if name in self.procs else "wb") as logf:
+            p = self._popen(name, args, stdout=logf, stderr=subprocess.STDOUT)
         with self._lock:
             self.procs[name] = p
         return p
@@ -84,16 +124,15 @@ class LocalSwarm:
         self._spawn("selector", ["selector", *self._role_args()])
 
     def start(self) -> None:
+        """Start every process. Raises :class:`Interrupted` if a signal (see
+        :meth:`handling_signals`) arrives meanwhile; call :meth:`stop` in any case."""
         port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{port}"
-        router = subprocess.Popen(
-            [self.python, "-m", "swarm.router", "--listen", self.endpoint],
-            stdout=subprocess.PIPE,
-            stderr=open(self.out / "logs" / "router.log", "ab"),
-            start_new_session=True,
-        )
+        with open(self.out / "logs" / "router.log", "wb") as logf:
+            router = self._popen("router", ["swarm.router", "--listen", self.endpoint], stdout=subprocess.PIPE, stderr=logf)
         self.procs["router"] = router
-        line = _readline(router.stdout, timeout=30.0)
+        line = _readline(router.stdout, timeout=30.0, cancelled=lambda: self.interrupted is not None)
+        self._check_interrupted()
         if not line or b"READY" not in line:
             raise RuntimeError(f"the Zenoh router did not start (see {self.out / 'logs' / 'router.log'})")
         self.bus = BusConfig(mode="client", connect=[self.endpoint])
@@ -123,10 +162,12 @@ class LocalSwarm:
             self.spawn_selector()
         self._spawn("world", ["world_sim", *self._role_args()])
         self._write_run_json()
+        self._check_interrupted()
 
     def _write_run_json(self) -> None:
         info = {
             "run": self.run,
+            "supervisor_pid": os.getpid(),
             "endpoint": self.endpoint,
             "n_sats": self.sc.n_sats,
             "pids": {k: p.pid for k, p in self.procs.items()},
@@ -136,18 +177,26 @@ class LocalSwarm:
         (self.out / "run.json").write_text(json.dumps(info, indent=2) + "\n")
 
     def _wait_alive(self, role: str, timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            ev = self.node.next_event(max(0.0, deadline - time.monotonic()))
-            if ev is not None:
-                self._handle(ev)
-                if ev.kind == "alive" and ev.role == role and ev.alive:
-                    return
-        raise RuntimeError(f"{role} did not come up within {timeout:.0f} s (see {self.out / 'logs'})")
+        up: list[bool] = []
+
+        def on_event(ev) -> None:
+            self._handle(ev)
+            if ev.kind == "alive" and ev.role == role and ev.alive:
+                up.append(True)
+
+        # Wake every 0.2 s to notice a signal (the handler only sets a flag).
+        self.node.wait_for(lambda: bool(up) or self.interrupted is not None, timeout, on_event,
+                           wake=lambda: time.monotonic() + 0.2)
+        self._check_interrupted()
+        if not up:
+            raise RuntimeError(f"{role} did not come up within {timeout:.0f} s (see {self.out / 'logs'})")
 
     # -- faults ------------------------------------------------------------------------
     def _report(self, f: Fault, phase: str, detail: str) -> None:
-        done = f.model_copy(update={"phase": phase, "sender": "supervisor", "k": self.k, "t_s": self.k * self.sc.dt_s, "detail": detail})
+        # A scheduled command is stamped with the step it opens, whose clock has not come
+        # yet: report at that step, not at the last clock seen here.
+        k = max(self.k, f.k)
+        done = f.model_copy(update={"phase": phase, "sender": "supervisor", "k": k, "t_s": k * self.sc.dt_s, "detail": detail})
         self.node.put(self.keys.fault(), done)
 
     def _handle(self, ev) -> None:
@@ -159,7 +208,7 @@ class LocalSwarm:
             self.faults.append(ev.msg.model_dump(exclude={"v", "run"}))
 
     def execute(self, f: Fault) -> None:
-        name = f"agent-{f.target}" if f.action in ("kill-agent", "restart-agent", "stop-agent") else "selector"
+        name = f"agent-{f.target}" if f.action in AGENT_PROCESS_FAULTS else "selector"
         p = self.procs.get(name)
         running = p is not None and p.poll() is None
         if f.action in ("kill-agent", "kill-selector"):
@@ -190,11 +239,48 @@ class LocalSwarm:
             self._write_run_json()
             self._report(f, "done", f"started pid {self.procs[name].pid}")
 
+    # -- signals -------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def handling_signals(self):
+        """While inside, SIGINT, SIGTERM and SIGHUP interrupt the run (see the module
+        docstring); a second one kills every process at once and exits 128 + signal.
+        Main thread only (Python delivers signals there); the previous handlers come back
+        on exit."""
+
+        def on_signal(signum, _frame):
+            if self.interrupted is None:
+                self.interrupted = signal.Signals(signum)  # the loops notice within 0.2 s
+                return
+            self.kill_all()
+            os._exit(128 + signum)
+
+        old = {s: signal.signal(s, on_signal) for s in _INTERRUPT_SIGNALS}
+        try:
+            yield self
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    def _check_interrupted(self) -> None:
+        if self.interrupted is not None:
+            raise Interrupted(f"interrupted by {self.interrupted.name} while starting")
+
+    def kill_all(self) -> None:
+        """SIGKILL every process (and its process group) at once; no clean stop."""
+        for p in list(self.procs.values()):
+            _kill_group(p, signal.SIGKILL)
+
     # -- the run ---------------------------------------------------------------------
-    def run_to_end(self, progress=None, timeout: float | None = None) -> int:
+    def run_to_end(self, progress=None, timeout: float | None = None) -> int | None:
+        """Follow the run until the world ends (its exit code) or a signal interrupts it
+        (None; :attr:`interrupted` says which, and :meth:`stop` ends the world)."""
         world = self.procs["world"]
         deadline = None if timeout is None else time.monotonic() + timeout
         while world.poll() is None:
+            if self.interrupted is not None:
+                self.say(f"{self.interrupted.name} at step {self.k}: stopping every process, closing the recording "
+                         "(once more to kill them all at once)")
+                return None
             if deadline is not None and time.monotonic() > deadline:
                 self.say(f"timeout: stopping the run after {timeout:.0f} s")
                 world.terminate()
@@ -205,44 +291,52 @@ class LocalSwarm:
                 if ev.kind == "clock" and progress is not None:
                     progress(ev.msg.k + 1, self.sc.steps)
         # Drain fault reports still in flight.
-        while (ev := self.node.next_event(0.3)) is not None:
+        while self.interrupted is None and (ev := self.node.next_event(0.3)) is not None:
             self._handle(ev)
         return world.wait()
 
     def stop(self) -> None:
-        # The recorder finishes by itself after the world's last clock (once the bus is
-        # quiet); give it that chance before anything is stopped.
+        """Stop every process, in order: the roles that publish (world, selector, agents),
+        then the recorder (it closes ``run.mcap``), then the router. After a normal end
+        they are finishing by themselves; after an interrupt each gets a few seconds.
+        Whatever is still there after its grace period is killed with its process group."""
+        interrupted = self.interrupted is not None
         rec = self.procs.get("recorder")
         world = self.procs.get("world")
-        if rec is not None and world is not None and world.poll() is not None:
+        if not interrupted and rec is not None and world is not None and world.poll() is not None:
+            # The recorder finishes by itself after the world's last clock (once the bus
+            # is quiet); give it that chance before anything is stopped.
             try:
-                rec.wait(timeout=60)
+                rec.wait(timeout=_RECORDER_GRACE_S)
             except subprocess.TimeoutExpired:
                 pass
-        order = [n for n in self.procs if n.startswith("agent-")] + ["selector", "world", "recorder"]
-        for name in order:
-            p = self.procs.get(name)
-            if p is not None and p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        for name in order:
-            p = self.procs.get(name)
-            if p is None:
-                continue
-            try:
-                p.wait(timeout=60 if name == "recorder" else 15)
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        grace = _INTERRUPT_GRACE_S if interrupted else _ROLE_GRACE_S
+        producers = ["world", "selector", *(n for n in self.procs if n.startswith("agent-"))]
+        self._terminate(producers, grace)
+        self._terminate(["recorder"], _RECORDER_GRACE_S)
         if self.node is not None:
             self.node.close()
             self.node = None
-        router = self.procs.get("router")
-        if router is not None and router.poll() is None:
-            router.terminate()
+        self._terminate(["router"], _INTERRUPT_GRACE_S)
+        if self._lifeline is not None:
+            for fd in self._lifeline:
+                os.close(fd)
+            self._lifeline = None
+
+    def _terminate(self, names: list[str], grace: float) -> None:
+        """SIGTERM to each named running process, then wait at most ``grace`` seconds in
+        all; SIGKILL (to the process group) whoever is still running."""
+        procs = [p for n in names if (p := self.procs.get(n)) is not None]
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for p in procs:
             try:
-                router.wait(timeout=10)
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
-                router.kill()
+                _kill_group(p, signal.SIGKILL)
+                p.wait()
 
 
 def _slug(name: str) -> str:
@@ -250,9 +344,23 @@ def _slug(name: str) -> str:
     return s or "run"
 
 
-def _readline(stream, timeout: float) -> bytes | None:
+def _kill_group(p: subprocess.Popen, sig: int) -> None:
+    """Signal a running child's process group (each child leads its own session, so its
+    group id is its pid). A child already reaped is left alone: its pid is free for reuse."""
+    if p.poll() is None:
+        try:
+            os.killpg(p.pid, sig)
+        except (ProcessLookupError, PermissionError):
+            pass
+
+
+def _readline(stream, timeout: float, cancelled=lambda: False) -> bytes | None:
+    """One line from ``stream`` within ``timeout`` seconds (None if none came, or if
+    ``cancelled()`` turned true meanwhile; checked every 0.2 s)."""
     out: list[bytes] = []
     t = threading.Thread(target=lambda: out.append(stream.readline()), daemon=True)
     t.start()
-    t.join(timeout)
+    deadline = time.monotonic() + timeout
+    while t.is_alive() and not cancelled() and time.monotonic() < deadline:
+        t.join(min(0.2, max(0.0, deadline - time.monotonic())))
     return out[0] if out else None

@@ -26,6 +26,8 @@ from .mcaplog import CheckpointWriter
 
 log = logging.getLogger("recorder")
 
+_STOP_DRAIN_S = 2.0  # after SIGTERM: at most this long for the messages still arriving
+
 _ALIVE_SCHEMA = {
     "title": "swarm.Liveliness",
     "type": "object",
@@ -134,7 +136,11 @@ class Recorder:
                 self.flush()
         end_by = time.monotonic() + max_linger_s
         while time.monotonic() < end_by:
-            owed = self.final is not None and bool(self.final[1])
+            if self.stop.is_set():
+                # Asked to stop (the run was interrupted, or it is over and we were waited
+                # for long enough): keep what is already in flight, owe nobody anything.
+                end_by = min(end_by, time.monotonic() + _STOP_DRAIN_S)
+            owed = self.final is not None and bool(self.final[1]) and not self.stop.is_set()
             s = self.inbox.get(min(1.0, end_by - time.monotonic()) if owed else quiet_s)
             if s is None and not owed:
                 break

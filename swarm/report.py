@@ -11,6 +11,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -158,7 +159,9 @@ def fig_filter(data: RunData, f: int, out: Path) -> Path:
 def fig_nees(data: RunData, out: Path) -> Path:
     fig, ax = plt.subplots(figsize=(11, 4))
     n = data.n
-    avg = np.nanmean(data.nees, axis=2)  # (K, F) average over the n targets
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN rows: steps a dead filter did not run
+        avg = np.nanmean(data.nees, axis=2)  # (K, F) average over the n targets
     for f in range(avg.shape[1]):
         ax.plot(data.t, avg[:, f], lw=0.7, label=f"filter {f}")
     lo, hi = chi2.ppf([0.025, 0.975], 6 * n) / n

@@ -1,0 +1,71 @@
+"""Run a role so that it ends when the process that started it ends, however that ends.
+
+``python -m swarm.lifeline --fd N [--grace-s S] MODULE [ARGS...]`` runs ``python -m MODULE
+ARGS...`` in this process, after starting a thread that reads file descriptor ``N``: the
+read end of a pipe whose write end only the parent (``swarm run``'s supervisor,
+:class:`swarm.launch.LocalSwarm`) holds. The parent never writes to it, so the read blocks
+for as long as the parent lives; when the parent dies — SIGTERM, SIGINT, a crash, SIGKILL —
+the kernel closes the write end and the read returns EOF. The thread then sends this
+process SIGTERM (each role's handler stops it cleanly: the recorder finalises its file)
+and, should the role still be here ``grace`` seconds later, ends it with ``os._exit``.
+
+Why a pipe and not ``prctl(PR_SET_PDEATHSIG)``: the death signal fires when the *thread*
+that forked the child exits, not the process (the supervisor can be driven from a worker
+thread, and a restart is spawned wherever a fault is executed); setting it needs either a
+``preexec_fn`` (not safe in a process that runs Zenoh's threads) or code in every role
+plus a ``getppid`` check for the parent that died before the call; it is Linux-only and
+its signal (SIGKILL, to be sure) gives the recorder no chance to close its file. The pipe
+has none of these holes: the kernel closes it whichever way and from whichever thread
+the parent goes, a child that starts after its parent is already gone reads EOF at once,
+and it works on any POSIX system. No standard-library or packaged helper does this for
+an arbitrary ``python -m`` module, hence these few lines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import runpy
+import signal
+import sys
+import threading
+
+__all__ = ["watch", "main"]
+
+
+def watch(fd: int, grace_s: float) -> threading.Thread:
+    """Start the watcher thread on ``fd`` (see the module docstring)."""
+
+    def run() -> None:
+        try:
+            while os.read(fd, 4096):
+                pass  # nobody writes; anything written is ignored
+        except OSError:
+            pass  # a broken descriptor means the same as EOF: no parent to answer to
+        sys.stderr.write(f"lifeline: the parent process is gone; stopping (hard exit in {grace_s:g} s)\n")
+        sys.stderr.flush()
+        os.kill(os.getpid(), signal.SIGTERM)
+        # A deadline, not a synchronisation: the clean stop above either finishes within it
+        # (and the process is gone before this wakes) or is cut short here.
+        threading.Event().wait(grace_s)
+        os._exit(128 + signal.SIGTERM)
+
+    t = threading.Thread(target=run, name="lifeline", daemon=True)
+    t.start()
+    return t
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description="run `python -m MODULE ARGS` until the parent that holds the pipe's write end goes")
+    p.add_argument("--fd", type=int, required=True, help="read end of the parent's lifeline pipe")
+    p.add_argument("--grace-s", type=float, default=5.0, help="after the parent is gone, how long a clean stop may take")
+    p.add_argument("module", help="the module to run as __main__, as `python -m MODULE`")
+    p.add_argument("args", nargs=argparse.REMAINDER, help="its arguments")
+    a = p.parse_args(argv)
+    watch(a.fd, a.grace_s)
+    sys.argv = [a.module, *a.args]
+    runpy.run_module(a.module, run_name="__main__", alter_sys=True)
+
+
+if __name__ == "__main__":
+    main()
