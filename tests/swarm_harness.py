@@ -21,10 +21,10 @@ def scenario(**kw) -> Scenario:
     return Scenario(**base)
 
 
-def run_swarm(sc: Scenario, out, during=None, timeout: float = 600.0):
+def run_swarm(sc: Scenario, out, during=None, timeout: float = 600.0, run_id: str | None = None):
     """Start the swarm, call ``during(swarm)`` on a thread (if given), run to the end,
     stop everything and return (recording, summary, exit codes by process name)."""
-    sw = LocalSwarm(sc, out, log=lambda s: None)
+    sw = LocalSwarm(sc, out, run_id=run_id, log=lambda s: None)
     codes = {}
     th = None
     try:

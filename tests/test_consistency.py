@@ -4,14 +4,16 @@ The truth follows the filter's model (matched noise, no filter-only tuning noise
 so a consistent filter gives NEES ~ χ²(6) per pose and NIS ~ χ²(dof) per update. With M
 runs, the run-average at each step, times M, is χ²(6M) (NEES) and χ²(Σ dof) (NIS).
 Seeds are fixed, so the test is deterministic; the bounds are the textbook two-sided 95 %.
+With links (2 s latency, 30 % bursty loss, replay) the NIS is that of each step's own
+update, whose prior already holds every replayed late batch.
 """
 
 import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from swarm.models import simulate_scenario
 from swarmcore.scenario import Scenario
-from swarmcore.sim import simulate
 
 pytestmark = pytest.mark.slow
 
@@ -19,7 +21,13 @@ RUNS = 16
 STEPS = 40
 
 
-def _mc(n, graph):
+#: Links with 2 s latency (plus jitter) and 30 % bursty loss: every peer batch arrives
+#: late or not at all, and the filters replay what arrives.
+LINKS = {"enabled": True, "latency": {"fixed_s": 2.0, "jitter": {"distribution": "uniform", "scale_s": 0.5}},
+         "loss": {"model": "gilbert_elliott", "rate": 0.3, "mean_burst": 3.0}}
+
+
+def _mc(n, graph, links=None):
     out = []
     for r in range(RUNS):
         sc = Scenario(
@@ -27,15 +35,22 @@ def _mc(n, graph):
             seed=1000 + r,
             duration_s=STEPS - 1,
             graph={"kind": graph},
-            filter={"att_rw_other_rad_sqrt_s": 0.0, "pos_rw_m_sqrt_s": 0.0, "gate": {"enabled": False}},
+            filter={"att_rw_other_rad_sqrt_s": 0.0, "pos_rw_m_sqrt_s": 0.0, "gate": {"enabled": False}, "late": "replay"},
+            links=links or {},
         )
-        out.append(simulate(sc))
+        out.append(simulate_scenario(sc))
     return out
 
 
-@pytest.fixture(scope="module", params=[(3, "complete"), (5, "chain")], ids=["n3-complete", "n5-chain"])
+@pytest.fixture(scope="module", params=[(3, "complete", None), (5, "chain", None), (4, "complete", LINKS)],
+                ids=["n3-complete", "n5-chain", "n4-links-2s-30pc-bursty-replay"])
 def mc(request):
-    return request.param, _mc(*request.param)
+    n, graph, links = request.param
+    runs = _mc(n, graph, links)
+    if links is not None:
+        late = sum(r.late_used.sum() for r in runs)
+        assert late > 0, "the links made nothing late: the case tests nothing"
+    return (n, graph), runs
 
 
 def test_nees_within_chi2_bounds(mc):

@@ -1,0 +1,58 @@
+"""Links end to end: in-process and distributed give the same numbers with latency,
+jitter, bursty loss, a rate cap and a dead link; every filter still holds every satellite
+within 3σ."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from swarm.models import simulate_scenario
+from swarmcore import quat
+from swarmcore.mekf import BLOCK
+from swarm_harness import run_swarm, scenario, within_3sigma_fraction
+
+LINKS = {
+    "enabled": True,
+    "latency": {"fixed_s": 1.2, "jitter": {"distribution": "exponential", "scale_s": 0.4}},
+    "loss": {"model": "gilbert_elliott", "rate": 0.2, "mean_burst": 2.0},
+    "rate_Bps": 2500.0,
+    "queue_bytes": 6000,
+    "overrides": [{"from": 1, "to": 2, "dead": True}, {"from": 3, "to": 0, "loss": {"model": "bernoulli", "rate": 0.5}}],
+}
+
+
+def _sim_3sigma(res) -> float:
+    """Fraction of (step, filter, satellite, component) errors within 3σ of an in-process run."""
+    a = quat.local(res.truth["q_BI"][:, None], res.est["q_BI"])  # (K, F, n, 3)
+    dr = res.truth["r_H"][:, None] - res.est["r_H"]
+    K, F, n = a.shape[:3]
+    P = res.est["P_diag"].reshape(K, F, n, BLOCK)
+    sd = np.sqrt(np.concatenate([P[..., 0:3], P[..., 6:9]], axis=-1))
+    e = np.concatenate([a, dr], axis=-1)
+    return float(np.mean(np.abs(e[5:]) <= 3 * sd[5:]))
+
+
+def test_a_dead_link_leaves_every_filter_estimating_every_satellite_within_3_sigma():
+    sc = scenario(n_sats=4, duration_s=60, links=LINKS)
+    res = simulate_scenario(sc, run="t")
+    s = res.summary()
+    assert s["links"]["per_link"]["unreachable"][1][2] == sc.steps and s["links"]["per_link"]["sent"][1][2] == 0
+    assert _sim_3sigma(res) >= 0.97
+    assert s["late"]["used"] > 0
+
+
+@pytest.mark.integration
+def test_links_distributed_equal_in_process(tmp_path):
+    sc = scenario(n_sats=4, duration_s=20, links=LINKS)
+    rec, summary, codes, _ = run_swarm(sc, tmp_path / "run", run_id="links-eq")
+    assert codes["world"] == 0
+    ref = simulate_scenario(sc, run="links-eq").summary()
+    for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "late", "links"):
+        assert summary[key] == ref[key], key
+    t = ref["links"]["totals"]
+    assert t["lost"] > 0 and t["dropped_queue"] > 0 and t["delivered_late"] > 0 and t["unreachable"] > 0
+    # Every survivor (all four) holds every satellite, the cut link's ends included.
+    for target in range(4):
+        frac, count = within_3sigma_fraction(rec, [0, 1, 2, 3], target, k_from=5)
+        assert count > 0 and frac >= 0.95, (target, frac)
