@@ -86,7 +86,8 @@ class AgentProtocol:
         self.batches_late = 0
         self.malformed = malformed  # the shell's count of malformed messages, reported in health
         self.linked = sc.links.enabled  # peers' batches come through the radio (rx/<i>), not straight off the bus
-        self.rx: dict[int, object] = {}
+        self.rx_steps: set[int] = set()  # steps whose delivery (lockstep) has come
+        self.rx_items: list = []  # delivered peer batches not yet used
         self.late_used = self.late_dropped = self.replayed_steps = 0
         self.last_step = -1  # the last step this agent has processed (updated at)
         self.done = False
@@ -121,7 +122,8 @@ class AgentProtocol:
         elif ev.kind == "img":
             self.imgs[k] = ev.msg
         elif ev.kind == "rx":
-            self.rx[k] = ev.msg
+            self.rx_steps.add(k)
+            self.rx_items.extend(it.batch for it in ev.msg.items if it.batch.observer != self.i)
         elif ev.kind == "meas":
             if ev.msg.observer != self.i:
                 if k <= self.last_step:
@@ -288,17 +290,20 @@ class AgentProtocol:
         self._prune(k)
 
     def _prune(self, k: int) -> None:
-        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished, self.rx):
+        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished):
             for old in [s for s in store if s < k - 2]:
                 store.pop(old, None)
+        self.rx_steps = {s for s in self.rx_steps if s >= k - 2}
 
     def _finish_linked(self, k: int, t: float, sens, rel_own, ms_own: float, clock, timeout: float):
         """Step k with the radio: what the world's link model delivered by t_k — on-time
         batches of k, and late ones of earlier steps (replayed or dropped) — then update."""
-        if self.i in clock.live_agents:
-            yield Wait(lambda: k in self.rx, timeout)
-        rx = self.rx.pop(k, None)
-        items = [] if rx is None else [it.batch for it in rx.items if it.batch.observer != self.i]
+        if self.i in clock.live_agents and self.sc.emulator.time_mode == "lockstep":
+            # Lockstep: the world delivers once per step, after every batch of k is in.
+            # Free-running: take what the radio has delivered by now; the rest is late.
+            yield Wait(lambda: k in self.rx_steps, timeout)
+        items = [b for b in self.rx_items if b.k <= k]
+        self.rx_items = [b for b in self.rx_items if b.k > k]
         on_time = [b for b in items if b.k == k]
         late_by_step: dict[int, list] = {}
         for b in items:

@@ -88,6 +88,7 @@ class WorldProtocol:
         self.links = LinkModel(sc.links, sc.n_sats, sc.seed, link_body_radius(sc)) if sc.links.enabled else None
         self.batches: dict[int, dict[int, tuple[MeasBatch, int]]] = {}  # step → observer → (batch, bytes)
         self._lat_sent = 0  # latencies already reported
+        self._new_batch = False
         self._claims: dict[str, int] = {}
         self._claimed_at: dict[int, float] = {}
         self.progress: Callable[[int, int], None] | None = None
@@ -140,6 +141,7 @@ class WorldProtocol:
         elif ev.kind == "meas":
             if self.links is not None:
                 self.batches.setdefault(ev.msg.k, {})[ev.msg.observer] = (ev.msg, ev.size)
+                self._new_batch = True
         elif ev.kind == "select":
             if ev.msg.sender != "world":
                 self.selections[ev.msg.k] = ev.msg
@@ -189,7 +191,7 @@ class WorldProtocol:
                 ))
             obs, tgt = yield from self._selection(k)
             yield from self._deliver_cameras(k, t, live, obs, tgt)
-            if self.links is not None:
+            if self.links is not None and em.time_mode == "lockstep":
                 yield from self._radio(k, t, live)
             if em.time_mode == "lockstep":
                 ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live),
@@ -199,6 +201,8 @@ class WorldProtocol:
                     log.warning("step %d: no estimate from %s within %.1f s", k, missing, em.step_timeout_s)
                 if em.lockstep_max_realtime_factor:
                     yield from self._pace(t_wall0 + (k + 1) * sc.dt_s / em.lockstep_max_realtime_factor)
+            elif self.links is not None:
+                yield from self._radio_free(k, live, t_wall0, t_wall0 + (k + 1) * sc.dt_s / em.realtime_factor)
             else:
                 yield from self._pace(t_wall0 + (k + 1) * sc.dt_s / em.realtime_factor)
             self.est_seen.pop(k - 2, None)
@@ -308,6 +312,43 @@ class WorldProtocol:
         for j in live:
             items = [Delivered(arrival_t_s=d.arrival_t, batch=d.payload) for d in arrived if d.receiver == j]
             yield Send(self.keys.rx(j), Delivery(run=self.run_id, sender="world", k=k, t_s=t, sat=j, items=items))
+        yield from self._link_stats(k, t)
+
+    def _radio_free(self, k: int, live: list[int], t_wall0: float, deadline: float):
+        """The radio channel in free-running mode, until the wall-clock end of step k: every
+        batch goes on the air when it reaches the world (simulated time = the world's clock,
+        ``realtime_factor`` × wall time since the start), and each copy is delivered on its
+        own ``rx/<j>`` at the wall time of its arrival."""
+        lm = self.links
+        em = self.sc.emulator
+        lm.at_step(k, self.truth.r_H)
+
+        def sim_now() -> float:
+            return (self.clock() - t_wall0) * em.realtime_factor
+
+        def wall_of(t_sim: float) -> float:
+            return t_wall0 + t_sim / em.realtime_factor
+
+        while True:
+            now_s = sim_now()
+            for s in sorted(self.batches):
+                for i, (msg, size) in sorted(self.batches.pop(s).items()):
+                    lm.send(i, [j for j in live if j in self.alive_agents], msg, size, max(now_s, msg.t_s))
+            self._new_batch = False
+            for d in lm.due(now_s):
+                item = Delivered(arrival_t_s=d.arrival_t, batch=d.payload)
+                yield Send(self.keys.rx(d.receiver), Delivery(run=self.run_id, sender="world", k=k, t_s=now_s, sat=d.receiver,
+                                                              items=[item]))
+            rem = deadline - self.clock()
+            if rem <= 0:
+                break
+            nxt = lm.next_arrival()
+            wait = rem if nxt is None else max(0.0, min(rem, wall_of(nxt) - self.clock()))
+            yield Wait(lambda: self._new_batch, wait)
+        yield from self._link_stats(k, self.truth.t)
+
+    def _link_stats(self, k: int, t: float):
+        lm = self.links
         c = lm.counters
         yield Send(self.keys.links(), LinkStats(
             run=self.run_id, sender="world", k=k, t_s=t, queue_bytes=lm.queue_bytes(t).tolist(),
