@@ -204,13 +204,44 @@ class AgentProtocol:
                 if not got:
                     yield Wait(lambda: bool(self.peer_est_steps or self.peers_alive), em.startup_timeout_s)
                     continue
-                msg = max(got, key=lambda m: (m.k, -m.own))
+                got.sort(key=lambda m: (-m.k, m.own))
+                msg = got[0]
+                if self.linked:
+                    # The state crosses the radio: ask the world (the channel) what becomes of
+                    # it, freshest peer first; wait for its arrival in simulated time.
+                    msg = yield from self._through_the_radio(got)
+                    if msg is None:
+                        yield Wait(lambda: False, min(em.step_timeout_s, 1.0))
+                        continue
                 s = self.sc.filter.initial_sigma
                 est = reframe(estimate_from_full(msg, self.n), msg.own, self.i, s.bias_rad_s, s.rate_rad_s)
                 self.filter = self._filter_from(est, prior=False)
+                if self.linked and self.clocks:
+                    # It arrived some steps later: carry it to the swarm's present (no gyro
+                    # samples meanwhile: the world sends sensors only to live agents).
+                    now = max(self.clocks)
+                    self.filter.coast_to(now, lambda s_: None)
+                    est = self.filter.est
                 self.last_step = est.step
                 self.log.info("restarted from agent %d's estimate at step %d", msg.own, est.step)
         yield Send(self.keys.est(self.i), estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, phase="prior"))
+
+    def _through_the_radio(self, candidates):
+        """The first peer estimate (in order of preference) the radio delivers, once it has
+        arrived (a clock at or after its arrival time); None if none gets through."""
+        from swarm.bus.messages import encode
+
+        for m in candidates:
+            size = len(encode(m))
+            fate = yield Query(self.keys.rejoin(self.i, m.own, size), "rejoin", 5.0)
+            if fate is None or fate.fate != "delivered":
+                self.log.info("rejoin state from agent %d: %s", m.own, "no answer" if fate is None else fate.fate)
+                continue
+            t_a = fate.arrival_t_s
+            self.log.info("rejoin state from agent %d (%d B) arrives at t = %.2f s", m.own, size, t_a)
+            yield Wait(lambda: any(c.t_s >= t_a for c in self.clocks.values()) or self.done, self.sc.emulator.startup_timeout_s)
+            return m
+        return None
 
     # -- steps --------------------------------------------------------------------
     def _gyro_of(self, s: int):

@@ -93,18 +93,23 @@ class Node:
     def put(self, key: str, msg) -> None:
         self.session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
 
-    def queryable(self, key: str, handler) -> None:
-        """``handler(query_key) -> message | None``; runs on a Zenoh thread, keep it quick."""
+    def queryable(self, key: str, handler, notify: bool = False) -> None:
+        """``handler(query_key) -> message | None``; runs on a Zenoh thread, keep it quick.
+        ``notify``: after answering, hand the main loop a ``query`` event (a machine waiting
+        on what the handler changed looks again)."""
 
         def cb(query):
+            qkey = str(query.selector.key_expr)
             try:
-                reply = handler(str(query.selector.key_expr))
+                reply = handler(qkey)
             except Exception as exc:  # never let a query kill the process
                 self.log.warning("query %s failed: %s", query.selector, exc)
                 reply = None
             with query:
                 if reply is not None:
-                    query.reply(str(query.selector.key_expr), encode(reply))
+                    query.reply(qkey, encode(reply))
+            if notify:
+                self.inbox.put_event(Event(qkey, "query", None, msg=reply))
 
         self._handles.append(self.session.declare_queryable(key, cb))
 
@@ -139,7 +144,7 @@ class Node:
             s = self.inbox.get(remaining)
             if s is None:
                 return None
-            ev = self._decode(s)
+            ev = s if isinstance(s, Event) else self._decode(s)
             if ev is not None:
                 return ev
             if deadline is not None and time.monotonic() >= deadline:

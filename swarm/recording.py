@@ -49,6 +49,7 @@ class Recording:
     links: object = None  # the last LinkStats message (cumulative counters)
     link_latencies: list = field(default_factory=list)  # (sender, receiver, sent step, latency s)
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
+    rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
 
     def errors(self):
         a, dr = pose_errors(self.est_q, self.est_r, self.truth_q[:, None], self.truth_r[:, None])
@@ -175,6 +176,9 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             rec.late_used[k, f] = m.late_used
             rec.late_dropped[k, f] = m.late_dropped
             rec.replayed[k, f] = m.replayed_steps
+        elif kind == "rejoin":
+            rec.rejoins.append({"k": m.k, "sat": m.sat, "peer": m.peer, "bytes": m.bytes, "fate": m.fate,
+                                "arrival_t_s": m.arrival_t_s})
         elif kind == "links":
             if rec.links is None or m.k >= rec.links.k:
                 rec.links = m

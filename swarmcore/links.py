@@ -77,6 +77,7 @@ class _Copy:
     latency: float
     start: float = 0.0
     end: float = 0.0
+    batch: bool = True  # a measurement batch (delivered by ``due``); else a state transfer
 
 
 @dataclass
@@ -240,7 +241,20 @@ class LinkModel:
         return float(self._range[i, j])
 
     # -- sending -----------------------------------------------------------------------
-    def send(self, sender: int, receivers, payload: Any, size: int, t: float, purpose: str = "link") -> dict[int, str]:
+    def transfer(self, sender: int, receiver: int, size: int, t: float) -> tuple[str, float | None]:
+        """A one-off transfer (the warm-rejoin state a restarted agent fetches from a peer):
+        it takes the sender's transmitter like any copy, with its own draws
+        (``rejoin-…``); returns ``(fate, arrival time)`` with fate delivered, lost, dropped
+        or unreachable. It is counted per link but never returned by :meth:`due`."""
+        fates = self.send(sender, [receiver], None, size, t, purpose="rejoin", batch=False)
+        fate = fates[int(receiver)]
+        if fate != "queued":
+            return fate, None
+        c = next(c for c in reversed(self._flight) if not c.batch and c.sender == sender and c.receiver == receiver)
+        return ("lost" if c.lost else "delivered"), c.end + c.latency
+
+    def send(self, sender: int, receivers, payload: Any, size: int, t: float, purpose: str = "link",
+             batch: bool = True) -> dict[int, str]:
         """Hand one message of ``size`` bytes from ``sender`` to the radio at time ``t``
         (of the current step), one copy per receiver in ascending order. Returns each
         receiver's immediate fate: ``queued`` (sent, or waiting to be), ``unreachable`` or
@@ -258,7 +272,8 @@ class LinkModel:
                 self.counters.unreachable[i, j] += 1
                 fates[j] = "unreachable"
                 continue
-            c = _Copy(i, j, payload, int(size), k, float(t), self._is_lost(i, j, lost_u[i, j]), self._latency(i, j, jit_u[i, j]))
+            c = _Copy(i, j, payload, int(size), k, float(t), self._is_lost(i, j, lost_u[i, j]), self._latency(i, j, jit_u[i, j]),
+                      batch=batch)
             if not self._enqueue(c, t):
                 self.counters.dropped_queue[i, j] += 1
                 fates[j] = "dropped"
@@ -355,6 +370,8 @@ class LinkModel:
             arrival = c.end + c.latency
             self.counters.delivered[c.sender, c.receiver] += 1
             self.counters.bytes_delivered[c.sender, c.receiver] += c.size
+            if not c.batch:
+                continue  # a state transfer: the restarted agent was told when it arrives
             if step > c.sent_step:
                 self.counters.delivered_late[c.sender, c.receiver] += 1
             self.latencies.append((c.sender, c.receiver, c.sent_step, arrival - c.sent_t))

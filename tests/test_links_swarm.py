@@ -71,3 +71,26 @@ def test_free_running_links_delay_in_wall_time_and_late_batches_are_replayed(tmp
     assert lat.size > 0 and np.all(lat >= 1.5) and np.median(lat) < 1.5 + 0.5 * sc.dt_s * 5
     assert summary["late"]["used"] > 0
     assert summary["rms_second_half"]["others"]["pos_m"] < 0.1
+
+
+@pytest.mark.integration
+def test_a_restarted_agent_gets_its_state_through_the_radio(tmp_path):
+    """With links, the full estimate a restarted agent fetches from a peer crosses the
+    radio: it takes the peer's transmitter (a 20 kB/s cap takes ~1.3 s for it) and the latency,
+    and the agent rejoins at the first step at or after its arrival."""
+    sc = scenario(n_sats=4, duration_s=40, faults=[{"at_step": 10, "action": "kill-agent", "target": 2},
+                                                   {"at_step": 15, "action": "restart-agent", "target": 2}],
+                  links={"enabled": True, "latency": {"fixed_s": 0.5}, "rate_Bps": 20000.0, "queue_bytes": 10**6})
+    rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
+    assert codes["world"] == 0
+    fates = [f for f in rec.rejoins if f["sat"] == 2]
+    assert fates and fates[0]["fate"] == "delivered"
+    size, t_arr = fates[0]["bytes"], fates[0]["arrival_t_s"]
+    assert size > 12 * 4 * 12 * 4 * 8  # the full 48×48 covariance at least
+    assert t_arr >= 15 * sc.dt_s + size / 20000.0 + 0.5 - 1e-9
+    first = int(np.ceil(t_arr / sc.dt_s - 1e-9))
+    alive2 = np.flatnonzero(rec.alive[:, 2])
+    back = alive2[alive2 > 10]
+    assert back.size and back[0] >= first, (back[:3], first)
+    frac, count = within_3sigma_fraction(rec, [2], 2, k_from=int(back[0]) + 3)
+    assert count > 0 and frac >= 0.9, frac

@@ -34,6 +34,8 @@ class World(Node):
         self.watch_liveliness()
         self.queryable(self.keys.init(), self.machine.serve_prior)
         self.queryable(self.keys.claim(), self.machine.serve_claim)
+        if sc.links.enabled:
+            self.queryable(self.keys.rejoin("*") + "/*/*", self.machine.serve_rejoin, notify=True)
         self.announce()
 
     def run_steps(self, progress=None) -> None:

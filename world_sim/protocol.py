@@ -19,6 +19,7 @@ in ``python -m world_sim`` and by scripted events in ``tests/test_protocol_world
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from typing import Callable
 
@@ -36,6 +37,7 @@ from swarm.bus.messages import (
     Keys,
     LinkStats,
     MeasBatch,
+    RejoinFate,
     Select,
     Truth,
 )
@@ -89,6 +91,8 @@ class WorldProtocol:
         self.batches: dict[int, dict[int, tuple[MeasBatch, int]]] = {}  # step → observer → (batch, bytes)
         self._lat_sent = 0  # latencies already reported
         self._new_batch = False
+        self._radio_lock = threading.Lock()  # the link model is shared with the rejoin queryable
+        self._rejoin_log: list = []  # fates given, still to be published for the recorder
         self._claims: dict[str, int] = {}
         self._claimed_at: dict[int, float] = {}
         self.progress: Callable[[int, int], None] | None = None
@@ -100,6 +104,24 @@ class WorldProtocol:
         if not 0 <= i < self.n or self.started:
             return None  # once the run is under way, a (re)starting agent asks a peer
         return full_estimate_msg(self._priors[i], run=self.run_id, sender="world", own=i)
+
+    def serve_rejoin(self, key: str):
+        """``rejoin/<i>/<peer>/<bytes>``: a restarting agent asks what the radio does to the
+        full estimate it fetched from ``peer`` (links on). The transfer takes the peer's
+        transmitter now (the world's current step); the answer is recorded on
+        ``rejoin/<i>``."""
+        parts = key.rsplit("/", 3)
+        i, peer, size = int(parts[1]), int(parts[2]), int(parts[3])
+        if self.links is None or not (0 <= i < self.n and 0 <= peer < self.n) or i == peer:
+            return None
+        with self._radio_lock:
+            t = self.k * self.sc.dt_s  # the step the world is at (its truth may not have reached it yet)
+            fate, arrival = self.links.transfer(peer, i, size, t)
+        msg = RejoinFate(run=self.run_id, sender="world", k=self.k, t_s=t, sat=i, peer=peer, bytes=size, fate=fate,
+                         arrival_t_s=arrival)
+        self._rejoin_log.append(msg)
+        log.info("rejoin of %d from %d (%d B): %s%s", i, peer, size, fate, "" if arrival is None else f" at t = {arrival:.2f} s")
+        return msg
 
     def serve_claim(self, key: str):
         """Give an agent started with ``--id auto`` a satellite: the lowest one with no
@@ -180,6 +202,9 @@ class WorldProtocol:
             tr = self.truth
             t = tr.t
             yield Send(self.keys.truth(), self._truth_msg(k))
+            while self._rejoin_log:
+                m = self._rejoin_log.pop(0)
+                yield Send(self.keys.rejoin(m.sat), m)
             yield Wait(lambda: False, 0.0)  # take in what has arrived: the live set reflects deaths up to now
             live = self.live()
             yield Send(self.keys.clock(), Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode))
@@ -258,7 +283,14 @@ class WorldProtocol:
                 yield Wait(lambda: t not in self.alive_agents, em.step_timeout_s)
             elif spec.action == "restart-agent":
                 self.ready.discard(t)
-                yield Wait(lambda: t in self.alive_agents and t in self.ready, em.startup_timeout_s)
+                if self.links is None:
+                    yield Wait(lambda: t in self.alive_agents and t in self.ready, em.startup_timeout_s)
+                else:
+                    # Its state crosses the radio and arrives some steps later: wait until it
+                    # has asked for it (at this step, so the transfer's fate is reproducible),
+                    # not until it is back.
+                    yield Wait(lambda: t in self.alive_agents and (t in self.ready or any(m.sat == t for m in self._rejoin_log)),
+                               em.startup_timeout_s)
             elif spec.action == "kill-selector":
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
@@ -302,17 +334,22 @@ class WorldProtocol:
         em = self.sc.emulator
         lm = self.links
         yield Wait(lambda: all(i in self.batches.get(k, {}) or i not in self.alive_agents for i in live), em.step_timeout_s)
+        with self._radio_lock:
+            arrived = self._air(k, t, live)
+        for j in live:
+            items = [Delivered(arrival_t_s=d.arrival_t, batch=d.payload) for d in arrived if d.receiver == j]
+            yield Send(self.keys.rx(j), Delivery(run=self.run_id, sender="world", k=k, t_s=t, sat=j, items=items))
+        yield from self._link_stats(k, t)
+
+    def _air(self, k: int, t: float, live: list[int]):
+        lm = self.links
         lm.at_step(k, self.truth.r_H)
         # Batches of earlier steps that came after their step's radio (a stalled agent) go
         # now; then this step's, in observer order.
         for s in sorted(x for x in self.batches if x <= k):
             for i, (msg, size) in sorted(self.batches.pop(s).items()):
                 lm.send(i, live, msg, size, t)
-        arrived = lm.due(t)
-        for j in live:
-            items = [Delivered(arrival_t_s=d.arrival_t, batch=d.payload) for d in arrived if d.receiver == j]
-            yield Send(self.keys.rx(j), Delivery(run=self.run_id, sender="world", k=k, t_s=t, sat=j, items=items))
-        yield from self._link_stats(k, t)
+        return lm.due(t)
 
     def _radio_free(self, k: int, live: list[int], t_wall0: float, deadline: float):
         """The radio channel in free-running mode, until the wall-clock end of step k: every
@@ -321,7 +358,8 @@ class WorldProtocol:
         own ``rx/<j>`` at the wall time of its arrival."""
         lm = self.links
         em = self.sc.emulator
-        lm.at_step(k, self.truth.r_H)
+        with self._radio_lock:
+            lm.at_step(k, self.truth.r_H)
 
         def sim_now() -> float:
             return (self.clock() - t_wall0) * em.realtime_factor
@@ -331,11 +369,13 @@ class WorldProtocol:
 
         while True:
             now_s = sim_now()
-            for s in sorted(self.batches):
-                for i, (msg, size) in sorted(self.batches.pop(s).items()):
-                    lm.send(i, [j for j in live if j in self.alive_agents], msg, size, max(now_s, msg.t_s))
-            self._new_batch = False
-            for d in lm.due(now_s):
+            with self._radio_lock:
+                for s in sorted(self.batches):
+                    for i, (msg, size) in sorted(self.batches.pop(s).items()):
+                        lm.send(i, [j for j in live if j in self.alive_agents], msg, size, max(now_s, msg.t_s))
+                self._new_batch = False
+                arrived = lm.due(now_s)
+            for d in arrived:
                 item = Delivered(arrival_t_s=d.arrival_t, batch=d.payload)
                 yield Send(self.keys.rx(d.receiver), Delivery(run=self.run_id, sender="world", k=k, t_s=now_s, sat=d.receiver,
                                                               items=[item]))
@@ -349,13 +389,14 @@ class WorldProtocol:
 
     def _link_stats(self, k: int, t: float):
         lm = self.links
-        c = lm.counters
-        yield Send(self.keys.links(), LinkStats(
-            run=self.run_id, sender="world", k=k, t_s=t, queue_bytes=lm.queue_bytes(t).tolist(),
-            latencies=[(int(a), int(b), int(s), float(x)) for a, b, s, x in lm.latencies[self._lat_sent:]],
-            **{name: B64Array.of(getattr(c, name).astype(float)) for name in LINK_COUNTERS},
-        ))
-        self._lat_sent = len(lm.latencies)
+        with self._radio_lock:
+            msg = LinkStats(
+                run=self.run_id, sender="world", k=k, t_s=t, queue_bytes=lm.queue_bytes(t).tolist(),
+                latencies=[(int(a), int(b), int(s), float(x)) for a, b, s, x in lm.latencies[self._lat_sent:]],
+                **{name: B64Array.of(getattr(lm.counters, name).astype(float)) for name in LINK_COUNTERS},
+            )
+            self._lat_sent = len(lm.latencies)
+        yield Send(self.keys.links(), msg)
 
     def _deliver_cameras(self, k: int, t: float, live: list[int], obs, tgt):
         """Each live agent's camera delivery of step k (an empty one when it has nothing

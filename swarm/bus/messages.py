@@ -25,6 +25,7 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/truth                world → recorder      Truth   (agents never subscribe)
     swarm/<run>/rx/<i>               world → agent i       Delivery (links.enabled: what the radio delivered)
     swarm/<run>/links                world → recorder      LinkStats (links.enabled: per-link counters)
+    swarm/<run>/rejoin/<i>[/<j>/<B>] world (queryable)     RejoinFate (links.enabled: a restart's state transfer)
     swarm/<run>/alive/<role>/<id>    liveliness tokens
 """
 
@@ -61,6 +62,7 @@ __all__ = [
     "Delivery",
     "Delivered",
     "LinkStats",
+    "RejoinFate",
     "Images",
     "ViewMeta",
     "Keys",
@@ -301,6 +303,20 @@ class LinkStats(_Header):
     )
 
 
+class RejoinFate(_Header):
+    """World (the radio) → a restarting agent: what the link does to the full estimate it
+    fetches from ``peer`` (``links.enabled``): it arrives at ``arrival_t_s`` (simulated
+    time), or it is ``lost``, ``dropped`` at the peer's queue, or the link is
+    ``unreachable``. The transfer takes the peer's transmitter like any message."""
+
+    kind: Literal["rejoin"] = "rejoin"
+    sat: SatId
+    peer: SatId
+    bytes: int = Field(ge=0)
+    fate: Literal["delivered", "lost", "dropped", "unreachable"]
+    arrival_t_s: float | None = None
+
+
 class Claim(_Header):
     """World → an agent started with ``--id auto``: the satellite it is to fly, and whether
     the run is already under way (then it initialises from a live peer)."""
@@ -398,6 +414,7 @@ MODELS: dict[str, type[_Header]] = {
     "img": Images,
     "rx": Delivery,
     "links": LinkStats,
+    "rejoin": RejoinFate,
 }
 
 
@@ -492,6 +509,12 @@ class Keys:
     def links(self) -> str:
         return f"{self.root}/links"
 
+    def rejoin(self, i: int | str = "*", peer: int | str | None = None, size: int | None = None) -> str:
+        """``rejoin/<i>``: the fates the world gives agent i's rejoin transfers (recorded);
+        ``rejoin/<i>/<peer>/<bytes>``: agent i's question about one (a query)."""
+        tail = "" if peer is None else f"/{peer}/{size}"
+        return f"{self.root}/rejoin/{i}{tail}"
+
     def claim(self, token: str = "*") -> str:
         return f"{self.root}/claim/{token}"
 
@@ -506,7 +529,7 @@ _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
     r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)|(?P<links>links)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
-    r"|(?P<idkind>meas|est|health|cov|init|rx)/(?P<id>\d+)"
+    r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin)/(?P<id>\d+)(?:/\d+/\d+)?"
     r"|alive/(?P<role>[^/]+)/(?P<ident>[^/]+))$"
 )
 

@@ -93,7 +93,7 @@ class Inbox:
     """
 
     def __init__(self, maxsize: int = 100_000):
-        self._q: queue.Queue[Sample] = queue.Queue(maxsize=maxsize)
+        self._q: queue.Queue = queue.Queue(maxsize=maxsize)
         self.dropped = 0
         self._lock = threading.Lock()
 
@@ -105,7 +105,15 @@ class Inbox:
             with self._lock:
                 self.dropped += 1
 
-    def get(self, timeout: float | None) -> Sample | None:
+    def put_event(self, item) -> None:
+        """A local event (not from the bus) for the same worker thread."""
+        try:
+            self._q.put_nowait(item)
+        except queue.Full:
+            with self._lock:
+                self.dropped += 1
+
+    def get(self, timeout: float | None):
         try:
             return self._q.get(timeout=timeout) if timeout is None or timeout > 0 else self._q.get_nowait()
         except queue.Empty:
