@@ -52,6 +52,7 @@ EXAMPLES = {
     "links": M.LinkStats(**H, **{f: M.B64Array.of(np.arange(9.0).reshape(3, 3)) for f in (
         "sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable", "bytes_delivered")},
         queue_bytes=[0, 120, 5], latencies=[(0, 1, 6, 0.25)]),
+    "rejoin": M.RejoinFate(**H, sat=2, peer=0, bytes=25959, fate="delivered", arrival_t_s=16.8),
 }
 
 
