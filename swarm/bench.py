@@ -103,3 +103,44 @@ def bench_filter(
         )
         rows.append(row)
     return rows
+
+
+def bench_late(n: int = 10, history_s: float = 10.0, lags=(0, 1, 2, 5, 10), steps: int = 40, seed: int = 0,
+               log: Callable[[str], None] = print) -> list[dict]:
+    """Cost of late measurements for one agent's filter (:class:`swarmcore.agent.AgentFilter`):
+    ms per step when every peer batch arrives ``lag`` steps late and is replayed (0: on time),
+    with a history of ``history_s``. The replay re-runs ``lag`` steps each step."""
+    from swarmcore.agent import AgentFilter
+    from swarmcore.mekf import RelativeMeasurements
+
+    sc = Scenario(n_sats=n, seed=seed, duration_s=float(steps))
+    params, est0, inputs = _inputs(n, "complete", steps, seed)
+    hist = int(np.ceil(history_s / sc.dt_s))
+    rows = []
+    for lag in lags:
+        f = AgentFilter(params, est0, "cooperative", late="replay", history_steps=hist, prior_pending=False)
+        times, replayed = [], 0
+        for k, (gyro, ab, rel) in enumerate(inputs, start=1):
+            own = rel.subset(rel.observer == 0)
+            peers = rel.subset(rel.observer != 0)
+            on_time = rel if lag == 0 else own
+            late = {}
+            if lag and k - lag >= 1:
+                _g, _a, old = inputs[k - lag - 1]
+                late = {k - lag: old.subset(old.observer != 0)}
+            t0 = time.perf_counter()
+            _rep, lrep = f.step(k, gyro, ab, on_time, late=late)
+            dt = (time.perf_counter() - t0) * 1e3
+            if k > lag + 3:
+                times.append(dt)
+                replayed += lrep.replayed_steps
+            del peers
+        row = {"n": n, "history_s": history_s, "lag_steps": lag, "ms_per_step_median": statistics.median(times),
+               "replayed_steps_per_step": replayed / len(times), "measurements_per_step": len(inputs[0][2])}
+        rows.append(row)
+        log(f"n={n} lag {lag:2d} steps: {row['ms_per_step_median']:8.3f} ms/step "
+            f"(replaying {row['replayed_steps_per_step']:.1f} steps each step)")
+    base = rows[0]["ms_per_step_median"]
+    for r in rows:
+        r["ratio_to_on_time"] = r["ms_per_step_median"] / base
+    return rows

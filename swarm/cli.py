@@ -366,6 +366,22 @@ def bench_filter_cmd(
     console.print(f"wrote {out}")
 
 
+@bench_app.command("late")
+def bench_late_cmd(
+    n: int = typer.Option(10, "--sats", help="swarm size"),
+    history_s: float = typer.Option(10.0, help="filter.history_s of the replaying agent"),
+    lags: str = typer.Option("0,1,2,5,10", help="comma-separated lateness of every peer batch (steps)"),
+    out: Path = typer.Option(Path("bench-late.json"), "--out", "-o", help="JSON file to write"),
+):
+    """ms per filter step when every peer batch arrives late and is replayed (filter.late: replay)."""
+    from .bench import bench_late, machine_info
+    from .outputs import write_json
+
+    rows = bench_late(n, history_s, [int(x) for x in lags.split(",") if x.strip()], log=lambda s: console.print(s, highlight=False))
+    write_json(out, {"machine": machine_info(), "rows": rows})
+    console.print(f"wrote {out}")
+
+
 @bench_app.command("bus")
 def bench_bus_cmd(
     out: Path = typer.Option(Path("bench-bus.json"), "--out", "-o", help="JSON file to write"),

@@ -126,3 +126,12 @@ def test_replay_when_the_current_step_was_predicted_first():
         b_f.step(k, g, a, per_obs[0], late=late)
     b_f._insert_late({5: steps[5][2][1]})
     _same(b_f.est, a_f.est)
+
+
+def test_bench_late_replays_lag_steps_each_step():
+    from swarm.bench import bench_late
+
+    rows = bench_late(n=3, history_s=5.0, lags=(0, 2), steps=12, log=lambda s: None)
+    assert [r["lag_steps"] for r in rows] == [0, 2]
+    assert [r["replayed_steps_per_step"] for r in rows] == [0.0, 2.0]
+    assert all(r["ms_per_step_median"] > 0 for r in rows)
