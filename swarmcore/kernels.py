@@ -26,7 +26,7 @@ try:  # pragma: no cover - exercised by whichever is installed
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover
-    numba = None
+    numba = None  # type: ignore[assignment]
     HAVE_NUMBA = False
 
 

@@ -328,7 +328,7 @@ class LinkModel:
                 return False
             self._reschedule(i, t)
         start = max(t, q[-1].end if q else t)
-        c.start, c.end = start, start + c.size / self.rate_Bps
+        c.start, c.end = start, start + c.size / float(self.rate_Bps)
         q.append(c)
         self._flight.append(c)
         return True
@@ -342,7 +342,7 @@ class LinkModel:
                 prev_end = x.end
                 continue
             x.start = t if prev_end is None else max(t, prev_end)
-            x.end = x.start + x.size / self.rate_Bps
+            x.end = x.start + x.size / float(self.rate_Bps or np.inf)
             prev_end = x.end
 
     def queue_bytes(self, t: float) -> np.ndarray:
@@ -358,7 +358,8 @@ class LinkModel:
         canonical order: (receiver, sent step, sender). ``step``: the receiving step, to
         count late deliveries (default: the current step)."""
         step = self._step if step is None else step
-        now, later = [], []
+        now: list[_Copy] = []
+        later: list[_Copy] = []
         for c in self._flight:
             (now if c.end + c.latency <= t else later).append(c)
         self._flight = later

@@ -621,6 +621,7 @@ def _solve_information(P: np.ndarray, n: int, lin: Linearized):
         return np.zeros(P.shape[0]), P, 0.0
     Lam, b, yRy = kernels.information(n, lin.observer, lin.target, lin.y, lin.Hi, lin.Hj, lin.R)
     if lin.ya is not None:
+        assert lin.Ra is not None and lin.Ha is not None  # they come together
         w = 1.0 / np.diag(lin.Ra)  # the star tracker and GPS noise is diagonal
         oo = slice(6 * lin.own, 6 * lin.own + 6)
         Lam[oo, oo] += lin.Ha.T @ (lin.Ha * w[:, None])

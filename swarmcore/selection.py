@@ -234,16 +234,19 @@ def candidate_mask(
     G = np.asarray(G, dtype=bool)
     n = G.shape[0]
     camera_ok = np.asarray(camera_ok, dtype=bool).reshape(n, 6)
-    mask = G.copy()
+    mask: np.ndarray = np.array(G, dtype=bool, copy=True)
     if restrict is not None:
         mask &= np.asarray(restrict, dtype=bool)
     np.fill_diagonal(mask, False)
-    mask &= camera_ok.any(axis=1)[:, None]
+    has_camera: np.ndarray = np.any(camera_ok, axis=1)
+    mask &= has_camera[:, None]
     if est is None:
         return mask
     obs, tgt = np.nonzero(mask)
     if obs.size == 0:
         return mask
+    if params is None:
+        raise ValueError("candidate_mask: an estimate needs its filter parameters")
     q_pred, r_pred = predicted_relative(est, params, obs, tgt)
     if cfg.require_visible:
         vis = visible_cameras(r_pred, q_pred, cfg.intr, cfg.target_half_size_m, cfg.camera_offset_m, cfg.near_m)
@@ -467,6 +470,7 @@ def greedy_select(
         S = S - VK @ np.swapaxes(V, -1, -2)
         S = 0.5 * (S + np.swapaxes(S, -1, -2))
         if M is not None:
+            assert Gm is not None  # the trace objective carries both
             Ge = Gm[e].copy()
             Z = M[:, l] @ He.T
             Y = K @ Z.T
@@ -657,18 +661,20 @@ def select(
     """
     if strategy not in STRATEGIES:
         raise ValueError(f"unknown selection strategy {strategy!r}; expected one of {STRATEGIES}")
-    if est is None and strategy not in STATE_FREE:
+    if (est is None or params is None) and strategy not in STATE_FREE:
         strategy = cfg.fallback
-    restrict = nearest_neighbor_mask(est.r_H, cfg.neighbors) if strategy == "fast_swarm_greedy" else None
+    restrict = nearest_neighbor_mask(est.r_H, cfg.neighbors) if strategy == "fast_swarm_greedy" and est is not None else None
     mask = candidate_mask(G, est, params, camera_ok, cfg, restrict)
     if strategy == "complete":
-        return np.nonzero(mask)
+        obs, tgt = np.nonzero(mask)
+        return obs, tgt
     if strategy == "random":
         obs, tgt = np.nonzero(mask)
         idx = random_select(obs.size, budget, rng)
         return obs[idx], tgt[idx]
     if strategy == "random_tree":
         return random_tree_select(mask, budget, rng)
+    assert est is not None and params is not None  # state-free strategies returned above
     cand = build_candidates(est, params, mask, cfg.rel)
     n = est.n
     c = weight_vector(n, cfg.sat_weights, cfg.state_weights)

@@ -75,7 +75,9 @@ class SimResult:
                 "scenario": sc.name,
                 "mode": sc.filter.mode,
                 "measurements_per_step_mean": float(self.schedule.sum(axis=(1, 2)).mean()),
-                **(late_summary(self.late_used, self.late_dropped, self.replayed) if sc.links.enabled else {}),
+                **(late_summary(self.late_used, self.late_dropped, self.replayed)
+                   if sc.links.enabled and self.late_used is not None and self.late_dropped is not None and self.replayed is not None
+                   else {}),
                 **self.extra,
             },
         )
@@ -228,13 +230,14 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
                 # Image pipelines start from each observer's prediction (ICP seed, ambiguity).
                 for i, f in enumerate(filters):
                     t0 = time.perf_counter()
-                    f.predict_to(k, gyro[i])
+                    f.predict_to(k, None if gyro is None else gyro[i])
                     ms_pred[i] = (time.perf_counter() - t0) * 1e3
             seen = cameras.observe(truth, obs, tgt, camera_ok, predicted=[f.est for f in filters])
             if lm is None:
                 rel = RelativeMeasurements.concat([estimator.measure(i, seen[i], filters[i].est, k)[0] for i in sorted(seen)])
                 inputs = {i: (rel, None) for i in range(n)}
             else:
+                assert wire_size is not None  # checked with the link model
                 inputs = _through_links(lm, k, truth, seen, estimator, filters, wire_size, rec)
             for i, f in enumerate(filters):
                 t0 = time.perf_counter()
