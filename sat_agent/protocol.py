@@ -39,7 +39,7 @@ from swarm.bus.convert import (
     observation_from_images,
     relative_from_batches,
 )
-from swarm.bus.messages import Fault, Health, Keys
+from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Images, Keys, MeasBatch, Sensors
 from swarm.protocol import Event, Query, Send, Wait
 from swarmcore.agent import AgentFilter, filter_params
 from swarmcore.measurement import PoseEstimator
@@ -74,11 +74,11 @@ class AgentProtocol:
         self.filter: AgentFilter | None = None
         self.camera_ok = np.ones(6, dtype=bool)
         self.drop_rate = 0.0
-        self.clocks: dict[int, object] = {}
-        self.sensors: dict[int, object] = {}
-        self.cams: dict[int, object] = {}
-        self.imgs: dict[int, object] = {}
-        self.batches: dict[int, dict[int, object]] = {}
+        self.clocks: dict[int, Clock] = {}
+        self.sensors: dict[int, Sensors] = {}
+        self.cams: dict[int, CameraOutput] = {}
+        self.imgs: dict[int, Images] = {}
+        self.batches: dict[int, dict[int, MeasBatch]] = {}
         self.peers_alive: set[int] = set()
         self.peer_est_steps: dict[int, int] = {}
         self.finished: dict[int, dict[int, float]] = {}  # step → {peer: when we learnt it is past it}
@@ -87,7 +87,7 @@ class AgentProtocol:
         self.malformed = malformed  # the shell's count of malformed messages, reported in health
         self.linked = sc.links.enabled  # peers' batches come through the radio (rx/<i>), not straight off the bus
         self.rx_steps: set[int] = set()  # steps whose delivery (lockstep) has come
-        self.rx_items: list = []  # delivered peer batches not yet used
+        self.rx_items: list[MeasBatch] = []  # delivered peer batches not yet used
         self.late_used = self.late_dropped = self.replayed_steps = 0
         self.last_step = -1  # the last step this agent has processed (updated at)
         self.done = False
@@ -95,6 +95,13 @@ class AgentProtocol:
     @property
     def est(self):
         return None if self.filter is None else self.filter.est
+
+    @property
+    def flt(self) -> AgentFilter:
+        """The filter, once initialised (every step runs after :meth:`initialise`)."""
+        if self.filter is None:
+            raise RuntimeError(f"agent {self.i}: no filter before initialisation")
+        return self.filter
 
     # -- queries and events -----------------------------------------------------
     def serve_cov(self, key: str):
@@ -106,7 +113,7 @@ class AgentProtocol:
         return full_estimate_msg(est, run=self.run_id, sender=self.name, own=self.i)
 
     def handle(self, ev: Event) -> list[Send]:
-        k = getattr(ev.msg, "k", None)
+        k: int = getattr(ev.msg, "k", -1)
         if ev.kind == "alive":
             if ev.sat is not None and ev.sat != self.i:
                 (self.peers_alive.add if ev.alive else self.peers_alive.discard)(ev.sat)
@@ -255,7 +262,7 @@ class AgentProtocol:
 
     def _own_measurements(self, k: int, sens):
         """Predict first when the estimator needs it, then measure our own camera delivery."""
-        f = self.filter
+        f = self.flt
         if not self.estimator.needs_prediction:
             return self.estimator.measure(self.i, detections_from_msg(self.cams.pop(k), self.camera_ok) if k in self.cams else None,
                                           f.est, k)
@@ -309,8 +316,8 @@ class AgentProtocol:
         self.batches_missing += len(missing)
         rel = RelativeMeasurements.concat([rel_own, relative_from_batches([got[j] for j in sorted(got)])])
         t0 = time.perf_counter()
-        self.filter.coast_to(k, self._gyro_of)
-        report, _late = self.filter.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel)
+        self.flt.coast_to(k, self._gyro_of)
+        report, _late = self.flt.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel)
         self.last_step = k
         ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
         msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
@@ -343,8 +350,8 @@ class AgentProtocol:
         rel = RelativeMeasurements.concat([rel_own, relative_from_batches(sorted(on_time, key=lambda b: b.observer))])
         late = {s: relative_from_batches(sorted(v, key=lambda b: b.observer)) for s, v in late_by_step.items()}
         t0 = time.perf_counter()
-        self.filter.coast_to(k, self._gyro_of)
-        report, lrep = self.filter.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel, late=late)
+        self.flt.coast_to(k, self._gyro_of)
+        report, lrep = self.flt.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel, late=late)
         self.last_step = k
         self.late_used += lrep.used
         self.late_dropped += lrep.dropped

@@ -108,12 +108,14 @@ class SelectorProtocol:
                        0.5)
             # Plan from the reference agent's latest estimate only (the lowest live id).
             ref = self.ref_agent()
+            if ref is None:
+                continue
             if self._first_pending():
                 yield from self.plan_first(ref)
                 continue
             k = self._work()
             if k is not None:
-                yield from self.plan(k, self.ref_agent())
+                yield from self.plan(k, ref)
 
     def _first_pending(self) -> bool:
         """Step 0 is still to plan, the reference agent's prior has not been heard, and the

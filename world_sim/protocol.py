@@ -332,7 +332,6 @@ class WorldProtocol:
         deliver to each live agent what has arrived by t_k (an empty delivery too: every
         agent waits for one)."""
         em = self.sc.emulator
-        lm = self.links
         yield Wait(lambda: all(i in self.batches.get(k, {}) or i not in self.alive_agents for i in live), em.step_timeout_s)
         with self._radio_lock:
             arrived = self._air(k, t, live)
@@ -342,7 +341,7 @@ class WorldProtocol:
         yield from self._link_stats(k, t)
 
     def _air(self, k: int, t: float, live: list[int]):
-        lm = self.links
+        lm = self._lm()
         lm.at_step(k, self.truth.r_H)
         # Batches of earlier steps that came after their step's radio (a stalled agent) go
         # now; then this step's, in observer order.
@@ -356,7 +355,7 @@ class WorldProtocol:
         batch goes on the air when it reaches the world (simulated time = the world's clock,
         ``realtime_factor`` × wall time since the start), and each copy is delivered on its
         own ``rx/<j>`` at the wall time of its arrival."""
-        lm = self.links
+        lm = self._lm()
         em = self.sc.emulator
         with self._radio_lock:
             lm.at_step(k, self.truth.r_H)
@@ -387,8 +386,13 @@ class WorldProtocol:
             yield Wait(lambda: self._new_batch, wait)
         yield from self._link_stats(k, self.truth.t)
 
+    def _lm(self) -> LinkModel:
+        if self.links is None:
+            raise RuntimeError("no link model: links are not enabled")
+        return self.links
+
     def _link_stats(self, k: int, t: float):
-        lm = self.links
+        lm = self._lm()
         with self._radio_lock:
             msg = LinkStats(
                 run=self.run_id, sender="world", k=k, t_s=t, queue_bytes=lm.queue_bytes(t).tolist(),
