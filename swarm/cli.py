@@ -81,6 +81,26 @@ def _summary_table(summary: dict, title: str) -> Table:
     return t
 
 
+def _links_table(summary: dict) -> Table | None:
+    """The radio in one table (runs with links): what became of the copies sent, the
+    latency of the delivered ones and what the filters did with the late ones."""
+    lk = summary.get("links")
+    if not lk:
+        return None
+    tot, lat, late = lk["totals"], lk.get("latency_s"), summary.get("late") or {}
+    t = Table(title="links (all directed links)")
+    for col in ("sent", "delivered", "late", "lost", "dropped (queue)", "unreachable", "kB delivered", "latency mean / p95 [s]",
+                "late used / dropped / replayed"):
+        t.add_column(col, justify="right")
+    t.add_row(
+        *(str(tot[k]) for k in ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")),
+        f"{tot['bytes_delivered'] / 1e3:.1f}",
+        f"{lat['mean']:.3g} / {lat['p95']:.3g}" if lat else "—",
+        f"{late.get('used', 0)} / {late.get('dropped', 0)} / {late.get('replayed_steps', 0)}",
+    )
+    return t
+
+
 @app.command()
 def sim(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
@@ -103,6 +123,8 @@ def sim(
         res = simulate_scenario(sc, progress=lambda k, K: prog.update(task, completed=k))
     summary = write_run(res, out, arrays=arrays)
     console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed}"))
+    if (lt := _links_table(summary)) is not None:
+        console.print(lt)
     console.print(
         f"NEES mean {summary['nees']['mean']:.2f} (dof 6) · gate accepted {summary['gate']['accepted']}, "
         f"rejected {summary['gate']['rejected']} · filter step median "
@@ -193,6 +215,8 @@ def run(
     write_json(out / "summary.json", summary)
     if summary["steps"]:
         console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
+        if (lt := _links_table(summary)) is not None:
+            console.print(lt)
     if summary.get("faults"):
         t = Table(title="faults")
         for col in ("k", "action", "target", "phase", "sender", "detail"):
