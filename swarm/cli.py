@@ -356,7 +356,7 @@ def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), o
 
 @app.command()
 def report(
-    run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison folder"),
+    run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison / links-study folder"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="folder for the figures and report.html (default: RUN/report)"),
 ):
     """Figures and one self-contained HTML page: errors against ±3σ per filter, NEES with

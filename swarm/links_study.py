@@ -45,7 +45,7 @@ import math
 import multiprocessing as mp
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -158,6 +158,7 @@ def probe(data: dict) -> dict:
     d = _merge(data, over)
     d["duration_s"] = d.get("dt_s", 1.0)  # two steps
     d["links"]["overrides"] = []  # every link alive: what the complete graph needs
+    d["links"]["latency"]["jitter"] = {"distribution": "none", "scale_s": 0.0}  # every copy within its step
     d["links"]["max_range_m"] = None
     d["links"]["line_of_sight"] = False
     sc = Scenario.model_validate(d)
@@ -167,7 +168,7 @@ def probe(data: dict) -> dict:
     n, dt, K = sc.n_sats, sc.dt_s, res.schedule.shape[0]
     batch = bytes_ / np.maximum(copies, 1)  # (n,) mean batch of each observer (bytes)
     meas = res.schedule.sum(axis=(0, 2)) / K  # (n,) measurements per batch
-    header = len_empty = batch_wire_size(SIM_RUN_ID)(0, 0, 0.0, RelativeMeasurements.empty(), np.zeros(0, dtype=int))
+    header = batch_wire_size(SIM_RUN_ID)(0, 0, 0.0, RelativeMeasurements.empty(), np.zeros(0, dtype=int))
     per_meas = float((batch - header).sum() / max(meas.sum(), 1e-12))
     need = (n - 1) * batch / dt
     return {
@@ -175,7 +176,7 @@ def probe(data: dict) -> dict:
         "dt_s": dt,
         "batch_bytes": batch.round(1).tolist(),
         "measurements_per_batch": meas.tolist(),
-        "empty_batch_bytes": int(len_empty),
+        "empty_batch_bytes": int(header),
         "bytes_per_measurement": per_meas,
         "need_Bps_per_transmitter": need.round(1).tolist(),
         "need_Bps": float(need.max()),
@@ -189,9 +190,9 @@ def budget_for(cap_Bps: float, pr: dict) -> int:
     return int(min(max(m, 1), n * (n - 1)))
 
 
-def cells(sweep: Sweep, pr: dict | None) -> list[Cell]:
+def cells(sweep: Sweep, pr: dict) -> list[Cell]:
     """Every cell of the sweep, in table order, without duplicates (``pr``: the probe, for
-    the cap group; None skips it)."""
+    the cap group)."""
     out: list[Cell] = []
     b = sweep.mean_burst
     if sweep.grid:
@@ -200,16 +201,15 @@ def cells(sweep: Sweep, pr: dict | None) -> list[Cell]:
     else:
         out += [Cell("latency", L, 0.0, m, mean_burst=b) for L in sweep.latencies_s for m in sweep.late_modes]
         out += [Cell("loss", sweep.loss_latency_s, p, m, mean_burst=b) for p in sweep.loss_rates for m in sweep.late_modes]
-    if pr is not None:
-        for f in sweep.cap_fractions:
-            cap = round(f * pr["need_Bps"], 1)
-            q = int(round(cap * sweep.queue_s))
-            m = budget_for(cap, pr)
-            out += [
-                Cell("cap", 0.0, 0.0, "replay", "complete", f, cap, None, q, b),
-                Cell("cap", 0.0, 0.0, "replay", "greedy", f, cap, m, q, b),
-                Cell("cap", 0.0, 0.0, "replay", "greedy", f, None, m, None, b),
-            ]
+    for f in sweep.cap_fractions:
+        cap = round(f * pr["need_Bps"], 1)
+        q = int(round(cap * sweep.queue_s))
+        m = budget_for(cap, pr)
+        out += [
+            Cell("cap", 0.0, 0.0, "replay", "complete", f, cap, None, q, b),
+            Cell("cap", 0.0, 0.0, "replay", "greedy", f, cap, m, q, b),
+            Cell("cap", 0.0, 0.0, "replay", "greedy", f, None, m, None, b),
+        ]
     seen, uniq = set(), []
     for c in out:
         same = (c.latency_s, c.loss, c.late, c.arm, c.rate_Bps, c.budget)  # the group is only where it is shown
@@ -410,7 +410,7 @@ def _sweep_plot(doc: dict, x: str, fixed: dict, series: str | None, path: Path, 
         cs = sorted(cs, key=lambda c: c["params"][x])
         xs = [c["params"][x] * (100 if x == "loss" else 1) for c in cs]
         color = (cmap(svals.index(sv) / max(1, len(svals) - 1)) if sv is not None else ("tab:blue" if late == "replay" else "tab:red"))
-        label = late + ("" if sv is None else f", {series.replace('_s', '')} {sv * 100 if series == 'loss' else sv:g}")
+        label = late + ("" if sv is None else f", loss {sv * 100:g} %" if series == "loss" else f", latency {sv:g} s")
         for ax, (k, ylabel) in zip(axes, _PLOTTED):
             m = [c["stats"][k]["mean"] for c in cs]
             s = [c["stats"][k]["std"] for c in cs]
@@ -488,7 +488,7 @@ def run_links_study(
     base = sc.seed if seed is None else seed
     seeds = [base + i for i in range(runs)]
     data = sc.model_dump(mode="json")
-    pr = probe(data) if sweep.cap_fractions else None
+    pr = probe(data)  # what the complete graph needs (two steps: cheap; reported even without caps)
     cs = cells(sweep, pr)
     jobs = {f"{c.key}/{s}": (cell_scenario(data, c), s) for c in cs for s in seeds}
     total = len(jobs)
@@ -504,7 +504,7 @@ def run_links_study(
         "dt_s": sc.dt_s,
         "seeds": seeds,
         "sweep": asdict(sweep),
-        "probe": pr or {"need_Bps": float("nan")},
+        "probe": pr,
         "wall_s": wall,
         "workers": workers,
         "cells": [],

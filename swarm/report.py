@@ -1,8 +1,8 @@
 """``swarm report``: PNG figures and one self-contained HTML page for a run.
 
 Accepts a ``swarm sim`` folder (npz arrays), a ``swarm run`` folder or a bare MCAP file
-(read back from the recording), or a Monte Carlo / comparison folder (``mc.json``,
-``compare.json``). Figures follow the dissertation where it has them (Figure 4.5: each
+(read back from the recording), or a Monte Carlo / comparison / links-study folder
+(``mc.json``, ``compare.json``, ``links_study.json``). Figures follow the dissertation where it has them (Figure 4.5: each
 filter's own and others' errors against ±3σ); fault events are marked on every time axis.
 
 A run with ``links:`` also gets a *Links* section: a table per directed link (sent,
@@ -489,6 +489,11 @@ def make_report(path: str | Path, out: str | Path | None = None) -> Path:
         figs, table = _mc_figures(p, out)
         sections.append("<h2>Monte Carlo</h2>" + table + "".join(_img(f, f.stem) for f in figs))
         title = f"Monte Carlo report: {p.name}"
+    elif p.is_dir() and (p / "links_study.json").exists():
+        md = (p / "links_study.md").read_text() if (p / "links_study.md").exists() else ""
+        sections.append("<h2>Links study</h2><pre>" + html.escape(md) + "</pre>")
+        sections.extend(_img(f, f.stem) for f in sorted(p.glob("*.png")))
+        title = f"Links study: {p.name}"
     elif p.is_dir() and (p / "compare.json").exists():
         cmp_ = json.loads((p / "compare.json").read_text())
         md = (p / "compare.md").read_text() if (p / "compare.md").exists() else ""

@@ -55,6 +55,11 @@ def test_tiny_sweep_through_the_command_equals_direct_runs(tmp_path):
     assert md.count("\n| latency |") == 4 and md.count("\n| loss |") == 2 and md.count("\n| cap | 0 | 0% |") == 3
     assert "## replay / drop" in md and "## greedy / complete under the cap" in md
     seed = doc["seeds"][0]
+    # swarm report takes the study's folder too.
+    p = subprocess.run([sys.executable, "-m", "swarm.cli", "report", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    page = (out / "report" / "report.html").read_text()
+    assert "replay / drop" in page and page.count("data:image/png;base64,") == 3
 
     # Every cell's numbers are those of a direct run of the same scenario (same seed).
     for key, c in cells.items():
@@ -74,7 +79,7 @@ def test_tiny_sweep_through_the_command_equals_direct_runs(tmp_path):
             np.testing.assert_array_equal(res.est["q_BI"], ideal.est["q_BI"])
             np.testing.assert_array_equal(res.est["P_diag"], ideal.est["P_diag"])
             # What the complete graph needs (the probe): n − 1 copies of each batch per step.
-            n, K = res.scenario.n_sats, res.t.size
+            K = res.t.size
             sent_per_tx = np.asarray(s["links"]["per_link"]["bytes_delivered"]).sum(axis=1) / K / res.scenario.dt_s
             np.testing.assert_allclose(doc["probe"]["need_Bps"], sent_per_tx.max(), rtol=0.02)
         if q["arm"] == "greedy" and q["rate_Bps"] is None:

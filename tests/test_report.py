@@ -90,7 +90,8 @@ def test_report_of_a_sim_run_with_links_has_the_link_section(tmp_path):
     import json
 
     run = tmp_path / "sim"
-    swarm("sim", "scenarios/demo.yaml", "--out", str(run), "--set", "duration_s=15", *[a for s in _LINKS for a in ("--set", s)])
+    p = swarm("sim", "scenarios/demo.yaml", "--out", str(run), "--set", "duration_s=15", *[a for s in _LINKS for a in ("--set", s)])
+    assert "links (all directed links)" in p.stderr  # the end-of-run link table
     swarm("report", str(run))
     names = {p.name for p in (run / "report").glob("*.png")}
     # Per-step events and late measurements; the latency histogram and queues need a recording.
