@@ -81,6 +81,26 @@ def _summary_table(summary: dict, title: str) -> Table:
     return t
 
 
+def _links_table(summary: dict) -> Table | None:
+    """The radio in one table (runs with links): what became of the copies sent, the
+    latency of the delivered ones and what the filters did with the late ones."""
+    lk = summary.get("links")
+    if not lk:
+        return None
+    tot, lat, late = lk["totals"], lk.get("latency_s"), summary.get("late") or {}
+    t = Table(title="links (all directed links)")
+    for col in ("sent", "delivered", "late", "lost", "dropped (queue)", "unreachable", "kB delivered", "latency mean / p95 [s]",
+                "late used / dropped / replayed"):
+        t.add_column(col, justify="right")
+    t.add_row(
+        *(str(tot[k]) for k in ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")),
+        f"{tot['bytes_delivered'] / 1e3:.1f}",
+        f"{lat['mean']:.3g} / {lat['p95']:.3g}" if lat else "—",
+        f"{late.get('used', 0)} / {late.get('dropped', 0)} / {late.get('replayed_steps', 0)}",
+    )
+    return t
+
+
 @app.command()
 def sim(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
@@ -103,6 +123,8 @@ def sim(
         res = simulate_scenario(sc, progress=lambda k, K: prog.update(task, completed=k))
     summary = write_run(res, out, arrays=arrays)
     console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed}"))
+    if (lt := _links_table(summary)) is not None:
+        console.print(lt)
     console.print(
         f"NEES mean {summary['nees']['mean']:.2f} (dof 6) · gate accepted {summary['gate']['accepted']}, "
         f"rejected {summary['gate']['rejected']} · filter step median "
@@ -193,6 +215,8 @@ def run(
     write_json(out / "summary.json", summary)
     if summary["steps"]:
         console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
+        if (lt := _links_table(summary)) is not None:
+            console.print(lt)
     if summary.get("faults"):
         t = Table(title="faults")
         for col in ("k", "action", "target", "phase", "sender", "detail"):
@@ -332,11 +356,12 @@ def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), o
 
 @app.command()
 def report(
-    run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison folder"),
+    run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison / links-study folder"),
     out: Optional[Path] = typer.Option(None, "--out", "-o", help="folder for the figures and report.html (default: RUN/report)"),
 ):
     """Figures and one self-contained HTML page: errors against ±3σ per filter, NEES with
-    its χ² band, gate rejections, the measurement schedule, faults on every time axis."""
+    its χ² band, gate rejections, the measurement schedule, faults on every time axis; with
+    links, the link table, latencies, per-step link events, queues and late measurements."""
     from .report import make_report
 
     try:
@@ -457,6 +482,80 @@ def compare(
         t.add_row(s, *[f"{sm[k]['mean']:.3g}" for k, _ in METRICS], *ratios, f"{sm['select_ms_median']:.2f}")
     console.print(t)
     console.print(f"wrote {out / 'compare.md'}, {out / 'compare.json'} and {len(names)} heat maps")
+
+
+@app.command("links-study")
+def links_study(
+    scenario: Path = typer.Argument(..., help="scenario YAML file (e.g. scenarios/links-study.yaml)"),
+    out: Path = typer.Option(..., "--out", "-o", help="folder for links_study.json, links_study.md and the plots"),
+    runs: int = typer.Option(5, "--runs", "-r", min=1, help="paired seeds per cell (run i has seed S + i in every cell)"),
+    workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
+    seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
+    sets: Optional[List[str]] = SetOpt,
+    full: bool = typer.Option(False, "--full", help="the full sweep: every latency × every loss rate × replay/drop, and the caps"),
+    latencies: Optional[str] = typer.Option(None, help="comma-separated latencies (s) instead of the sweep's"),
+    losses: Optional[str] = typer.Option(None, help="comma-separated Gilbert–Elliott loss rates (0..1) instead of the sweep's"),
+    loss_latency: Optional[float] = typer.Option(None, min=0.0, help="the latency (s) of the loss sweep (default sweep: 2)"),
+    caps: Optional[str] = typer.Option(None, help="comma-separated fractions of the complete graph's need ('' for none)"),
+    late: Optional[str] = typer.Option(None, help="comma-separated filter.late modes (replay,drop)"),
+):
+    """Sweep the network: latency, bursty loss and a data-rate cap below what the complete
+    graph needs; replay vs drop of late measurements, and the complete graph vs greedy
+    selection under the cap (paired seeds). The sweep is defined in swarm/links_study.py
+    (DEFAULT_SWEEP, FULL_SWEEP); the options replace parts of it.
+
+    Writes OUT/links_study.md (the table), OUT/links_study.json and latency.png, loss.png, cap.png.
+    """
+    from dataclasses import replace
+
+    from .links_study import DEFAULT_SWEEP, FULL_SWEEP, METRICS, run_links_study
+
+    sc = _load(scenario, sets)
+    sweep = FULL_SWEEP if full else DEFAULT_SWEEP
+
+    def floats(opt: str, text: str, lo: float, hi: float) -> tuple[float, ...]:
+        try:
+            vals = tuple(float(x) for x in text.split(",") if x.strip())
+            if all(lo <= v < hi for v in vals):
+                return vals
+        except ValueError:
+            pass
+        console.print(f"[red]error:[/red] --{opt} {text!r}: expected comma-separated numbers in [{lo:g}, {hi:g})", highlight=False)
+        raise typer.Exit(2)
+
+    if latencies is not None:
+        sweep = replace(sweep, latencies_s=floats("latencies", latencies, 0.0, float("inf")) or sweep.latencies_s)
+    if loss_latency is not None:
+        sweep = replace(sweep, loss_latency_s=loss_latency)
+    if losses is not None:
+        sweep = replace(sweep, loss_rates=floats("losses", losses, 0.0, 1.0) or sweep.loss_rates)
+    if caps is not None:
+        sweep = replace(sweep, cap_fractions=floats("caps", caps, 1e-9, 1.0))
+    if late is not None:
+        modes = tuple(m.strip() for m in late.split(",") if m.strip())
+        if not modes or any(m not in ("replay", "drop") for m in modes):
+            console.print(f"[red]error:[/red] --late {late!r}: expected replay and/or drop", highlight=False)
+            raise typer.Exit(2)
+        sweep = replace(sweep, late_modes=modes)
+    with _progress() as prog:
+        task = prog.add_task(f"links-study {sc.name} n={sc.n_sats} ×{runs} seeds", total=None)
+        doc = run_links_study(sc, out, runs=runs, sweep=sweep, seed=seed, workers=workers,
+                              progress=lambda k, K: prog.update(task, completed=k, total=K))
+    t = Table(title=f"{sc.name}: n={sc.n_sats}, {sc.duration_s:g} s, {runs} paired seeds (mean); "
+                    f"complete graph needs {doc['probe']['need_Bps']:.0f} B/s per transmitter")
+    for col in ("latency s", "loss", "late", "arm", "cap B/s"):
+        t.add_column(col)
+    for key, _ in METRICS[:2] + METRICS[4:6]:
+        t.add_column(key, justify="right")
+    t.add_column("delivered", justify="right")
+    for c in doc["cells"]:
+        p, st = c["params"], c["stats"]
+        t.add_row(f"{p['latency_s']:g}", f"{p['loss']:.0%}", p["late"], p["arm"] + ("" if p["budget"] is None else f" m={p['budget']}"),
+                  "—" if p["rate_Bps"] is None else f"{p['rate_Bps']:.0f}",
+                  *[f"{st[k]['mean']:.3g}" for k, _ in METRICS[:2] + METRICS[4:6]], f"{st['links']['delivered_fraction']:.1%}")
+    console.print(t)
+    console.print(f"{len(doc['cells'])} cells × {runs} seeds in {doc['wall_s']:.0f} s · wrote {out / 'links_study.md'}, "
+                  f"{out / 'links_study.json'} and the plots")
 
 
 @bench_app.command("selection")

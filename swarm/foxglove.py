@@ -11,6 +11,11 @@ FileDescriptorSet as the MCAP schema:
   a translucent cube at the estimated pose and the 3σ position ellipsoid;
 * ``/foxglove/measurements`` (``foxglove.SceneUpdate``): a line per relative measurement
   broadcast at the step, observer → target;
+* ``/foxglove/links`` (``foxglove.SceneUpdate``, when the scenario has ``links:``): the radio of
+  each step — every directed link i → j that carried traffic drawn as the half of the segment
+  between the true positions on the sender's side (so i → j and j → i are both visible), coloured
+  by what happened on it in that step (:data:`LINK_STATES`, from the difference of the world's
+  cumulative :class:`~swarm.bus.messages.LinkStats` counters between consecutive steps);
 * ``/foxglove/cam/<i>/<c>`` (``foxglove.RawImage``): camera images, when they travel on the bus.
 
 Frames: Foxglove quaternions are Hamilton (x, y, z, w) rotating the parent frame onto the
@@ -25,6 +30,7 @@ from foxglove_schemas_protobuf.Color_pb2 import Color
 from foxglove_schemas_protobuf.CubePrimitive_pb2 import CubePrimitive
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.KeyValuePair_pb2 import KeyValuePair
 from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 from foxglove_schemas_protobuf.Point3_pb2 import Point3
 from foxglove_schemas_protobuf.Pose_pb2 import Pose
@@ -41,15 +47,31 @@ from google.protobuf.timestamp_pb2 import Timestamp
 
 from swarmcore import quat
 
-__all__ = ["FoxgloveDeriver", "file_descriptor_set", "q_BH", "CHANNELS"]
+__all__ = ["FoxgloveDeriver", "file_descriptor_set", "q_BH", "CHANNELS", "LINK_STATES", "link_states"]
 
 CHANNELS = {
     "/foxglove/tf": "foxglove.FrameTransforms",
     "/foxglove/truth": "foxglove.SceneUpdate",
     "/foxglove/est/<i>": "foxglove.SceneUpdate",
     "/foxglove/measurements": "foxglove.SceneUpdate",
+    "/foxglove/links": "foxglove.SceneUpdate",
     "/foxglove/cam/<i>/<c>": "foxglove.RawImage",
 }
+
+#: What happened on a directed link in one step, worst first, with its colour (RGB) in
+#: ``/foxglove/links``. A link with several events in a step (a late copy arrives while this
+#: step's copy is lost) shows the worst one; ``in_flight``: a copy was sent and nothing
+#: arrived or was lost yet (latency longer than the step); a link with no traffic is not drawn.
+LINK_STATES: tuple[tuple[str, tuple[float, float, float]], ...] = (
+    ("unreachable", (0.55, 0.55, 0.55)),  # grey: dead, out of range or blocked; nothing sent
+    ("dropped_queue", (0.75, 0.2, 0.85)),  # purple: did not fit the transmitter's queue
+    ("lost", (0.9, 0.1, 0.1)),  # red: lost on the channel
+    ("delivered_late", (1.0, 0.65, 0.0)),  # orange: arrived after the step it was taken in
+    ("delivered", (0.1, 0.8, 0.2)),  # green: arrived within its own step
+    ("in_flight", (0.3, 0.6, 1.0)),  # blue: sent, not arrived yet
+)
+#: The cumulative counters of ``LinkStats`` that :func:`link_states` reads.
+_LINK_COUNTERS = ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")
 
 _PALETTE = [
     (0.12, 0.47, 0.71),
@@ -91,6 +113,22 @@ def q_BH(q_BI: np.ndarray, mean_motion: float, t: float) -> np.ndarray:
     return quat.normalize(quat.qmul(q_BI, q_IH))
 
 
+def link_states(prev: dict[str, np.ndarray] | None, cur: dict[str, np.ndarray]) -> np.ndarray:
+    """(n, n) index into :data:`LINK_STATES` of each directed link's state in one step, −1
+    for no traffic (and on the diagonal), from two consecutive cumulative counter sets
+    (``prev`` None: the first step, from zero). ``delivered`` counts on-time deliveries only
+    here: the step's deliveries minus its late ones."""
+    d = {k: np.asarray(cur[k]) - (0 if prev is None else np.asarray(prev[k])) for k in _LINK_COUNTERS}
+    d["delivered"] = d["delivered"] - d["delivered_late"]
+    d["in_flight"] = d["sent"]
+    n = d["sent"].shape[0]
+    out = np.full((n, n), -1, dtype=int)
+    for code in range(len(LINK_STATES) - 1, -1, -1):  # best first, so the worst overwrites
+        out[d[LINK_STATES[code][0]] > 0] = code
+    np.fill_diagonal(out, -1)
+    return out
+
+
 def _ts(ns: int) -> Timestamp:
     return Timestamp(seconds=ns // 1_000_000_000, nanos=ns % 1_000_000_000)
 
@@ -114,6 +152,8 @@ class FoxgloveDeriver:
         self.size = 2 * half_size_m
         self._sids: dict[str, int] = {}
         self._truth_r = None
+        self._truth_at: dict[int, np.ndarray] = {}  # true positions of the last few steps (links)
+        self._link_prev: dict[str, np.ndarray] | None = None  # counters of the previous LinkStats
 
     def _channel(self, topic: str, cls) -> int:
         name = cls.DESCRIPTOR.full_name
@@ -134,6 +174,8 @@ class FoxgloveDeriver:
             self._estimate(msg, log_ns)
         elif kind == "meas":
             self._measurements(msg, log_ns)
+        elif kind == "links":
+            self._links(msg, log_ns)
         elif kind == "img" and self.images:
             self._images(msg, log_ns)
 
@@ -151,6 +193,8 @@ class FoxgloveDeriver:
         q = q_BH(np.asarray(m.q_BI), self.mean_motion, m.t_s)
         r = np.asarray(m.r_H_m)
         self._truth_r = r
+        self._truth_at[m.k] = r
+        self._truth_at.pop(m.k - 8, None)
         tfs = FrameTransforms(
             transforms=[
                 FrameTransform(
@@ -219,3 +263,29 @@ class FoxgloveDeriver:
         ]
         ent = SceneEntity(timestamp=_ts(log_ns), frame_id="hcw", id=f"meas{m.observer}", lifetime=Duration(seconds=0), lines=lines)
         self._put("/foxglove/measurements", SceneUpdate(entities=[ent]), log_ns)
+
+    def _links(self, m, log_ns: int) -> None:
+        """One entity ``links`` per step (it replaces the previous step's): a LINE_LIST per
+        state, each directed link i → j from r_i to the midpoint of i and j, and the state of
+        every link with traffic as metadata (``"i->j": state``)."""
+        cur = {k: np.rint(getattr(m, k).array()).astype(np.int64) for k in _LINK_COUNTERS}
+        states = link_states(self._link_prev, cur)
+        self._link_prev = cur
+        r = self._truth_at.get(m.k, self._truth_r)
+        if r is None or r.shape[0] != states.shape[0]:
+            return
+        lines, meta = [], []
+        for code, (name, (cr, cg, cb)) in enumerate(LINK_STATES):
+            ii, jj = np.nonzero(states == code)
+            if not ii.size:
+                continue
+            pts = []
+            for i, j in zip(ii, jj):
+                mid = 0.5 * (r[i] + r[j])
+                pts += [Point3(x=r[i, 0], y=r[i, 1], z=r[i, 2]), Point3(x=mid[0], y=mid[1], z=mid[2])]
+                meta.append(KeyValuePair(key=f"{i}->{j}", value=name))
+            lines.append(LinePrimitive(type=LinePrimitive.LINE_LIST, pose=_pose([0, 0, 0], [0, 0, 0, 1]), thickness=3.0,
+                                       scale_invariant=True, points=pts, color=Color(r=cr, g=cg, b=cb, a=0.9)))
+        ent = SceneEntity(timestamp=_ts(log_ns), frame_id="hcw", id="links", lifetime=Duration(seconds=0), lines=lines,
+                          metadata=sorted(meta, key=lambda kv: tuple(int(x) for x in kv.key.split("->"))))
+        self._put("/foxglove/links", SceneUpdate(entities=[ent]), log_ns)

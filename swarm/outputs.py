@@ -25,6 +25,16 @@ def read_json(path: Path):
     return json.loads(Path(path).read_text())
 
 
+def _link_arrays(result: SimResult) -> dict:
+    """With links: the per-step cumulative link totals (K, 6: sent, delivered, delivered
+    late, lost, dropped at the queue, unreachable) and each filter's late-measurement counts
+    (K, F), for ``swarm report``."""
+    if not result.scenario.links.enabled or result.link_series is None:
+        return {}
+    return {"link_series": result.link_series, "late_used": result.late_used, "late_dropped": result.late_dropped,
+            "replayed": result.replayed}
+
+
 def write_run(result: SimResult, out: Path, *, arrays: bool = True, extra_summary: dict | None = None) -> dict:
     """Write a run folder and return the summary."""
     out = Path(out)
@@ -48,6 +58,7 @@ def write_run(result: SimResult, out: Path, *, arrays: bool = True, extra_summar
             nis_dof=result.nis_dof,
             step_ms=result.step_ms,
             schedule=result.schedule,
+            **_link_arrays(result),
         )
     write_json(out / "summary.json", summary)
     return summary

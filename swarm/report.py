@@ -1,9 +1,18 @@
 """``swarm report``: PNG figures and one self-contained HTML page for a run.
 
 Accepts a ``swarm sim`` folder (npz arrays), a ``swarm run`` folder or a bare MCAP file
-(read back from the recording), or a Monte Carlo / comparison folder (``mc.json``,
-``compare.json``). Figures follow the dissertation where it has them (Figure 4.5: each
+(read back from the recording), or a Monte Carlo / comparison / links-study folder
+(``mc.json``, ``compare.json``, ``links_study.json``). Figures follow the dissertation where it has them (Figure 4.5: each
 filter's own and others' errors against ±3σ); fault events are marked on every time axis.
+
+A run with ``links:`` also gets a *Links* section: a table per directed link (sent,
+delivered, delivered late, lost, dropped at the queue, unreachable, bytes, mean and p95
+latency), the latency histogram of delivered batches, what happened on the links per step
+(the differences of the cumulative counters), each transmitter's queue over time and what
+the filters did with late measurements (used, dropped, steps replayed). A recording carries
+all of it (the world's ``LinkStats`` of every step); a ``swarm sim`` folder carries the
+counters and per-step totals but not each delivery's latency nor the queues, which the
+in-process simulator does not keep (the section says so).
 """
 
 from __future__ import annotations
@@ -24,7 +33,24 @@ from scipy.stats import chi2  # noqa: E402
 
 from swarmcore import quat  # noqa: E402
 
-__all__ = ["RunData", "load_run", "make_report"]
+__all__ = ["RunData", "LinkData", "load_run", "make_report"]
+
+#: The columns of the per-step link totals (``SimResult.link_series``, ``Recording.link_series``).
+SERIES = ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")
+
+
+@dataclass
+class LinkData:
+    """What the radio did in a run (``links.enabled``)."""
+
+    per_link: dict  # LinkCounters fields → (n, n) cumulative over the run, row = sender
+    k: np.ndarray  # (S,) steps of the series
+    totals: np.ndarray  # (S, 6) cumulative totals after each step, columns SERIES
+    latencies: np.ndarray | None = None  # (m, 4): sender, receiver, sent step, latency (s); None: not kept
+    queue_bytes: np.ndarray | None = None  # (S, n) bytes each transmitter still had to send; None: not kept
+    late_used: np.ndarray | None = None  # (K, F) late measurements inserted (replay)
+    late_dropped: np.ndarray | None = None  # (K, F) late measurements dropped
+    replayed: np.ndarray | None = None  # (K, F) filter steps re-run
 
 
 @dataclass
@@ -40,6 +66,40 @@ class RunData:
     alive: np.ndarray  # (K, F)
     faults: list = field(default_factory=list)
     summary: dict = field(default_factory=dict)
+    links: LinkData | None = None
+
+
+def _sim_links(es, summary: dict) -> LinkData | None:
+    """Links of a ``swarm sim`` folder: counters from summary.json, series from estimates.npz."""
+    block = summary.get("links")
+    if not block:
+        return None
+    per_link = {k: np.asarray(v) for k, v in block["per_link"].items()}
+    if "link_series" in es.files:
+        totals = es["link_series"]
+        late = {k: es[k] for k in ("late_used", "late_dropped", "replayed")}
+    else:  # written before the series were: the final totals only
+        totals = np.array([[int(per_link[c].sum()) for c in SERIES]])
+        late = {}
+    k = np.arange(len(totals)) if "link_series" in es.files else np.array([len(es["t"]) - 1])
+    return LinkData(per_link=per_link, k=k, totals=totals, **late)
+
+
+def _recording_links(rec) -> LinkData | None:
+    if rec.links is None:
+        return None
+    series = sorted(rec.link_series, key=lambda x: x[0])
+    lat = np.array(rec.link_latencies, dtype=float).reshape(-1, 4)
+    return LinkData(
+        per_link={k: np.asarray(v) for k, v in rec.link_counters().as_dict().items()},
+        k=np.array([x[0] for x in series], dtype=int),
+        totals=np.array([x[1] for x in series], dtype=int).reshape(-1, len(SERIES)),
+        latencies=lat,
+        queue_bytes=np.array([x[2] for x in series], dtype=float).reshape(len(series), -1),
+        late_used=rec.late_used,
+        late_dropped=rec.late_dropped,
+        replayed=rec.replayed,
+    )
 
 
 def _sim_folder(d: Path) -> RunData:
@@ -64,6 +124,7 @@ def _sim_folder(d: Path) -> RunData:
         alive=np.isfinite(q[..., 0, 0]),
         faults=summary.get("faults", []),
         summary=summary,
+        links=_sim_links(es, summary),
     )
 
 
@@ -92,6 +153,7 @@ def _recording(mcap: Path) -> RunData:
         alive=rec.alive,
         faults=rec.faults,
         summary=summary,
+        links=_recording_links(rec),
     )
 
 
@@ -238,6 +300,139 @@ def _mc_figures(d: Path, out: Path) -> tuple[list[Path], str]:
     return [p], table
 
 
+# --------------------------------------------------------------------------- links
+
+
+def _link_t(data: RunData, k: np.ndarray) -> np.ndarray:
+    """Times of steps ``k`` (the run's time axis)."""
+    k = np.clip(np.asarray(k, dtype=int), 0, len(data.t) - 1)
+    return data.t[k]
+
+
+def fig_link_latency(data: RunData, out: Path) -> Path | None:
+    L = data.links
+    if L is None or L.latencies is None or not len(L.latencies):
+        return None
+    lat = L.latencies[:, 3]
+    fig, ax = plt.subplots(figsize=(8, 3.5))
+    ax.hist(lat, bins=min(60, max(10, int(np.sqrt(lat.size)))), color="tab:blue", alpha=0.8)
+    for q, ls in ((50, "-"), (95, "--")):
+        v = np.percentile(lat, q)
+        ax.axvline(v, color="k", ls=ls, lw=0.8, label=f"p{q} {v:.3g} s")
+    ax.set_xlabel("latency of a delivered batch [s] (sent → arrived)")
+    ax.set_ylabel("batches")
+    ax.set_title(f"{lat.size} deliveries, mean {lat.mean():.3g} s, max {lat.max():.3g} s", fontsize=9)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return _save(fig, out / "links_latency.png")
+
+
+def fig_link_events(data: RunData, out: Path) -> Path | None:
+    """Per step: copies delivered on time and late, lost, dropped at the queue, unreachable
+    (differences of the cumulative totals)."""
+    L = data.links
+    if L is None or len(L.k) < 2:
+        return None
+    d = np.diff(np.vstack([np.zeros((1, len(SERIES)), dtype=L.totals.dtype), L.totals]), axis=0)
+    col = {name: d[:, i] for i, name in enumerate(SERIES)}
+    t = _link_t(data, L.k)
+    fig, ax = plt.subplots(figsize=(11, 3.8))
+    for name, label, c in (("on_time", "delivered on time", "tab:green"), ("delivered_late", "delivered late", "orange"),
+                           ("lost", "lost", "tab:red"), ("dropped_queue", "dropped at the queue", "tab:purple"),
+                           ("unreachable", "unreachable", "grey")):
+        y = col["delivered"] - col["delivered_late"] if name == "on_time" else col[name]
+        ax.step(t, y, where="mid", lw=0.9, color=c, label=f"{label} ({int(y.sum())})")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("copies per step")
+    ax.set_title(f"links per step: {int(L.totals[-1, 0])} copies sent in all", fontsize=9)
+    ax.grid(alpha=0.3)
+    _faults(ax, data)
+    ax.legend(fontsize=7, ncol=5, loc="upper center", bbox_to_anchor=(0.5, -0.18))
+    return _save(fig, out / "links_events.png")
+
+
+def fig_link_queue(data: RunData, out: Path) -> Path | None:
+    L = data.links
+    if L is None or L.queue_bytes is None or not L.queue_bytes.size:
+        return None
+    t = _link_t(data, L.k)
+    fig, ax = plt.subplots(figsize=(11, 3.5))
+    for i in range(L.queue_bytes.shape[1]):
+        ax.step(t, L.queue_bytes[:, i], where="post", lw=0.8, label=f"sat {i}")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("bytes queued at the step's end")
+    ax.set_title("each transmitter's queue (still to send, the copy on the air included)", fontsize=9)
+    ax.grid(alpha=0.3)
+    _faults(ax, data)
+    ax.legend(fontsize=7, ncol=min(10, L.queue_bytes.shape[1]))
+    return _save(fig, out / "links_queue.png")
+
+
+def fig_late(data: RunData, out: Path) -> Path | None:
+    L = data.links
+    if L is None or L.late_used is None:
+        return None
+    fig, ax = plt.subplots(figsize=(11, 3.2))
+    for arr, label, c in ((L.late_used, "late measurements used (replay)", "tab:green"),
+                          (L.late_dropped, "late measurements dropped", "tab:red"),
+                          (L.replayed, "filter steps replayed", "tab:blue")):
+        y = np.nansum(arr, axis=1)
+        ax.step(data.t[: len(y)], y, where="mid", lw=0.9, color=c, label=f"{label} ({int(y.sum())})")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("per step, all filters")
+    ax.grid(alpha=0.3)
+    _faults(ax, data)
+    ax.legend(fontsize=7, ncol=3, loc="upper center", bbox_to_anchor=(0.5, -0.2))
+    return _save(fig, out / "links_late.png")
+
+
+def _links_table(L: LinkData) -> str:
+    """Per directed link: the counters and the latency of its deliveries."""
+    pl = L.per_link
+    n = pl["sent"].shape[0]
+    cols = ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable", "bytes_delivered")
+    heads = ("link", "sent", "delivered", "delivered late", "lost", "dropped at queue", "unreachable", "bytes", "latency mean [s]",
+             "latency p95 [s]")
+    rows = []
+
+    def lat_cells(sel) -> str:
+        if L.latencies is None:
+            return "<td>—</td><td>—</td>"
+        v = L.latencies[sel, 3]
+        return (f"<td>{v.mean():.4g}</td><td>{np.percentile(v, 95):.4g}</td>" if v.size else "<td></td><td></td>")
+
+    for i in range(n):
+        for j in range(n):
+            if i == j:
+                continue
+            sel = (L.latencies[:, 0] == i) & (L.latencies[:, 1] == j) if L.latencies is not None else None
+            rows.append(f"<tr><td>{i} → {j}</td>" + "".join(f"<td>{int(pl[c][i, j])}</td>" for c in cols) + lat_cells(sel) + "</tr>")
+    allsel = np.ones(len(L.latencies), dtype=bool) if L.latencies is not None else None
+    rows.append("<tr><th>all</th>" + "".join(f"<th>{int(pl[c].sum())}</th>" for c in cols)
+                + lat_cells(allsel).replace("td>", "th>") + "</tr>")
+    note = "" if L.latencies is not None else "<p>Latencies of single deliveries and the queues are kept in recordings (swarm run); a swarm sim folder has the counters only.</p>"
+    late = ""
+    if L.late_used is not None:
+        late = (f"<p>Late measurements: {int(np.nansum(L.late_used))} used (inserted at their own step), "
+                f"{int(np.nansum(L.late_dropped))} dropped, {int(np.nansum(L.replayed))} filter steps replayed (all filters).</p>")
+    return ("<table><tr>" + "".join(f"<th>{h}</th>" for h in heads) + "</tr>" + "".join(rows) + "</table>" + late + note)
+
+
+def links_section(data: RunData, out: Path) -> str:
+    """The report's Links section ('' when the run had no links)."""
+    if data.links is None:
+        return ""
+    parts = ["<h2>Links</h2>", _links_table(data.links)]
+    for fig, caption in ((fig_link_latency, "latency of every delivered batch"),
+                         (fig_link_events, "what happened on the links, per step"),
+                         (fig_link_queue, "bytes queued at each transmitter"),
+                         (fig_late, "late measurements per step: used, dropped, steps replayed")):
+        p = fig(data, out)
+        if p is not None:
+            parts.append(_img(p, caption))
+    return "\n".join(parts)
+
+
 # --------------------------------------------------------------------------- HTML
 
 _PAGE = """<!doctype html>
@@ -294,6 +489,11 @@ def make_report(path: str | Path, out: str | Path | None = None) -> Path:
         figs, table = _mc_figures(p, out)
         sections.append("<h2>Monte Carlo</h2>" + table + "".join(_img(f, f.stem) for f in figs))
         title = f"Monte Carlo report: {p.name}"
+    elif p.is_dir() and (p / "links_study.json").exists():
+        md = (p / "links_study.md").read_text() if (p / "links_study.md").exists() else ""
+        sections.append("<h2>Links study</h2><pre>" + html.escape(md) + "</pre>")
+        sections.extend(_img(f, f.stem) for f in sorted(p.glob("*.png")))
+        title = f"Links study: {p.name}"
     elif p.is_dir() and (p / "compare.json").exists():
         cmp_ = json.loads((p / "compare.json").read_text())
         md = (p / "compare.md").read_text() if (p / "compare.md").exists() else ""
@@ -306,6 +506,8 @@ def make_report(path: str | Path, out: str | Path | None = None) -> Path:
         title = f"Run report: {data.name} (n = {data.n}, {len(data.t)} steps)"
         sections.append("<h2>Summary</h2>" + _summary_table(data.summary))
         sections.append("<h2>Faults</h2>" + _faults_table(data.faults))
+        if data.links is not None:
+            sections.append(links_section(data, out))
         sections.append("<h2>Consistency</h2>" + _img(fig_nees(data, out), "NEES over time with its 95 % χ² band"))
         sections.append(_img(fig_gate(data, out), "validation-gate rejections over time"))
         sections.append("<h2>Measurement schedule</h2>" + _img(fig_schedule(data, out), "how often each (observer, target) pair was measured"))

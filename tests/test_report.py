@@ -70,3 +70,65 @@ def test_report_from_a_monte_carlo_folder(tmp_path):
     assert text.count("<tr>") >= 3 + 1
     attrs = _browser_check(page)
     assert attrs["errors"] == "0" and attrs["images"] == attrs["images-loaded"] == "1"
+
+
+_LINKS = ["links.enabled=true", "links.latency.fixed_s=2", "links.latency.speed_of_light=false", "links.loss.model=gilbert_elliott",
+          "links.loss.rate=0.3", "links.loss.mean_burst=3"]
+
+
+def _link_rows(text: str) -> dict:
+    """The Links table of a report page: {"i → j" or "all": [sent, delivered, late, lost, dropped, unreachable, bytes, mean, p95]}."""
+    table = text.split("<h2>Links</h2>", 1)[1].split("</table>", 1)[0]
+    rows = {}
+    for tr in re.findall(r"<tr>(.*?)</tr>", table)[1:]:
+        cells = re.findall(r"<t[dh]>(.*?)</t[dh]>", tr)
+        rows[cells[0]] = cells[1:]
+    return rows
+
+
+def test_report_of_a_sim_run_with_links_has_the_link_section(tmp_path):
+    import json
+
+    run = tmp_path / "sim"
+    p = swarm("sim", "scenarios/demo.yaml", "--out", str(run), "--set", "duration_s=15", *[a for s in _LINKS for a in ("--set", s)])
+    assert "links (all directed links)" in p.stderr  # the end-of-run link table
+    swarm("report", str(run))
+    names = {p.name for p in (run / "report").glob("*.png")}
+    # Per-step events and late measurements; the latency histogram and queues need a recording.
+    assert {"links_events.png", "links_late.png"} <= names and not {"links_latency.png", "links_queue.png"} & names
+    text = (run / "report" / "report.html").read_text()
+    rows = _link_rows(text)
+    s = json.loads((run / "summary.json").read_text())
+    assert len(rows) == 4 * 3 + 1
+    tot = s["links"]["totals"]
+    assert [int(x) for x in rows["all"][:7]] == [tot[k] for k in ("sent", "delivered", "delivered_late", "lost", "dropped_queue",
+                                                                  "unreachable", "bytes_delivered")]
+    assert [int(x) for x in rows["2 → 1"][:7]] == [s["links"]["per_link"][k][2][1] for k in (
+        "sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable", "bytes_delivered")]
+    assert f"{s['late']['used']} used" in text
+    attrs = _browser_check(run / "report" / "report.html")
+    assert attrs["errors"] == "0" and attrs["images"] == attrs["images-loaded"] == "9"
+
+
+@pytest.mark.integration
+def test_report_of_a_recording_with_links_shows_latencies_and_queues(tmp_path):
+    import numpy as np
+
+    from swarm_harness import run_swarm, scenario
+
+    links = {"enabled": True, "latency": {"fixed_s": 1.0, "jitter": {"distribution": "uniform", "scale_s": 1.0}},
+             "rate_Bps": 2000.0, "loss": {"model": "bernoulli", "rate": 0.2}}
+    sc = scenario(n_sats=3, duration_s=12, links=links)
+    rec, summary, _codes, _ = run_swarm(sc, tmp_path / "run")
+    swarm("report", str(tmp_path / "run"), "--out", str(tmp_path / "rep"))
+    names = {p.name for p in (tmp_path / "rep").glob("*.png")}
+    assert {"links_latency.png", "links_events.png", "links_queue.png", "links_late.png"} <= names
+    rows = _link_rows((tmp_path / "rep" / "report.html").read_text())
+    lat = np.array(rec.link_latencies)
+    for i, j in ((0, 1), (2, 0)):
+        v = lat[(lat[:, 0] == i) & (lat[:, 1] == j), 3]
+        assert float(rows[f"{i} → {j}"][7]) == pytest.approx(v.mean(), rel=1e-3)
+        assert float(rows[f"{i} → {j}"][8]) == pytest.approx(np.percentile(v, 95), rel=1e-3)
+    assert int(rows["all"][1]) == summary["links"]["totals"]["delivered"] == len(lat)
+    attrs = _browser_check(tmp_path / "rep" / "report.html")
+    assert attrs["errors"] == "0" and attrs["images"] == attrs["images-loaded"] == "10"
