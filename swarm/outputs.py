@@ -31,8 +31,13 @@ def _link_arrays(result: SimResult) -> dict:
     (K, F), for ``swarm report``."""
     if not result.scenario.links.enabled or result.link_series is None:
         return {}
-    return {"link_series": result.link_series, "late_used": result.late_used, "late_dropped": result.late_dropped,
-            "replayed": result.replayed}
+    out = {"link_series": result.link_series, "late_used": result.late_used, "late_dropped": result.late_dropped,
+           "replayed": result.replayed}
+    if result.queue_bytes is not None:
+        out["queue_bytes"] = result.queue_bytes
+    if result.link_latencies is not None:
+        out["link_latencies"] = np.array(result.link_latencies, dtype=float).reshape(-1, 4)
+    return out
 
 
 def write_run(result: SimResult, out: Path, *, arrays: bool = True, extra_summary: dict | None = None) -> dict:

@@ -82,7 +82,8 @@ def _sim_links(es, summary: dict) -> LinkData | None:
         totals = np.array([[int(per_link[c].sum()) for c in SERIES]])
         late = {}
     k = np.arange(len(totals)) if "link_series" in es.files else np.array([len(es["t"]) - 1])
-    return LinkData(per_link=per_link, k=k, totals=totals, **late)
+    kept = {name: es[key] for name, key in (("latencies", "link_latencies"), ("queue_bytes", "queue_bytes")) if key in es.files}
+    return LinkData(per_link=per_link, k=k, totals=totals, **late, **kept)
 
 
 def _recording_links(rec) -> LinkData | None:

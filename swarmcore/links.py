@@ -15,9 +15,11 @@ A link that is dead (an override), longer than ``max_range_m`` or blocked by ano
 satellite's body (a sphere) carries nothing; the radio's neighbour table knows it, so no
 airtime is spent on it.
 
-Determinism: every draw comes from ``stream(seed, purpose, step)`` over all n × n links
-(``link-ge``, ``link-loss``, ``link-jitter``; ``rejoin-…`` for the warm-rejoin state), so
-a message's fate depends on its link and step, never on the order messages were handed in.
+Determinism: every draw comes from ``stream(seed, purpose, step[, message])`` over all
+n × n links (``link-ge`` per step; ``link-loss``, ``link-jitter`` per step and message,
+the message named by the step it was taken at; ``rejoin-…`` for the warm-rejoin state),
+so a message's fate depends on its link, step and identity, never on the order messages
+were handed in.
 Geometry comes from the truth: the link model belongs to the world (the radio channel is
 physics); agents only ever see what is delivered to them, and when.
 
@@ -254,17 +256,20 @@ class LinkModel:
         return ("lost" if c.lost else "delivered"), c.end + c.latency
 
     def send(self, sender: int, receivers, payload: Any, size: int, t: float, purpose: str = "link",
-             batch: bool = True) -> dict[int, str]:
+             batch: bool = True, key: int | None = None) -> dict[int, str]:
         """Hand one message of ``size`` bytes from ``sender`` to the radio at time ``t``
         (of the current step), one copy per receiver in ascending order. Returns each
         receiver's immediate fate: ``queued`` (sent, or waiting to be), ``unreachable`` or
         ``dropped``. Whether a queued copy is lost is decided now, from the channel state;
-        it still takes its airtime."""
+        it still takes its airtime. ``key`` names the message among the sender's (default:
+        the current step; a batch uses the step it was taken at), so two messages of one
+        sender in one step get their own draws."""
         k = self._step
         i = int(sender)
+        m = k if key is None else int(key)
         fates: dict[int, str] = {}
-        lost_u = stream(self.seed, f"{purpose}-loss", k).random((self.n, self.n))
-        jit_u = stream(self.seed, f"{purpose}-jitter", k).random((self.n, self.n))
+        lost_u = stream(self.seed, f"{purpose}-loss", k, m).random((self.n, self.n))
+        jit_u = stream(self.seed, f"{purpose}-jitter", k, m).random((self.n, self.n))
         for j in sorted(int(x) for x in receivers):
             if j == i:
                 continue

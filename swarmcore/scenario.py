@@ -297,7 +297,13 @@ class Links(_Model):
     Every draw comes from a stream keyed by (seed, purpose, step) over all n×n links, so
     the fate of a message never depends on arrival order: the same numbers in-process and
     distributed. In lockstep, times are simulated; in free mode, real (scaled by
-    ``emulator.realtime_factor``)."""
+    ``emulator.realtime_factor``).
+
+    A batch is applied at the first step at or after its arrival, so with links on ANY
+    latency makes it late — the default propagation delay (range / c, tens of ns) too:
+    every peer batch then waits one step (``filter.late: replay`` gives it its own step
+    back; ``drop`` loses it). ``latency.speed_of_light: false`` with zero latency, no loss
+    and no cap is exactly the ideal network."""
 
     enabled: bool = Field(False, description="false: the ideal network of earlier versions")
     latency: Latency = Latency()

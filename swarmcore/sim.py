@@ -56,6 +56,8 @@ class SimResult:
     late_dropped: np.ndarray | None = None  # (K, F) late measurements dropped
     replayed: np.ndarray | None = None  # (K, F) filter steps re-run
     link_series: np.ndarray | None = None  # (K, 6) cumulative sent, delivered, late, lost, dropped, unreachable
+    queue_bytes: np.ndarray | None = None  # (K, n) each transmitter's backlog at the step (bytes)
+    link_latencies: list | None = None  # (sender, receiver, sent step, latency s) of each delivered batch
 
     def summary(self) -> dict:
         sc = self.scenario
@@ -117,6 +119,7 @@ class Recorder:
         self.late_dropped = np.zeros((K, F), dtype=int)
         self.replayed = np.zeros((K, F), dtype=int)
         self.link_series = np.zeros((K, 6), dtype=int)  # cumulative sent, delivered, late, lost, dropped, unreachable
+        self.queue_bytes = np.zeros((K, n), dtype=int)  # each transmitter's backlog at the step
 
     def late_at(self, k, f, lrep) -> None:
         self.late_used[k, f] = lrep.used
@@ -127,6 +130,7 @@ class Recorder:
         c = lm.counters
         self.link_series[k] = [c.sent.sum(), c.delivered.sum(), c.delivered_late.sum(), c.lost.sum(), c.dropped_queue.sum(),
                                c.unreachable.sum()]
+        self.queue_bytes[k] = lm.queue_bytes(self.t[k])
 
     def truth_at(self, k, truth):
         self.t[k] = truth.t
@@ -173,6 +177,7 @@ class Recorder:
             late_dropped=self.late_dropped,
             replayed=self.replayed,
             link_series=self.link_series,
+            queue_bytes=self.queue_bytes,
         )
 
 
@@ -251,7 +256,10 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
     finally:
         cameras.close()
     extra = {} if lm is None else {"links": link_summary(lm.counters, lm.latencies)}
-    return rec.result(sc, extra)
+    res = rec.result(sc, extra)
+    if lm is not None:
+        res.link_latencies = list(lm.latencies)
+    return res
 
 
 def _through_links(lm: LinkModel, k: int, truth, seen, estimator, filters, wire_size: WireSize, rec: "Recorder"):
@@ -262,7 +270,7 @@ def _through_links(lm: LinkModel, k: int, truth, seen, estimator, filters, wire_
     lm.at_step(k, truth.r_H)
     for i in range(n):
         rel_i, cams_i = own[i]
-        lm.send(i, range(n), rel_i, wire_size(i, k, truth.t, rel_i, cams_i), truth.t)
+        lm.send(i, range(n), rel_i, wire_size(i, k, truth.t, rel_i, cams_i), truth.t, key=k)
     inputs = {}
     arrived = lm.due(truth.t)
     for i in range(n):

@@ -347,7 +347,7 @@ class WorldProtocol:
         # now; then this step's, in observer order.
         for s in sorted(x for x in self.batches if x <= k):
             for i, (msg, size) in sorted(self.batches.pop(s).items()):
-                lm.send(i, live, msg, size, t)
+                lm.send(i, live, msg, size, t, key=msg.k)
         return lm.due(t)
 
     def _radio_free(self, k: int, live: list[int], t_wall0: float, deadline: float):
@@ -371,7 +371,7 @@ class WorldProtocol:
             with self._radio_lock:
                 for s in sorted(self.batches):
                     for i, (msg, size) in sorted(self.batches.pop(s).items()):
-                        lm.send(i, [j for j in live if j in self.alive_agents], msg, size, max(now_s, msg.t_s))
+                        lm.send(i, [j for j in live if j in self.alive_agents], msg, size, max(now_s, msg.t_s), key=msg.k)
                 self._new_batch = False
                 arrived = lm.due(now_s)
             for d in arrived:
