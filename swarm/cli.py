@@ -412,6 +412,29 @@ def bench_run_cmd(
     console.print(f"wrote {out}")
 
 
+@bench_app.command("cluster")
+def bench_cluster_cmd(
+    scenario: Path = typer.Option(Path("scenarios/demo.yaml"), help="scenario of the Monte Carlo runs"),
+    sets: Optional[List[str]] = SetOpt,
+    runs: int = typer.Option(40, min=2, help="runs per study"),
+    workers: int = typer.Option(2, min=1, help="local pool processes = Dask workers (one thread each)"),
+    noop_tasks: int = typer.Option(200, "--noop", min=10, help="no-op tasks for the scheduling overhead"),
+    repeats: int = typer.Option(3, min=1, help="warm studies per backend (alternating; the median is reported)"),
+    out: Path = typer.Option(Path("bench-cluster.json"), "--out", "-o", help="JSON file to write"),
+):
+    """Monte Carlo runs per minute, local pool vs a Dask cluster of as many workers started
+    on this machine, and the scheduling overhead per task (no-op round trip, batch)."""
+    from .bench import machine_info
+    from .bench_cluster import bench_cluster
+    from .outputs import write_json
+
+    sc = _load(scenario, sets)
+    res = bench_cluster(sc, runs=runs, workers=workers, noop_tasks=noop_tasks, repeats=repeats,
+                        log=lambda s: console.print(s, highlight=False))
+    write_json(out, {"machine": machine_info(), **res})
+    console.print(f"wrote {out}")
+
+
 @app.command()
 def compare(
     scenario: Path = typer.Argument(..., help="scenario YAML file (e.g. scenarios/selection.yaml)"),
