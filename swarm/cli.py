@@ -473,7 +473,7 @@ def compare(
     failed = [(f"{f['strategy']} seed {f['seed']}", f["error"]) for f in res["failed"]]
     if not res["seeds"]:
         _report_failed(failed, "runs", out, "run")
-    t = Table(title=f"{sc.name}: n={sc.n_sats}, budget {sc.selection.budget}, {runs} paired runs (mean)")
+    t = Table(title=f"{sc.name}: n={sc.n_sats}, budget {sc.selection.budget}, {len(res['seeds'])} paired runs (mean)")
     t.add_column("strategy")
     for key, _ in METRICS:
         t.add_column(key, justify="right")

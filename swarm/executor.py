@@ -206,6 +206,8 @@ class DaskCluster(Executor):
         self.workers = len(info.get("workers", {}))
         self.threads = sum(w.get("nthreads", 0) for w in info.get("workers", {}).values())
         self.description = f"Dask scheduler {address} ({self.workers} workers, {self.threads} threads)"
+        if not self.workers:
+            self.description += "; no worker yet: the runs wait for one"
 
     def submit(self, key: str, fn: Callable, *args) -> None:
         name = f"{fn.__module__.rsplit('.', 1)[-1]}.{fn.__name__}"  # e.g. mc.run_one

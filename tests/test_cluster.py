@@ -27,8 +27,11 @@ SWARM = [sys.executable, "-m", "swarm.cli"]
 DEMO = ["scenarios/demo.yaml"]
 
 
+ENV = dict(os.environ, COLUMNS="250")  # rich wraps its output at the terminal width
+
+
 def swarm(*args, check=True, timeout=600):
-    p = subprocess.run([*SWARM, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout)
+    p = subprocess.run([*SWARM, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=ENV)
     if check and p.returncode != 0:
         raise AssertionError(f"swarm {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
     return p
@@ -196,7 +199,7 @@ def test_a_worker_killed_mid_run_costs_only_its_task(cluster, tmp_path):
         watch.register_plugin(TaskEvents())
         watch.subscribe_topic(TASK_TOPIC, on_event)
         study = subprocess.Popen([*SWARM, "mc", *DEMO, "--runs", str(runs), "--seed", "3", "--cluster", cluster.address,
-                                  "--out", str(out), *sets], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                                  "--out", str(out), *sets], cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             assert started_on_w0.wait(180), "no run ever started on w0"
             victim = next(m["key"] for m in events if m["name"] == "w0" and m["state"] == "executing"
@@ -232,7 +235,7 @@ def test_an_interrupted_cluster_study_resumes_without_redoing_finished_runs(clus
 
     out = tmp_path / "mc"
     args = ["mc", *DEMO, "--runs", "8", "--seed", "20", "--cluster", cluster.address, "--out", str(out), "--set", "duration_s=40"]
-    first = subprocess.Popen([*SWARM, *args], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    first = subprocess.Popen([*SWARM, *args], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         _wait_until(lambda: len(_lines(out / "results.jsonl")) >= 3, 300, "3 finished runs")
     finally:
@@ -275,3 +278,56 @@ def test_cluster_characterize_gives_the_same_samples_as_in_process(cluster, tmp_
 
     a, b = samples(tmp_path / "here"), samples(tmp_path / "cluster")
     assert len(a) == 4 and a == b
+
+
+# --- the compose profile: scheduler and workers in containers of the project's image -----
+
+
+@pytest.mark.docker
+@pytest.mark.integration
+def test_compose_cluster_profile_runs_a_study(tmp_path):
+    """`docker compose --profile cluster up -d dask-scheduler dask-worker`: a scheduler and
+    two workers from swarm-coloc:latest; a tiny MC from the host against it gives the local
+    pool's numbers; the default services are not started."""
+    import shutil
+    import uuid
+
+    from distributed import Client
+
+    from swarm.launch import free_port
+
+    if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_output=True).returncode != 0:
+        pytest.skip("no docker daemon")
+    if subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
+        compose = ["docker", "compose"]
+    elif shutil.which("docker-compose"):
+        compose = ["docker-compose"]
+    else:
+        pytest.skip("neither `docker compose` nor `docker-compose` is installed")
+    b = subprocess.run([str(ROOT / "scripts" / "docker-build.sh")], capture_output=True, text=True, timeout=3600)
+    assert b.returncode == 0, b.stdout[-3000:] + b.stderr[-3000:]
+    port = free_port()
+    project = f"swc{uuid.uuid4().hex[:8]}"
+    env = dict(os.environ, SWARM_DASK_PORT=str(port), SWARM_DASK_WORKERS="2", COMPOSE_PROJECT_NAME=project)
+    dc = [*compose, "-f", str(ROOT / "compose.yaml"), "-p", project]
+
+    def run(*args, timeout=600):
+        p = subprocess.run([*dc, *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+        assert p.returncode == 0, f"{' '.join(args)}: {p.stdout[-2000:]}\n{p.stderr[-2000:]}"
+        return p
+
+    try:
+        run("--profile", "cluster", "up", "-d", "dask-scheduler", "dask-worker")
+        with Client(f"tcp://127.0.0.1:{port}", timeout=120, set_as_default=False) as c:
+            c.wait_for_workers(2, timeout=180)
+        running = run("ps", "--services", "--filter", "status=running").stdout.split()
+        assert sorted(running) == ["dask-scheduler", "dask-worker"]
+        sets = ["--set", "duration_s=8"]
+        swarm("mc", *DEMO, "--runs", "3", "--seed", "11", "--out", str(tmp_path / "local"), *sets)
+        p = swarm("mc", *DEMO, "--runs", "3", "--seed", "11", "--out", str(tmp_path / "cluster"), *sets,
+                  "--cluster", f"tcp://127.0.0.1:{port}")
+        assert "(2 workers, 2 threads)" in p.stderr
+    finally:
+        subprocess.run([*dc, "--profile", "cluster", "down", "-v", "--remove-orphans", "-t", "5"], cwd=ROOT, env=env,
+                       capture_output=True, timeout=300)
+    assert _mc_numbers(tmp_path / "local") == _mc_numbers(tmp_path / "cluster")  # containers = host, bit for bit
