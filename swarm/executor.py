@@ -36,6 +36,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import threading
 import time
 import traceback
 import uuid
@@ -50,6 +51,7 @@ __all__ = [
     "LocalPool",
     "DaskCluster",
     "ClusterError",
+    "connect",
     "open_executor",
     "ResultStore",
     "StudyResult",
@@ -183,6 +185,30 @@ class LocalPool(Executor):
             self._pool = None
 
 
+def connect(address: str, timeout_s: float = 10.0, **kw):
+    """A ``distributed.Client`` for the scheduler at ``address``, trying until ``timeout_s``.
+
+    Dask retries a refused connection by itself, but not one that is accepted and then
+    closed before the handshake — what a published container port does while the
+    scheduler inside is still starting (``docker compose up -d`` has just returned) — so
+    such attempts are repeated here, a quarter second apart."""
+    try:
+        from distributed import Client
+    except ImportError as exc:  # pragma: no cover - dask is a dependency
+        raise ClusterError(f"--cluster needs dask[distributed] ({exc})") from None
+    deadline = time.monotonic() + timeout_s
+    pause = threading.Event()
+    while True:
+        try:
+            return Client(address, timeout=max(1.0, deadline - time.monotonic()), set_as_default=False, **kw)
+        except ValueError as exc:  # a malformed address
+            raise ClusterError(f"--cluster {address!r}: {exc}") from None
+        except (OSError, TimeoutError) as exc:
+            if time.monotonic() >= deadline:
+                raise ClusterError(f"cannot reach the Dask scheduler at {address!r} within {timeout_s:g} s: {exc}") from None
+            pause.wait(0.25)
+
+
 class DaskCluster(Executor):
     """Tasks go to the Dask scheduler at ``address`` (``tcp://host:8786``).
 
@@ -191,16 +217,9 @@ class DaskCluster(Executor):
     some results carry wall-clock timings."""
 
     def __init__(self, address: str, *, connect_timeout_s: float = 10.0, name: str = "swarm"):
-        try:
-            from distributed import Client
-        except ImportError as exc:  # pragma: no cover - dask is a dependency
-            raise ClusterError(f"--cluster needs dask[distributed] ({exc})") from None
         self.address = address
         self._token = uuid.uuid4().hex[:8]
-        try:
-            self.client = Client(address, timeout=connect_timeout_s, set_as_default=False, name=f"{name}-{self._token}")
-        except (OSError, TimeoutError, ValueError) as exc:
-            raise ClusterError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
+        self.client = connect(address, connect_timeout_s, name=f"{name}-{self._token}")
         self._pending: dict = {}
         info = self.client.scheduler_info(n_workers=-1)
         self.workers = len(info.get("workers", {}))

@@ -30,8 +30,8 @@ DEMO = ["scenarios/demo.yaml"]
 ENV = dict(os.environ, COLUMNS="250")  # rich wraps its output at the terminal width
 
 
-def swarm(*args, check=True, timeout=600):
-    p = subprocess.run([*SWARM, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout, env=ENV)
+def swarm(*args, check=True, timeout=600, env=None):
+    p = subprocess.run([*SWARM, *args], cwd=ROOT, capture_output=True, text=True, timeout=timeout, env={**ENV, **(env or {})})
     if check and p.returncode != 0:
         raise AssertionError(f"swarm {' '.join(args)} failed ({p.returncode}):\n{p.stdout}\n{p.stderr}")
     return p
@@ -149,8 +149,10 @@ def test_cluster_mc_gives_the_local_pools_numbers(cluster, tmp_path):
     sets = ["--set", "duration_s=10"]
     local, remote = tmp_path / "local", tmp_path / "cluster"
     swarm("mc", *DEMO, "--runs", "4", "--seed", "7", "--workers", "2", "--out", str(local), *sets)
-    p = swarm("mc", *DEMO, "--runs", "4", "--seed", "7", "--cluster", cluster.address, "--out", str(remote), *sets)
+    p = swarm("mc", *DEMO, "--runs", "4", "--seed", "7", "--cluster", cluster.address, "--out", str(remote), *sets,
+              env={"SWARM_PROGRESS": "1"})  # the progress bar, drawn even without a terminal
     assert f"on Dask scheduler {cluster.address} (2 workers, 2 threads)" in p.stderr
+    assert "mc demo ×4" in p.stderr and "4/4" in p.stderr
     assert json.loads((remote / "mc.json").read_text())["backend"].startswith("Dask scheduler")
     a, b = _mc_numbers(local), _mc_numbers(remote)
     assert a["seeds"] == [7, 8, 9, 10] and len(a["runs"]) == 4
@@ -292,8 +294,7 @@ def test_compose_cluster_profile_runs_a_study(tmp_path):
     import shutil
     import uuid
 
-    from distributed import Client
-
+    from swarm.executor import connect
     from swarm.launch import free_port
 
     if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_output=True).returncode != 0:
@@ -318,7 +319,7 @@ def test_compose_cluster_profile_runs_a_study(tmp_path):
 
     try:
         run("--profile", "cluster", "up", "-d", "dask-scheduler", "dask-worker")
-        with Client(f"tcp://127.0.0.1:{port}", timeout=120, set_as_default=False) as c:
+        with connect(f"tcp://127.0.0.1:{port}", 120) as c:  # retries while the container starts
             c.wait_for_workers(2, timeout=180)
         running = run("ps", "--services", "--filter", "status=running").stdout.split()
         assert sorted(running) == ["dask-scheduler", "dask-worker"]
