@@ -120,7 +120,7 @@ class Executor(ABC):
         self.close()
 
 
-def _die_with_parent() -> None:
+def _die_with_parent(parent_pid: int) -> None:
     """Pool-process initializer: the kernel kills this process when its parent dies
     (``PR_SET_PDEATHSIG``), so a study killed with SIGKILL leaves no orphaned workers."""
     import ctypes
@@ -132,7 +132,7 @@ def _die_with_parent() -> None:
         libc.prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     except (OSError, AttributeError):  # not Linux: nothing to set
         return
-    if os.getppid() == 1:  # the parent died before prctl took effect
+    if os.getppid() != parent_pid:  # the parent died before prctl took effect
         os._exit(1)
 
 
@@ -154,7 +154,8 @@ class LocalPool(Executor):
             import multiprocessing as mp
             from concurrent.futures import ProcessPoolExecutor
 
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"), initializer=_die_with_parent)
+            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=mp.get_context("spawn"),
+                                             initializer=_die_with_parent, initargs=(os.getpid(),))
         self._pending[self._pool.submit(fn, *args)] = key
 
     def as_completed(self) -> Iterator[Outcome]:

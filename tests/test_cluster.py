@@ -118,6 +118,25 @@ def test_local_mc_reports_failed_seeds_and_resumes_without_redoing_runs(tmp_path
 
 
 @pytest.mark.integration
+def test_pool_processes_die_with_a_killed_study(tmp_path):
+    """SIGKILL `swarm mc` while its pool runs: the pool's processes end too."""
+    import psutil
+
+    out = tmp_path / "mc"
+    study = subprocess.Popen([*SWARM, "mc", *DEMO, "--runs", "40", "--workers", "2", "--out", str(out),
+                              "--set", "duration_s=30"], cwd=ROOT, env=ENV, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        _wait_until(lambda: len(_lines(out / "results.jsonl")) >= 1, 300, "a first finished run")
+        children = psutil.Process(study.pid).children(recursive=True)
+        assert len([c for c in children if "spawn_main" in " ".join(c.cmdline())]) == 2
+    finally:
+        study.send_signal(signal.SIGKILL)
+        study.wait()
+    gone, alive = psutil.wait_procs(children, timeout=30)
+    assert not alive, f"orphaned pool processes: {alive}"
+
+
+@pytest.mark.integration
 def test_unreachable_cluster_is_a_clear_error(tmp_path):
     from swarm.launch import free_port
 
@@ -267,6 +286,7 @@ def test_an_interrupted_cluster_study_resumes_without_redoing_finished_runs(clus
 
 @pytest.mark.integration
 @pytest.mark.render
+@pytest.mark.slow
 def test_cluster_characterize_gives_the_same_samples_as_in_process(cluster, tmp_path):
     args = ["characterize", "--pipeline", "mono", "--ranges", "3,6", "--orientations", "1", "--suns", "2",
             "--illumination", "global"]
