@@ -20,6 +20,7 @@ Every result is checked to be the same on both backends (all but wall-clock fiel
 
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from typing import Callable
@@ -61,6 +62,7 @@ def bench_cluster(sc: Scenario, runs: int = 40, workers: int = 2, noop_tasks: in
                   log: Callable[[str], None] = print) -> dict:
     from .dask_local import LocalDaskProcesses
 
+    load_before = os.getloadavg()
     data = sc.model_dump(mode="json")
     jobs = {str(sc.seed + i): (data, sc.seed + i, False) for i in range(runs)}
     run_one(data, sc.seed)  # warm-up (imports, compiled kernels)
@@ -101,6 +103,9 @@ def bench_cluster(sc: Scenario, runs: int = 40, workers: int = 2, noop_tasks: in
         log(f"  no-op task on {name:<10}: round trip {o['round_trip_ms_median']:.2f} ms median "
             f"({o['round_trip_ms_p90']:.2f} p90); {o['batch_ms_per_task']:.3f} ms per task for {o['tasks']} at once")
     log(f"  results identical on both backends: {identical}")
+    load_after = os.getloadavg()
+    log(f"  load average (1 min) {load_before[0]:.1f} before, {load_after[0]:.1f} after, on {os.cpu_count()} CPUs "
+        "(other work on a shared machine skews every number)")
     return {
         "scenario": sc.name,
         "n_sats": sc.n_sats,
@@ -112,4 +117,5 @@ def bench_cluster(sc: Scenario, runs: int = 40, workers: int = 2, noop_tasks: in
         "warm_runs_per_min_median": {"local_pool": warm[local_name], "dask": warm[dask_name]},
         "noop": {"local_pool": local_noop, "dask": dask_noop},
         "identical_results": identical,
+        "load_avg_1min": {"before": load_before[0], "after": load_after[0]},
     }
