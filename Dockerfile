@@ -89,7 +89,7 @@ COPY --from=wheel /dist/ /tmp/dist/
 # on a CPU of another kind numba notices and compiles afresh).
 RUN pip install -q --no-deps --no-index /tmp/dist/*.whl \
  && rm -rf /tmp/dist /root/.cache \
- && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, swarm.cli" \
+ && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli" \
  && { swarm sim scenarios/demo.yaml --out /tmp/warm --no-arrays >/tmp/warm.log 2>&1 \
       || { cat /tmp/warm.log; exit 1; }; } \
  && rm -rf /tmp/warm /tmp/warm.log

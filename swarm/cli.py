@@ -33,6 +33,14 @@ app.add_typer(scenario_app, name="scenario")
 
 console = Console(stderr=True)
 SetOpt = typer.Option(None, "--set", help="override a scenario field: dotted.key=value (repeatable)")
+ClusterOpt = typer.Option(
+    None,
+    "--cluster",
+    envvar="SWARM_CLUSTER",
+    help="run the study's tasks on the Dask scheduler at this address (tcp://HOST:8786) instead of the local "
+    "pool; --workers is then ignored",
+)
+ResumeOpt = typer.Option(False, "--resume", help="keep the finished runs in OUT/results.jsonl and run only the others")
 
 
 def _load(path: Optional[Path], sets, seed=None):
@@ -54,6 +62,32 @@ def _progress() -> Progress:
         transient=False,
         disable=not console.is_terminal and not _force_progress(),
     )
+
+
+def _study(fn, *args, **kw):
+    """Run a study function; a Dask scheduler that cannot be reached is a usage error (2)."""
+    from .executor import ClusterError
+
+    try:
+        return fn(*args, **kw)
+    except ClusterError as exc:
+        console.print(f"[red]error:[/red] {exc}", highlight=False)
+        raise typer.Exit(2)
+
+
+def _report_failed(rows: list[tuple[str, str]], what: str, out: Path, header: str) -> None:
+    """Print the failed runs (label, error) and exit 1: the study finished the others."""
+    if not rows:
+        return
+    t = Table(title=f"failed {what}: {len(rows)}")
+    t.add_column(header)
+    t.add_column("error")
+    for label, err in rows:
+        t.add_row(label, err)
+    console.print(t)
+    console.print(f"[red]failed {what}: {len(rows)}[/red]; the others finished and are in {out} "
+                  "(run again with --resume to retry only the failed ones)", highlight=False)
+    raise typer.Exit(1)
 
 
 def _force_progress() -> bool:
@@ -141,16 +175,26 @@ def mc(
     seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
     sets: Optional[List[str]] = SetOpt,
     arrays: bool = typer.Option(False, help="also write each run's npz arrays"),
+    cluster: Optional[str] = ClusterOpt,
+    resume: bool = ResumeOpt,
 ):
-    """Monte Carlo: R runs in parallel processes; writes each run's summary and mc.json."""
+    """Monte Carlo: R runs in parallel processes (or on a Dask cluster); writes each run's
+    summary as it finishes (run_XXXX/, results.jsonl) and mc.json.
+
+    A run that fails is listed with its seed and error (and in mc.json "failed"); the others
+    complete, and the exit status is 1.
+    """
     from .mc import run_mc
 
     sc = _load(scenario, sets)
     with _progress() as prog:
         task = prog.add_task(f"mc {sc.name} ×{runs}", total=runs)
-        res = run_mc(sc, runs, out, seed=seed, workers=workers, arrays=arrays, progress=lambda k, K: prog.update(task, completed=k))
+        res = _study(run_mc, sc, runs, out, seed=seed, workers=workers, arrays=arrays, cluster=cluster, resume=resume,
+                     progress=lambda k, K: prog.update(task, completed=k), log=lambda m: console.print(m, highlight=False))
     st = res["stats"]
-    t = Table(title=f"{sc.name}: {runs} runs (mean ± std)")
+    if not st:
+        _report_failed([(str(f["seed"]), f["error"]) for f in res["failed"]], "runs", out, "seed")
+    t = Table(title=f"{sc.name}: {res['runs_ok']} runs (mean ± std)")
     t.add_column("field")
     t.add_column("mean ± std", justify="right")
     for key in (
@@ -165,6 +209,7 @@ def mc(
         t.add_row(key, f"{st[key]['mean']:.4g} ± {st[key]['std']:.2g}")
     console.print(t)
     console.print(f"wrote {out / 'mc.json'}")
+    _report_failed([(str(f["seed"]), f["error"]) for f in res["failed"]], "runs", out, "seed")
 
 
 @app.command()
@@ -439,6 +484,29 @@ def bench_run_cmd(
     console.print(f"wrote {out}")
 
 
+@bench_app.command("cluster")
+def bench_cluster_cmd(
+    scenario: Path = typer.Option(Path("scenarios/demo.yaml"), help="scenario of the Monte Carlo runs"),
+    sets: Optional[List[str]] = SetOpt,
+    runs: int = typer.Option(40, min=2, help="runs per study"),
+    workers: int = typer.Option(2, min=1, help="local pool processes = Dask workers (one thread each)"),
+    noop_tasks: int = typer.Option(200, "--noop", min=10, help="no-op tasks for the scheduling overhead"),
+    repeats: int = typer.Option(3, min=1, help="warm studies per backend (alternating; the median is reported)"),
+    out: Path = typer.Option(Path("bench-cluster.json"), "--out", "-o", help="JSON file to write"),
+):
+    """Monte Carlo runs per minute, local pool vs a Dask cluster of as many workers started
+    on this machine, and the scheduling overhead per task (no-op round trip, batch)."""
+    from .bench import machine_info
+    from .bench_cluster import bench_cluster
+    from .outputs import write_json
+
+    sc = _load(scenario, sets)
+    res = bench_cluster(sc, runs=runs, workers=workers, noop_tasks=noop_tasks, repeats=repeats,
+                        log=lambda s: console.print(s, highlight=False))
+    write_json(out, {"machine": machine_info(), **res})
+    console.print(f"wrote {out}")
+
+
 @app.command()
 def compare(
     scenario: Path = typer.Argument(..., help="scenario YAML file (e.g. scenarios/selection.yaml)"),
@@ -450,11 +518,15 @@ def compare(
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
     seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
     sets: Optional[List[str]] = SetOpt,
+    cluster: Optional[str] = ClusterOpt,
+    resume: bool = ResumeOpt,
 ):
     """Paired comparison of selection strategies over the same seeds (dissertation Table 6.1, Figure 6.3).
 
-    Writes OUT/compare.json, OUT/compare.md (per-run table, ratios, paired wins) and one
-    heat map per strategy of how often each (observer, target) pair was chosen.
+    Writes OUT/results.jsonl (each run as it finishes), OUT/compare.json, OUT/compare.md
+    (per-run table, ratios, paired wins) and one heat map per strategy of how often each
+    (observer, target) pair was chosen. A failed run is listed with its strategy, seed and
+    error, its seed is left out of the paired statistics, and the exit status is 1.
     """
     from swarmcore.selection import STRATEGIES
 
@@ -468,8 +540,12 @@ def compare(
         raise typer.Exit(2)
     with _progress() as prog:
         task = prog.add_task(f"compare {sc.name} {len(names)}×{runs}", total=len(names) * runs)
-        res = run_compare(sc, runs, out, strategies=names, seed=seed, workers=workers, progress=lambda k, K: prog.update(task, completed=k))
-    t = Table(title=f"{sc.name}: n={sc.n_sats}, budget {sc.selection.budget}, {runs} paired runs (mean)")
+        res = _study(run_compare, sc, runs, out, strategies=names, seed=seed, workers=workers, cluster=cluster, resume=resume,
+                     progress=lambda k, K: prog.update(task, completed=k), log=lambda m: console.print(m, highlight=False))
+    failed = [(f"{f['strategy']} seed {f['seed']}", f["error"]) for f in res["failed"]]
+    if not res["seeds"]:
+        _report_failed(failed, "runs", out, "run")
+    t = Table(title=f"{sc.name}: n={sc.n_sats}, budget {sc.selection.budget}, {len(res['seeds'])} paired runs (mean)")
     t.add_column("strategy")
     for key, _ in METRICS:
         t.add_column(key, justify="right")
@@ -482,6 +558,7 @@ def compare(
         t.add_row(s, *[f"{sm[k]['mean']:.3g}" for k, _ in METRICS], *ratios, f"{sm['select_ms_median']:.2f}")
     console.print(t)
     console.print(f"wrote {out / 'compare.md'}, {out / 'compare.json'} and {len(names)} heat maps")
+    _report_failed(failed, "runs", out, "run")
 
 
 @app.command("links-study")
@@ -597,32 +674,51 @@ def characterize(
     suns: int = typer.Option(6, min=1, help="Sun directions (Fibonacci sphere; the dissertation: 20)"),
     illumination: str = typer.Option("solar,global", help="solar (Sun only) and/or global (Sun + ambient)"),
     seed: int = typer.Option(0, help="seed of the Monte Carlo draws"),
+    workers: int = typer.Option(1, "--workers", "-w", min=1, help="parallel worker processes (each renders on its own)"),
+    cluster: Optional[str] = ClusterOpt,
+    resume: bool = ResumeOpt,
 ):
     """Monte Carlo error characterisation of a pose pipeline (range × attitude × Sun).
 
     Writes OUT/characterization-<pipeline>-<W>x<H>-f<focal>.json (usable as
     vision.covariance.table) and OUT/fig5_7_<pipeline>.png, OUT/success_<pipeline>.png.
+    The work is cut into cells (one illumination at one range) that run in this process,
+    in --workers processes or on a Dask cluster; each cell's samples are appended to
+    OUT/results.jsonl as it finishes. A failed cell is listed with its error, the table is
+    written without it ("missing_cells"), and the exit status is 1.
     """
     if pipeline not in ("mono", "stereo"):
         console.print("[red]error:[/red] --pipeline must be mono or stereo")
         raise typer.Exit(2)
     from swarmvision.characterize import run_cli
 
+    from .executor import ResultStore, StudyMapper, open_executor
+
+    def log(m):
+        console.print(m, highlight=False)
+
     vision = None if scenario is None else _load(scenario, sets).vision
-    with _progress() as prog:
-        task = prog.add_task(f"characterize {pipeline}", total=None)
-        run_cli(
-            pipeline,
-            out,
-            vision=vision,
-            ranges=[float(x) for x in ranges.split(",") if x.strip()],
-            orientations=orientations,
-            suns=suns,
-            illuminations=[x.strip() for x in illumination.split(",") if x.strip()],
-            seed=seed,
-            log=lambda s: console.print(s, highlight=False),
-            progress=lambda k, K: prog.update(task, completed=k, total=K),
-        )
+    store = ResultStore(out / "results.jsonl", resume=resume)
+    try:
+        with _study(open_executor, workers, cluster) as ex, _progress() as prog:
+            mapper = StudyMapper(ex, store, log=log)
+            task = prog.add_task(f"characterize {pipeline}", total=None)
+            run_cli(
+                pipeline,
+                out,
+                vision=vision,
+                ranges=[float(x) for x in ranges.split(",") if x.strip()],
+                orientations=orientations,
+                suns=suns,
+                illuminations=[x.strip() for x in illumination.split(",") if x.strip()],
+                seed=seed,
+                log=log,
+                progress=lambda k, K: prog.update(task, completed=k, total=K),
+                mapper=mapper,
+            )
+    finally:
+        store.close()
+    _report_failed(sorted(mapper.result.errors.items()), "cells", out, "illumination@range index")
 
 
 @bench_app.command("vision")

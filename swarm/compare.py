@@ -23,9 +23,8 @@ filter 0 alone, the one the selector plans with.
 
 from __future__ import annotations
 
-import multiprocessing as mp
+import threading
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Callable
 
@@ -33,9 +32,13 @@ import numpy as np
 
 from swarmcore.scenario import Scenario
 
+from .executor import ResultStore, open_executor, run_study
 from .outputs import write_json
 
-__all__ = ["run_compare", "DEFAULT_STRATEGIES", "METRICS"]
+__all__ = ["run_compare", "run_one", "DEFAULT_STRATEGIES", "METRICS", "RESULTS"]
+
+#: the study's result stream, in the output folder
+RESULTS = "results.jsonl"
 
 DEFAULT_STRATEGIES = ("complete", "random", "random_tree", "greedy", "swarm_greedy", "fast_swarm_greedy", "logdet_greedy")
 #: (key, label) of the four Table 6.1 figures.
@@ -53,30 +56,49 @@ def _ref_rms(err: np.ndarray, start: int) -> float:
     return float(np.sqrt(np.nanmean(e**2)))
 
 
-def _one(args) -> dict:
-    """Worker: one (strategy, seed) run. Times every selector call by wrapping the entry
-    point the simulator imports at call time (``swarmcore.selection.select_for_scenario``)."""
-    data, strategy, seed = args
-    from swarmcore import selection
-    from .models import simulate_scenario
+_timing = threading.local()
 
-    sc = Scenario.model_validate({**data, "seed": seed, "selection": {**data["selection"], "strategy": strategy}})
-    times_ms: list[float] = []
+
+def _install_selection_timer() -> None:
+    """Wrap the entry point the simulator imports at call time
+    (``swarmcore.selection.select_for_scenario``) once per process, so that every call is
+    timed into the list of the run on the calling thread (``_timing.ms``) — correct when a
+    Dask worker runs several runs at once on threads. Outside a run it only passes through."""
+    from swarmcore import selection
+
+    if getattr(selection.select_for_scenario, "_swarm_timed", False):
+        return
     inner = selection.select_for_scenario
 
     def timed(*a, **kw):
         t0 = time.perf_counter()
         out = inner(*a, **kw)
-        times_ms.append((time.perf_counter() - t0) * 1e3)
+        sink = getattr(_timing, "ms", None)
+        if sink is not None:
+            sink.append((time.perf_counter() - t0) * 1e3)
         return out
 
+    timed._swarm_timed = True
     selection.select_for_scenario = timed
+
+
+def run_one(data: dict, strategy: str, seed: int) -> dict:
+    """One (strategy, seed) run (a task: plain values in, plain values out), with every
+    selector call timed."""
+    from .models import simulate_scenario
+    from .scenario_files import scenario_from_dict
+
+    sc = scenario_from_dict({**data, "seed": seed, "selection": {**data["selection"], "strategy": strategy}},
+                            f"run {strategy} with seed {seed}")
+    _install_selection_timer()
+    times_ms: list[float] = []
+    _timing.ms = times_ms
     try:
         t0 = time.perf_counter()
         res = simulate_scenario(sc)
         wall = time.perf_counter() - t0
     finally:
-        selection.select_for_scenario = inner
+        _timing.ms = None
     s = res.summary()
     K = res.att_err.shape[0]
     t_ms = np.asarray(times_ms)
@@ -205,6 +227,12 @@ def _markdown(res: dict) -> str:
                 cells.append(f"{pr['wins']}/{pr['runs']} (p={pv})")
             lines.append(f"| {s} | " + " | ".join(cells) + " |")
         lines.append("")
+    if res.get("failed"):
+        lines += [f"## Failed runs (seeds {', '.join(map(str, res['seeds_dropped']))} left out of every strategy)", "",
+                  "| strategy | seed | error |", "|---|---|---|"]
+        for f in res["failed"]:
+            lines.append(f"| {f['strategy']} | {f['seed']} | {f['error'].splitlines()[0] if f['error'] else ''} |")
+        lines.append("")
     return "\n".join(lines)
 
 
@@ -217,34 +245,49 @@ def run_compare(
     seed: int | None = None,
     workers: int = 2,
     progress: Callable[[int, int], None] | None = None,
+    cluster: str | None = None,
+    resume: bool = False,
+    log: Callable[[str], None] | None = None,
 ) -> dict:
-    """Run every strategy over seeds ``seed + i`` (i < runs); write compare.json, compare.md
-    and one heat map per strategy into ``out``; return the JSON document."""
+    """Run every strategy over seeds ``seed + i`` (i < runs) on ``workers`` local processes
+    or the Dask scheduler at ``cluster``; write results.jsonl (as runs finish), compare.json,
+    compare.md and one heat map per strategy into ``out``; return the JSON document.
+
+    A run that fails is listed under ``failed`` (strategy, seed, error) and its seed is left
+    out of every strategy's statistics (they are paired); ``resume`` reuses finished runs."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     base = sc.seed if seed is None else seed
-    seeds = [base + i for i in range(runs)]
+    all_seeds = [base + i for i in range(runs)]
     data = sc.model_dump(mode="json")
     strategies = list(strategies)
-    jobs = [(data, s, sd) for sd in seeds for s in strategies]
-    results: dict[tuple[str, int], dict] = {}
-    total = len(jobs)
-    if workers <= 1:
-        for k, job in enumerate(jobs):
-            r = _one(job)
-            results[(r["strategy"], r["seed"])] = r
-            if progress:
-                progress(k + 1, total)
-    else:
-        ctx = mp.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            futs = [pool.submit(_one, job) for job in jobs]
-            for k, fut in enumerate(as_completed(futs)):
-                r = fut.result()
-                results[(r["strategy"], r["seed"])] = r
-                if progress:
-                    progress(k + 1, total)
-    per_run = {s: [results[(s, sd)] for sd in seeds] for s in strategies}
+    jobs = {f"{s}@{sd}": (data, s, sd) for sd in all_seeds for s in strategies}
+    store = ResultStore(out / RESULTS, resume=resume)
+    try:
+        with open_executor(workers, cluster) as ex:
+            st = run_study(ex, run_one, jobs, store=store, progress=progress, log=log)
+    finally:
+        store.close()
+    failed = [{"strategy": s, "seed": sd, "error": st.errors[f"{s}@{sd}"]} for sd in all_seeds for s in strategies
+              if f"{s}@{sd}" in st.errors]
+    # Paired statistics need every strategy on a seed: a seed with a failed run is dropped.
+    seeds = [sd for sd in all_seeds if all(f"{s}@{sd}" in st.results for s in strategies)]
+    per_run = {s: [st.results[f"{s}@{sd}"] for sd in seeds] for s in strategies}
+    doc = {
+        "scenario": sc.name,
+        "n_sats": sc.n_sats,
+        "budget": sc.selection.budget,
+        "duration_s": sc.duration_s,
+        "strategies": strategies,
+        "seeds": seeds,
+        "failed": failed,
+        "seeds_dropped": [sd for sd in all_seeds if sd not in seeds],
+        "skipped": st.skipped,
+        "backend": ex.description,
+    }
+    if not seeds:
+        write_json(out / "compare.json", doc)
+        return doc
     summary: dict[str, dict] = {}
     for s in strategies:
         rows = per_run[s]
@@ -268,14 +311,9 @@ def run_compare(
         tot = counts.sum()
         sm["share_touching_ref"] = float((counts[0].sum() + counts[:, 0].sum()) / tot) if tot else float("nan")
         summary[s] = sm
-        _heatmap(counts, f"{s}: pairs chosen, mean over {runs} runs of {sc.duration_s:g} s", out / f"heatmap_{s}.png")
+        _heatmap(counts, f"{s}: pairs chosen, mean over {len(seeds)} runs of {sc.duration_s:g} s", out / f"heatmap_{s}.png")
     doc = {
-        "scenario": sc.name,
-        "n_sats": sc.n_sats,
-        "budget": sc.selection.budget,
-        "duration_s": sc.duration_s,
-        "strategies": strategies,
-        "seeds": seeds,
+        **doc,
         "error_definition": "RMS over time of each filter's errors on the other satellites, mean over filters "
         "(summary 'others'); ref_filter: filter 0 alone",
         "summary": summary,

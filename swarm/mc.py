@@ -1,28 +1,50 @@
-"""Monte Carlo over seeds: run i uses seed S + i, in parallel worker processes."""
+"""Monte Carlo over seeds: run i uses seed S + i, on a local process pool or a Dask cluster.
+
+Each run is one task (:func:`run_one`: scenario as a dict and a seed in, summary out) of a
+study (:func:`swarm.executor.run_study`): as each run finishes, this process writes its
+folder ``run_XXXX/`` and appends its summary to ``results.jsonl``; ``resume`` skips every
+seed already there. A run that fails is listed in ``mc.json`` under ``failed`` (seed and
+error) and left out of the statistics; the other runs complete.
+"""
 
 from __future__ import annotations
 
-import multiprocessing as mp
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import yaml
 
 from swarmcore.scenario import Scenario
 
+from .executor import ResultStore, open_executor, run_study
 from .outputs import write_json, write_run
 
-__all__ = ["run_mc", "aggregate"]
+__all__ = ["run_mc", "run_one", "aggregate", "RESULTS"]
+
+#: the study's result stream, in the output folder
+RESULTS = "results.jsonl"
 
 
-def _one(args):
-    data, seed, out_dir, arrays = args
+def run_one(data: dict, seed: int, arrays: bool = False):
+    """One run (a task: plain values in, plain values out): the scenario ``data`` with
+    ``seed``. Returns the summary, or the whole :class:`SimResult` when ``arrays``."""
     from .models import simulate_scenario
+    from .scenario_files import scenario_from_dict
 
-    sc = Scenario.model_validate({**data, "seed": seed})
-    res = simulate_scenario(sc)
-    return seed, write_run(res, Path(out_dir), arrays=arrays)
+    res = simulate_scenario(scenario_from_dict({**data, "seed": seed}, f"run with seed {seed}"))
+    return res if arrays else res.summary()
+
+
+def _write(run_dir: Path, data: dict, seed: int, payload) -> dict:
+    """The run folder, written by the study's own process (workers may be other hosts)."""
+    if isinstance(payload, dict):
+        run_dir.mkdir(parents=True, exist_ok=True)
+        sc = Scenario.model_validate({**data, "seed": seed})
+        (run_dir / "scenario.yaml").write_text(yaml.safe_dump(sc.model_dump(mode="json"), sort_keys=False))
+        write_json(run_dir / "summary.json", payload)
+        return payload
+    return write_run(payload, run_dir, arrays=True)
 
 
 def _leaves(d: dict, prefix=""):
@@ -63,39 +85,44 @@ def run_mc(
     workers: int = 2,
     arrays: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    cluster: str | None = None,
+    resume: bool = False,
+    log: Callable[[str], None] | None = None,
 ) -> dict:
-    """Run ``runs`` simulations seeded ``seed + i``; write each run and ``mc.json``."""
+    """Run ``runs`` simulations seeded ``seed + i`` on ``workers`` local processes or the
+    Dask scheduler at ``cluster``; write each run, ``results.jsonl`` and ``mc.json``.
+
+    ``mc.json``: ``stats`` over the runs that succeeded, ``per_run`` for them, ``failed``
+    (seed and error) for the others, ``skipped`` (runs reused by ``resume``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     base = sc.seed if seed is None else seed
     data = sc.model_dump(mode="json")
-    jobs = [(data, base + i, str(out / f"run_{i:04d}"), arrays) for i in range(runs)]
-    results: dict[int, dict] = {}
-    if workers <= 1:
-        for k, job in enumerate(jobs):
-            s, summ = _one(job)
-            results[s] = summ
-            if progress:
-                progress(k + 1, runs)
-    else:
-        ctx = mp.get_context("spawn")
-        with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
-            futs = [pool.submit(_one, job) for job in jobs]
-            for k, fut in enumerate(as_completed(futs)):
-                s, summ = fut.result()
-                results[s] = summ
-                if progress:
-                    progress(k + 1, runs)
-    ordered = [results[base + i] for i in range(runs)]
+    seeds = [base + i for i in range(runs)]
+    jobs = {str(s): (data, s, arrays) for s in seeds}
+    dirs = {str(base + i): out / f"run_{i:04d}" for i in range(runs)}
+    store = ResultStore(out / RESULTS, resume=resume)
+    try:
+        with open_executor(workers, cluster) as ex:
+            st = run_study(ex, run_one, jobs, store=store, progress=progress, log=log,
+                           on_result=lambda key, payload: _write(dirs[key], data, int(key), payload))
+    finally:
+        store.close()
+    ok = [s for s in seeds if str(s) in st.results]
+    ordered = [st.results[str(s)] for s in ok]
     mc = {
         "scenario": sc.name,
         "runs": runs,
-        "seeds": [base + i for i in range(runs)],
+        "seeds": seeds,
         "n_sats": sc.n_sats,
+        "runs_ok": len(ok),
+        "failed": [{"seed": s, "error": st.errors[str(s)]} for s in seeds if str(s) in st.errors],
+        "skipped": st.skipped,
+        "backend": ex.description,
         "stats": aggregate(ordered),
         "per_run": [
-            {"seed": base + i, "rms": s["rms"], "rms_second_half": s["rms_second_half"], "nees_mean": s["nees"]["mean"]}
-            for i, s in enumerate(ordered)
+            {"seed": s, "rms": r["rms"], "rms_second_half": r["rms_second_half"], "nees_mean": r["nees"]["mean"]}
+            for s, r in zip(ok, ordered)
         ],
     }
     write_json(out / "mc.json", mc)

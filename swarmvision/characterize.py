@@ -30,7 +30,7 @@ from swarmcore.streams import stream
 
 from swarmcore.vision_config import VisionConfig
 
-__all__ = ["characterize", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
+__all__ = ["characterize", "characterize_cell", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
 
 AXES = ["att_x", "att_y", "att_z", "pos_x", "pos_y", "pos_z"]
 
@@ -83,22 +83,29 @@ def _camera_error(R_est, p_est, R_true, p_true):
     return np.r_[a.ravel(), np.asarray(p_est) - np.asarray(p_true)]
 
 
-def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_orient: int = 6, n_sun: int = 6,
-                 illuminations=("solar", "global"), ambient_global: float = 0.25, seed: int = 0,
-                 pred_sigma_att_rad: float = 0.03, pred_sigma_pos_m: float = 0.1, log=None, progress=None) -> dict:
-    """Run the Monte Carlo; return the JSON-ready result (samples and statistics).
+def _sequential(fn, jobs: dict, progress=None) -> dict:
+    """The default mapper: every cell in this process, in order."""
+    out = {}
+    for key, args in jobs.items():
+        out[key] = fn(*args)
+        if progress is not None:
+            progress(len(out), len(jobs))
+    return out
 
-    ``progress(done, total)`` is called after every rendered sample."""
+
+def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir: int, rng_m: float, atts, suns,
+                      seed: int, pred_sigma_att_rad: float, pred_sigma_pos_m: float) -> list[dict]:
+    """One cell of the design — one illumination at one range, every attitude × Sun — as a
+    task: plain values in (``cfg_data`` is a :class:`VisionConfig` as a dict), the samples
+    out. Every draw comes from ``stream(seed, "characterize", ir, io, isn, illumination)``,
+    so a cell gives the same samples in any process and in any order."""
     from .mono import MonoPipeline
     from .noise import apply_noise
     from .views import face_intrinsics
     from .render import SceneRenderer
 
-    cfg = (cfg or VisionConfig()).model_copy(deep=True)
-    cfg.pipeline = pipeline
-    ranges = np.linspace(3.0, 33.0, 11) if ranges is None else np.asarray(ranges, float)
-    atts = _attitudes(n_orient, seed)
-    suns = fibonacci_sphere(n_sun)
+    cfg = VisionConfig.model_validate(cfg_data)
+    atts, suns = np.asarray(atts, float), np.asarray(suns, float)
     half = 0.2
     if pipeline == "mono":
         from .models import cube_satellite
@@ -118,50 +125,83 @@ def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_
         sp = StereoPipeline(cfg.stereo, intr, s.baseline_m, pts, nrm, model_radius(parts))
     else:
         raise ValueError(f"pipeline must be mono or stereo, got {pipeline!r}")
+    L = cfg.lighting
+    rend = SceneRenderer(bodies, ambient=amb, sun_intensity=L.sun_intensity, shadows=L.shadows,
+                         znear=cfg.render.znear_m, zfar=cfg.render.zfar_m, platform=cfg.render.platform)
     samples = []
-    t_start = time.perf_counter()
+    try:
+        for io, q in enumerate(atts):
+            for isn, sun in enumerate(suns):
+                rng = stream(seed, "characterize", ir, io, isn, 0 if illum == "solar" else 1)
+                p_true = np.array([0.0, 0.0, rng_m])
+                R_true = quat.attitude_matrix(q).T  # B_j → I = C
+                rend.set_bodies(q[None, :], p_true[None, :])
+                rend.set_sun(sun)
+                # Prediction: truth perturbed like a converged filter's prior.
+                dR = quat.attitude_matrix(quat.rotvec_to_quat(rng.normal(0, pred_sigma_att_rad, 3))).T
+                R_pred = dR @ R_true
+                p_pred = p_true + rng.normal(0, pred_sigma_pos_m, 3)
+                ok, err, extra = False, np.full(6, np.nan), {}
+                if pipeline == "mono":
+                    img = apply_noise(rend.render(np.eye(3), np.zeros(3), intr), cfg.noise, rng)
+                    poses = mp.poses_in_image(img, 0, None, {0: R_pred})
+                    if 0 in poses:
+                        P = poses[0]
+                        ok, err = True, _camera_error(P.R_CBj, P.p_C, R_true, p_true)
+                        extra = {"tags": P.n_tags, "rms_px": P.reproj_rms_px, "ambiguous": P.ambiguous}
+                else:
+                    left = apply_noise(rend.render(np.eye(3), np.zeros(3), intr), cfg.noise, rng)
+                    right = apply_noise(rend.render(np.eye(3), np.array([cfg.stereo_camera.baseline_m, 0, 0]), intr), cfg.noise, rng)
+                    res = sp.measure(left, right, R_pred, p_pred, rng)
+                    if res is not None:
+                        ok, err = True, _camera_error(res.R_CBj, res.p_C, R_true, p_true)
+                        extra = {"fitness": res.fitness, "points": res.n_points}
+                sun_deg = float(np.degrees(np.arccos(np.clip(sun[2], -1, 1))))  # LOS is +z
+                samples.append({"illumination": illum, "range_m": float(rng_m), "orientation": io, "sun": isn,
+                                "sun_deg": sun_deg, "ok": ok, "err": [float(x) for x in err], **extra})
+    finally:
+        rend.close()
+    return samples
+
+
+def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_orient: int = 6, n_sun: int = 6,
+                 illuminations=("solar", "global"), ambient_global: float = 0.25, seed: int = 0,
+                 pred_sigma_att_rad: float = 0.03, pred_sigma_pos_m: float = 0.1, log=None, progress=None,
+                 mapper=None) -> dict:
+    """Run the Monte Carlo; return the JSON-ready result (samples and statistics).
+
+    The design is cut into cells (:func:`characterize_cell`: one illumination at one range)
+    that ``mapper(fn, jobs, progress)`` runs — ``jobs`` maps a cell's key to its arguments;
+    the mapper returns results by key and calls ``progress(cells done, cells)``. The default
+    runs them here in order; the application injects a process pool or a Dask cluster
+    (:mod:`swarm.executor`). A cell missing from the mapper's answer (it failed) is listed
+    under ``missing_cells``. ``progress(done, total)`` counts samples."""
+    if pipeline not in ("mono", "stereo"):
+        raise ValueError(f"pipeline must be mono or stereo, got {pipeline!r}")
+    cfg = (cfg or VisionConfig()).model_copy(deep=True)
+    cfg.pipeline = pipeline
+    ranges = np.linspace(3.0, 33.0, 11) if ranges is None else np.asarray(ranges, float)
+    atts = _attitudes(n_orient, seed)
+    suns = fibonacci_sphere(n_sun)
+    cfg_data = cfg.model_dump(mode="json")
+    jobs = {}
     for illum in illuminations:
         amb = 0.0 if illum == "solar" else ambient_global
-        L = cfg.lighting
-        rend = SceneRenderer(bodies, ambient=amb, sun_intensity=L.sun_intensity, shadows=L.shadows,
-                             znear=cfg.render.znear_m, zfar=cfg.render.zfar_m, platform=cfg.render.platform)
         for ir, rng_m in enumerate(ranges):
-            for io, q in enumerate(atts):
-                for isn, sun in enumerate(suns):
-                    rng = stream(seed, "characterize", ir, io, isn, 0 if illum == "solar" else 1)
-                    p_true = np.array([0.0, 0.0, rng_m])
-                    R_true = quat.attitude_matrix(q).T  # B_j → I = C
-                    rend.set_bodies(q[None, :], p_true[None, :])
-                    rend.set_sun(sun)
-                    # Prediction: truth perturbed like a converged filter's prior.
-                    dR = quat.attitude_matrix(quat.rotvec_to_quat(rng.normal(0, pred_sigma_att_rad, 3))).T
-                    R_pred = dR @ R_true
-                    p_pred = p_true + rng.normal(0, pred_sigma_pos_m, 3)
-                    ok, err, extra = False, np.full(6, np.nan), {}
-                    if pipeline == "mono":
-                        img = apply_noise(rend.render(np.eye(3), np.zeros(3), intr), cfg.noise, rng)
-                        poses = mp.poses_in_image(img, 0, None, {0: R_pred})
-                        if 0 in poses:
-                            P = poses[0]
-                            ok, err = True, _camera_error(P.R_CBj, P.p_C, R_true, p_true)
-                            extra = {"tags": P.n_tags, "rms_px": P.reproj_rms_px, "ambiguous": P.ambiguous}
-                    else:
-                        left = apply_noise(rend.render(np.eye(3), np.zeros(3), intr), cfg.noise, rng)
-                        right = apply_noise(rend.render(np.eye(3), np.array([cfg.stereo_camera.baseline_m, 0, 0]), intr), cfg.noise, rng)
-                        res = sp.measure(left, right, R_pred, p_pred, rng)
-                        if res is not None:
-                            ok, err = True, _camera_error(res.R_CBj, res.p_C, R_true, p_true)
-                            extra = {"fitness": res.fitness, "points": res.n_points}
-                    sun_deg = float(np.degrees(np.arccos(np.clip(sun[2], -1, 1))))  # LOS is +z
-                    samples.append({"illumination": illum, "range_m": float(rng_m), "orientation": io, "sun": isn,
-                                    "sun_deg": sun_deg, "ok": ok, "err": [float(x) for x in err], **extra})
-                    if progress is not None:
-                        progress(len(samples), len(illuminations) * len(ranges) * len(atts) * len(suns))
-            if log:
-                done = sum(1 for s_ in samples if s_["illumination"] == illum and s_["range_m"] == float(rng_m))
-                okn = sum(1 for s_ in samples if s_["illumination"] == illum and s_["range_m"] == float(rng_m) and s_["ok"])
-                log(f"{pipeline} {illum} range {rng_m:.1f} m: {okn}/{done} ok ({time.perf_counter() - t_start:.0f} s)")
-        rend.close()
+            jobs[f"{illum}@{ir}"] = (pipeline, cfg_data, illum, float(amb), ir, float(rng_m), atts, suns, seed,
+                                     pred_sigma_att_rad, pred_sigma_pos_m)
+    per_cell = len(atts) * len(suns)
+    t_start = time.perf_counter()
+    cell_progress = None if progress is None else (lambda k, K: progress(k * per_cell, K * per_cell))
+    cells = (mapper or _sequential)(characterize_cell, jobs, cell_progress)
+    samples = [s_ for key in jobs if key in cells for s_ in cells[key]]
+    if log:
+        for key, (_, _, illum, _, _, rng_m, *_) in jobs.items():
+            if key in cells:
+                okn = sum(1 for s_ in cells[key] if s_["ok"])
+                log(f"{pipeline} {illum} range {rng_m:.1f} m: {okn}/{len(cells[key])} ok")
+            else:
+                log(f"{pipeline} {illum} range {rng_m:.1f} m: failed, no samples")
     out = {
         "pipeline": pipeline,
         "camera": camera_signature(cfg, pipeline),
@@ -173,6 +213,7 @@ def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_
         "config": cfg.model_dump(mode="json"),
         "wall_s": time.perf_counter() - t_start,
         "illuminations": {},
+        "missing_cells": [key for key in jobs if key not in cells],
         "samples": samples,
     }
     for illum in illuminations:
@@ -314,12 +355,13 @@ def vision_config_for(pipeline: str, vision: VisionConfig | None = None) -> Visi
 
 def run_cli(pipeline: str, out: Path, vision: VisionConfig | None = None, ranges=None, orientations: int = 6,
             suns: int = 6, illuminations=("solar", "global"), ambient_global: float | None = None, seed: int = 0,
-            log=print, progress=None) -> dict:
+            log=print, progress=None, mapper=None) -> dict:
     """What ``swarm characterize`` does: run, write JSON + plots, print a summary table.
     ``vision``: the scenario's vision section to characterize (default: the defaults)."""
     cfg = vision_config_for(pipeline, vision)
     amb = ambient_global if ambient_global is not None else (cfg.lighting.ambient if cfg.lighting.ambient > 0 else 0.25)
-    res = characterize(pipeline, cfg, ranges, orientations, suns, tuple(illuminations), amb, seed, log=log, progress=progress)
+    res = characterize(pipeline, cfg, ranges, orientations, suns, tuple(illuminations), amb, seed, log=log, progress=progress,
+                       mapper=mapper)
     files = write(res, out)
     for illum, st in res["illuminations"].items():
         rb = st["by_range"]
