@@ -575,6 +575,8 @@ def links_study(
     loss_latency: Optional[float] = typer.Option(None, min=0.0, help="the latency (s) of the loss sweep (default sweep: 2)"),
     caps: Optional[str] = typer.Option(None, help="comma-separated fractions of the complete graph's need ('' for none)"),
     late: Optional[str] = typer.Option(None, help="comma-separated filter.late modes (replay,drop)"),
+    cluster: Optional[str] = ClusterOpt,
+    resume: bool = ResumeOpt,
 ):
     """Sweep the network: latency, bursty loss and a data-rate cap below what the complete
     graph needs; replay vs drop of late measurements, and the complete graph vs greedy
@@ -614,10 +616,18 @@ def links_study(
             console.print(f"[red]error:[/red] --late {late!r}: expected replay and/or drop", highlight=False)
             raise typer.Exit(2)
         sweep = replace(sweep, late_modes=modes)
-    with _progress() as prog:
-        task = prog.add_task(f"links-study {sc.name} n={sc.n_sats} ×{runs} seeds", total=None)
-        doc = run_links_study(sc, out, runs=runs, sweep=sweep, seed=seed, workers=workers,
-                              progress=lambda k, K: prog.update(task, completed=k, total=K))
+    from .executor import ResultStore, StudyMapper, open_executor
+
+    out.mkdir(parents=True, exist_ok=True)
+    store = ResultStore(out / "results.jsonl", resume=resume)
+    try:
+        with _study(open_executor, workers, cluster) as ex, _progress() as prog:
+            mapper = StudyMapper(ex, store, log=lambda m: console.print(m, highlight=False), noun="runs")
+            task = prog.add_task(f"links-study {sc.name} n={sc.n_sats} ×{runs} seeds", total=None)
+            doc = run_links_study(sc, out, runs=runs, sweep=sweep, seed=seed, workers=workers, mapper=mapper,
+                                  progress=lambda k, K: prog.update(task, completed=k, total=K))
+    finally:
+        store.close()
     t = Table(title=f"{sc.name}: n={sc.n_sats}, {sc.duration_s:g} s, {runs} paired seeds (mean); "
                     f"complete graph needs {doc['probe']['need_Bps']:.0f} B/s per transmitter")
     for col in ("latency s", "loss", "late", "arm", "cap B/s"):
@@ -633,6 +643,7 @@ def links_study(
     console.print(t)
     console.print(f"{len(doc['cells'])} cells × {runs} seeds in {doc['wall_s']:.0f} s · wrote {out / 'links_study.md'}, "
                   f"{out / 'links_study.json'} and the plots")
+    _report_failed(sorted(mapper.result.errors.items()) if mapper.result else [], "runs", out, "cell/seed")
 
 
 @bench_app.command("selection")

@@ -480,9 +480,13 @@ def run_links_study(
     seed: int | None = None,
     workers: int = 2,
     progress: Callable[[int, int], None] | None = None,
+    mapper: Callable | None = None,
 ) -> dict:
     """Probe, run every cell over seeds ``seed + i`` (i < runs), write the table, the JSON
-    and the plots into ``out``; return the JSON document."""
+    and the plots into ``out``; return the JSON document. ``mapper(fn, jobs, progress)``:
+    where the runs go (a :class:`swarm.executor.StudyMapper`: the local pool or a Dask
+    cluster, results streamed and resumable); default: a local pool of ``workers``. Cells
+    with a failed run are left out of the table and listed under ``failed``."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     base = sc.seed if seed is None else seed
@@ -495,7 +499,10 @@ def run_links_study(
     if progress:
         progress(0, total)
     t0 = time.perf_counter()
-    res = _map(run_cell, jobs, workers, (lambda k: progress(k, total)) if progress else None)
+    if mapper is None:
+        res = _map(run_cell, jobs, workers, (lambda k: progress(k, total)) if progress else None)
+    else:
+        res = mapper(run_cell, jobs, progress)
     wall = time.perf_counter() - t0
     doc = {
         "scenario": sc.name,
@@ -508,8 +515,11 @@ def run_links_study(
         "wall_s": wall,
         "workers": workers,
         "cells": [],
+        "failed": sorted(k for k in jobs if k not in res),
     }
     for c in cs:
+        if any(f"{c.key}/{s}" not in res for s in seeds):
+            continue  # paired statistics: a cell is whole or left out
         rows = [res[f"{c.key}/{s}"] for s in seeds]
         doc["cells"].append({"key": c.key, "params": asdict(c), "overrides": c.overrides(), "stats": _stats(rows), "runs": rows})
     doc["comparisons"] = _comparisons(doc)

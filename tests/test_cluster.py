@@ -179,6 +179,22 @@ def test_cluster_mc_gives_the_local_pools_numbers(cluster, tmp_path):
 
 
 @pytest.mark.integration
+def test_cluster_links_study_gives_the_local_pools_numbers(cluster, tmp_path):
+    scen = ["scenarios/links-study.yaml", "--runs", "1", "--latencies", "0,2", "--losses", "0.3", "--caps", "",
+            "--set", "duration_s=6", "--set", "n_sats=4"]
+    local, remote = tmp_path / "local", tmp_path / "cluster"
+    swarm("links-study", *scen, "--workers", "2", "--out", str(local))
+    swarm("links-study", *scen, "--cluster", cluster.address, "--out", str(remote))
+
+    def cells(out):
+        doc = json.loads((out / "links_study.json").read_text())
+        return {c["key"]: [{k: v for k, v in r.items() if k != "wall_s"} for r in c["runs"]] for c in doc["cells"]}
+
+    a, b = cells(local), cells(remote)
+    assert len(a) == 6 and a == b
+
+
+@pytest.mark.integration
 def test_cluster_compare_gives_the_local_pools_numbers(cluster, tmp_path):
     args = ["compare", "scenarios/selection.yaml", "--runs", "2", "--strategies", "random,greedy", "--set", "duration_s=6",
             "--set", "n_sats=5", "--set", "selection.budget=3"]
