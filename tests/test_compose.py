@@ -223,7 +223,9 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
     from swarmcore.scenario import Scenario
 
     port = str(free_port())
-    n, dur = 4, 120
+    # Long enough that the run is still going when the clear comes (a fault takes tens of
+    # seconds on a loaded machine: CLI start, docker run of the helper).
+    n, dur = 4, 300
     delay_ms, jitter_ms = 200.0, 20.0
     sets = f"duration_s={dur} emulator.lockstep_max_realtime_factor=3 emulator.step_timeout_s=15"
     c = Compose(tmp_path / "out", {"SWARM_N": str(n), "SWARM_SET_EXTRA": sets, "SWARM_BUS_PORT": port})
@@ -234,7 +236,7 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
         log.append(_fault(c, "netem", "3", "--delay", f"{delay_ms:g}ms", "--jitter", f"{jitter_ms:g}ms", "--loss", "10%"))
         cid = log[-1].split("on container ")[1].split()[0]
         states["applied"] = netem_state(cid)
-        _wait_step(c, 70)
+        _wait_step(c, 120)
         log.append(_fault(c, "netem", "3", "clear"))
         states["cleared"] = netem_state(cid)
         rid = c("ps", "-q", "recorder").stdout.split()
