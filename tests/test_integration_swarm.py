@@ -48,7 +48,7 @@ def test_distributed_run_equals_in_process_run(tmp_path):
 def _check_complete_recording(path, sc):
     """A fault-free lockstep run's recording holds exactly its protocol: one channel per key
     of the run (nothing malformed, no selector, no faults), every message valid under the
-    schema its channel names, stamped with its simulation time, and one message per step
+    schema its channel names, published (Zenoh timestamp) before it was received, one per step
     and satellite on each per-step channel — plus the derived Foxglove channels."""
     from collections import defaultdict
 
