@@ -16,8 +16,9 @@ ARG BASE_IMAGE=debian:bookworm-slim
 
 # ---- run-time system packages ---------------------------------------------
 FROM ${BASE_IMAGE} AS runtime
-# Python, tini, and the Mesa/EGL/OSMesa libraries headless rendering and
-# Open3D need: scripts/apt-packages.txt less the host-only ones (chromium),
+# Python, tini, the Mesa/EGL/OSMesa libraries headless rendering and
+# Open3D need, iproute2 and iptables (swarm fault netem): scripts/apt-packages.txt
+# less the host-only ones (chromium),
 # plus libGLU, which pyglet loads as soon as pyrender is imported.
 # Installs only what the base lacks: the locally made base already has all of
 # them, so this step needs no network there.

@@ -1,7 +1,9 @@
 #!/usr/bin/env bash
 # Make the base image of docker/Dockerfile locally, for machines that have no
 # container registry (nothing can be pulled). Idempotent: does nothing when the
-# image already exists (pulled or made earlier).
+# image already exists (pulled, or made earlier from the same package list); a
+# locally made one whose package list differs from today's is made again (the
+# build has no network for apt, so the base must already hold every package).
 #
 # What it makes: a minimal Debian bookworm root file system (debootstrap
 # --variant=minbase) that already holds the run-time packages the Dockerfile
@@ -31,9 +33,22 @@ EXTRA_PKGS=(python3 python3-venv ca-certificates tini libglu1-mesa)
 
 log() { echo "docker-base: $*" >&2; }
 
+mapfile -t pkgs < <(grep -v '^\s*#' scripts/apt-packages.txt | grep -v '^\s*$' | awk '{print $1}' | grep -Ev "$EXCLUDE_RE")
+# What this base must hold, as a label on the image: a locally made base with another
+# list (an older one, without a package added since) is made again.
+pkgs_id=$(printf '%s\n' "${pkgs[@]}" "${EXTRA_PKGS[@]}" | sort -u | sha256sum | cut -c1-16)
 if [ "${FORCE:-0}" != "1" ] && docker image inspect "$BASE_IMAGE" >/dev/null 2>&1; then
-  log "$BASE_IMAGE already exists; nothing to do"
-  exit 0
+  have=$(docker image inspect -f '{{index .Config.Labels "org.swarm-coloc.base-packages"}}' "$BASE_IMAGE" 2>/dev/null || true)
+  desc=$(docker image inspect -f '{{index .Config.Labels "org.opencontainers.image.description"}}' "$BASE_IMAGE" 2>/dev/null || true)
+  if [ "$have" = "$pkgs_id" ]; then
+    log "$BASE_IMAGE already exists with today's packages; nothing to do"
+    exit 0
+  elif [[ "$desc" != "Local stand-in for "* ]]; then
+    # Pulled from a registry: the Dockerfile apt-gets what it lacks (a registry means network).
+    log "$BASE_IMAGE already exists (not made here); nothing to do"
+    exit 0
+  fi
+  log "$BASE_IMAGE was made from another package list (${have:-none} != $pkgs_id): making it again"
 fi
 if [ "$(id -u)" != "0" ]; then
   log "debootstrap needs root"; exit 1
@@ -84,7 +99,6 @@ if ! command -v debootstrap >/dev/null 2>&1; then
   DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends debootstrap >/dev/null
 fi
 
-mapfile -t pkgs < <(grep -v '^\s*#' scripts/apt-packages.txt | grep -v '^\s*$' | awk '{print $1}' | grep -Ev "$EXCLUDE_RE")
 include=$(printf '%s,' "${pkgs[@]}" "${EXTRA_PKGS[@]}"); include=${include%,}
 log "packages: $include"
 
@@ -131,5 +145,6 @@ tar -C "$rootfs" --numeric-owner -c . | docker import \
   --change 'ENV LANG=C.UTF-8' \
   --change 'CMD ["bash"]' \
   --change "LABEL org.opencontainers.image.description=\"Local stand-in for $BASE_IMAGE (debootstrap $SUITE minbase + swarm-coloc run-time packages), made by scripts/docker-base.sh\"" \
+  --change "LABEL org.swarm-coloc.base-packages=$pkgs_id" \
   - "$BASE_IMAGE" >/dev/null
 log "made $BASE_IMAGE ($(docker image inspect -f '{{.Size}}' "$BASE_IMAGE" | awk '{printf "%.0f MB", $1/1e6}')) in $(( $(date +%s) - start )) s"

@@ -390,6 +390,35 @@ def fault_heal(ctx: typer.Context, sat: int):
     _send_fault(ctx, action="heal", target=sat)
 
 
+@fault_app.command("netem")
+def fault_netem(
+    ctx: typer.Context,
+    sat: int,
+    clear: Optional[str] = typer.Argument(None, metavar="[clear]", help="'clear' removes the impairment"),
+    delay: Optional[str] = typer.Option(None, "--delay", help="one-way delay added to what SAT sends, e.g. 200ms (s, ms, us)"),
+    jitter: Optional[str] = typer.Option(None, "--jitter", help="± spread around the delay (uniform), e.g. 50ms"),
+    loss: Optional[str] = typer.Option(None, "--loss", help="packets lost, e.g. 10%"),
+    rate: Optional[str] = typer.Option(None, "--rate", help="egress rate cap, e.g. 1mbit (bit, kbit, mbit, gbit; bps = bytes/s)"),
+):
+    """Impair satellite SAT's network with Linux traffic control (compose only): `netem 3
+    --delay 200ms --jitter 50ms --loss 10% --rate 1mbit`, or `netem 3 clear`."""
+    from .netem import CLEAR, Netem, NetemError
+
+    try:
+        if clear is not None:
+            if clear != CLEAR:
+                raise NetemError(f"unexpected argument {clear!r}: the only word after SAT is 'clear'")
+            if any(v is not None for v in (delay, jitter, loss, rate)):
+                raise NetemError("'clear' takes no --delay, --jitter, --loss or --rate")
+            args = CLEAR
+        else:
+            args = Netem.from_cli(delay, jitter, loss, rate).args()
+    except NetemError as exc:
+        console.print(f"[red]error:[/red] {exc}", highlight=False)
+        raise typer.Exit(2)
+    _send_fault(ctx, action="netem", target=sat, netem=args)
+
+
 @app.command()
 def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), out: Optional[Path] = typer.Option(None, "--out")):
     """Salvage every complete message of a damaged recording into a clean MCAP."""

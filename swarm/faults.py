@@ -4,8 +4,10 @@ Local (``--run-dir``, or ``--connect`` + ``--run``): the command goes on the bus
 executor (the supervisor of ``swarm run`` for processes, the world for cameras, the agent
 for drops) acts and reports back. Compose (``--compose``): process and network faults are
 carried out here with the docker CLI — kill, stop or restart a satellite's container,
-disconnect it from the bus network (a partition) and reconnect it (heal) — and reported on
-the bus so they land in the recording; camera and drop faults go on the bus as usual.
+disconnect it from the bus network (a partition) and reconnect it (heal), impair its
+network with Linux traffic control (netem: delay, jitter, loss, rate; :mod:`swarm.netem`)
+— and reported on the bus so they land in the recording; camera and drop faults go on the
+bus as usual.
 """
 
 from __future__ import annotations
@@ -14,16 +16,20 @@ import json
 import os
 import shutil
 import subprocess
+import threading
 import time
 from pathlib import Path
+
+import zenoh
 
 from swarmcore.scenario import NETWORK_FAULTS, PROCESS_FAULTS, SELECTOR_PROCESS_FAULTS
 
 from .bus.messages import Fault, Keys
 from .bus.session import BusConfig
+from .netem import CLEAR, NO_QDISC, UNKNOWN_QDISC, netemd_args, show_script, tc_script
 from .node import Node
 
-__all__ = ["send_fault", "compose_containers"]
+__all__ = ["send_fault", "compose_containers", "netem_state", "netem_helper_name"]
 
 
 
@@ -126,6 +132,8 @@ def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | 
         _docker("stop", cid)
     elif cmd.action in ("restart-agent", "restart-selector"):
         _docker("restart", cid)
+    elif cmd.action == "netem":
+        return _netem(cid, cmd.netem, project)
     elif cmd.action in NETWORK_FAULTS:
         nets = json.loads(_docker("inspect", "--format", "{{json .NetworkSettings.Networks}}", cid)) or {}
         net = network or next((n for n in nets if n.endswith("_bus")), None)
@@ -139,6 +147,87 @@ def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | 
     return f"{cmd.action} on container {cid[:12]}"
 
 
+def netem_helper_name(cid: str) -> str:
+    """Name of the long-lived helper container of the netem fallback for container ``cid``."""
+    return f"swarm-netem-{cid[:12]}"
+
+
+def _in_namespace(cid: str, script: str, check: bool = True) -> subprocess.CompletedProcess:
+    """Run ``sh -c SCRIPT`` in a short-lived helper container of ``cid``'s image that shares
+    ``cid``'s network namespace and holds NET_ADMIN (the agent itself has no such right)."""
+    image = _docker("inspect", "--format", "{{.Image}}", cid)
+    p = subprocess.run(
+        [shutil.which("docker") or "docker", "run", "--rm", "--network", f"container:{cid}", "--cap-add", "NET_ADMIN",
+         "--entrypoint", "sh", image, "-c", script],
+        capture_output=True, text=True, timeout=120,
+    )
+    if check and p.returncode != 0:
+        raise RuntimeError(f"in container {cid[:12]}'s network namespace: {p.stderr.strip() or p.stdout.strip()}")
+    return p
+
+
+def netem_state(cid: str) -> str:
+    """``eth0: qdisc ...`` lines (and the fallback's iptables rules) of container ``cid``."""
+    return _in_namespace(cid, show_script()).stdout.strip()
+
+
+def _netem(cid: str, netem: str | None, project: str | None) -> str:
+    """Apply (or ``clear``) the impairment in container ``cid``'s network namespace and say
+    how: the kernel's netem qdisc, else the :mod:`swarm.netemd` fallback in a long-lived
+    helper container (labelled as an extra container of the compose project, so that
+    ``docker compose down --remove-orphans`` removes it with the swarm)."""
+    if netem is None:
+        raise RuntimeError("netem: no arguments")
+    helper = netem_helper_name(cid)
+    # A previous fallback helper on this container: SIGTERM lets it remove its own rules.
+    _docker("stop", "-t", "5", helper, check=False)  # no such container: a harmless error
+    _docker("rm", "-f", helper, check=False)
+    if netem == CLEAR:
+        state = _in_namespace(cid, tc_script(CLEAR)).stdout.strip()
+        return f"netem cleared on container {cid[:12]} ({state})".replace("\n", "; ")
+    mech = os.environ.get("SWARM_NETEM_MECHANISM", "auto")
+    if mech not in ("auto", "qdisc", "netemd"):
+        raise RuntimeError(f"SWARM_NETEM_MECHANISM={mech!r}: use auto, qdisc or netemd")
+    if mech != "netemd":
+        p = _in_namespace(cid, tc_script(netem), check=False)
+        if p.returncode == 0:
+            return f"netem {netem} on container {cid[:12]} (kernel qdisc: {p.stdout.strip()})".replace("\n", "; ")
+        if mech == "qdisc" or p.returncode != NO_QDISC or UNKNOWN_QDISC not in p.stderr:
+            raise RuntimeError(f"tc netem in container {cid[:12]}: {p.stderr.strip() or p.stdout.strip()}")
+    # This kernel has no netem qdisc: the same impairment from iptables, NFQUEUE and tbf.
+    image = _docker("inspect", "--format", "{{.Image}}", cid)
+    proj = project or json.loads(_docker("inspect", "--format", "{{json .Config.Labels}}", cid)).get("com.docker.compose.project", "")
+    labels = ["--label", f"org.swarm-coloc.netem-of={cid}"]
+    if proj:
+        labels += ["--label", f"com.docker.compose.project={proj}", "--label", "com.docker.compose.service=netem",
+                   "--label", "com.docker.compose.oneoff=False", "--label", "com.docker.compose.container-number=1"]
+    _docker("run", "-d", "--name", helper, *labels, "--network", f"container:{cid}", "--cap-add", "NET_ADMIN",
+            "--entrypoint", "python", image, "-m", "swarm.netemd", *netemd_args(netem))
+    _wait_ready(helper, 60.0)
+    state = netem_state(cid)
+    return f"netem {netem} on container {cid[:12]} (no netem qdisc in this kernel: swarm.netemd in {helper}: {state})".replace("\n", "; ")
+
+
+def _wait_ready(container: str, timeout: float) -> None:
+    """Block until ``container`` prints READY (following its log), or fail with its log."""
+    p = subprocess.Popen([shutil.which("docker") or "docker", "logs", "-f", container], stdout=subprocess.PIPE,
+                         stderr=subprocess.STDOUT, text=True)
+    timer = threading.Timer(timeout, p.kill)
+    timer.start()
+    lines = []
+    try:
+        for line in p.stdout:
+            lines.append(line.rstrip())
+            if line.strip() == "READY":
+                return
+    finally:
+        timer.cancel()
+        p.kill()
+        p.wait()
+    _docker("rm", "-f", container, check=False)
+    raise RuntimeError(f"{container} did not become ready: {' | '.join(lines[-5:]) or 'no output'}")
+
+
 def _bus_network(project: str | None) -> str:
     nets = _docker("network", "ls", "--format", "{{.Name}}").split()
     cands = [n for n in nets if n.endswith("_bus") and (project is None or n.startswith(project))]
@@ -149,7 +238,12 @@ def _bus_network(project: str | None) -> str:
 
 def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0, **fields) -> str:
     endpoint, run, n = _target(run_dir, connect, run_id, compose)
-    node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000))
+    if not compose and fields.get("action") in NETWORK_FAULTS:
+        raise ValueError(f"{fields['action']} needs --compose (local processes share one network)")
+    try:
+        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000))
+    except zenoh.ZError as exc:
+        raise RuntimeError(f"cannot reach the swarm's bus at {endpoint}: {exc}") from None
     keys = Keys(run)
     try:
         node.subscribe(keys.fault())

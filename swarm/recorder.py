@@ -1,7 +1,12 @@
 """The recorder: every message of a run's key space into MCAP.
 
 One channel per key expression, one JSON schema per message type (from the message
-models), log time = arrival (ns), publish time = simulation time. Liveliness changes are
+models). Log time = when the recorder's session received the message; publish time = the
+message's Zenoh timestamp, the publishing session's clock at ``put`` (every session of the
+project stamps: :mod:`swarm.bus.session`), both Unix ns: ``log_time − publish_time`` is the
+one-way bus latency (publisher → router → recorder), which :mod:`swarm.recording` turns
+into per-sender statistics. A sample without a timestamp gets publish time = log time, as
+the MCAP specification asks. The simulation time is in every message (``t_s``). Liveliness changes are
 recorded on ``swarm/<run>/alive`` and messages that fail validation on
 ``swarm/<run>/_malformed`` (with the reason), so the recording tells the whole story.
 Flushes at least once per ``flush_every_s`` of simulated time (and once per wall second);
@@ -82,7 +87,8 @@ class Recorder:
         return sid
 
     def record(self, s) -> None:
-        now = time.time_ns()
+        now = s.received_ns or time.time_ns()
+        published = s.published_ns if s.published_ns is not None else now
         try:
             run, kind, _sat = parse_key(s.key)
             if run != self.run:
@@ -99,7 +105,7 @@ class Recorder:
             # Images: the JSON header only on the bus channel (pixels as foxglove.RawImage when
             # emulator.record_images is on); every other message exactly as it travelled.
             data = msg.header_json() if kind == "img" else s.payload
-            self.w.add(self.w.channel(s.key, self._schema(kind)), data, now, int(round(msg.t_s * 1e9)))
+            self.w.add(self.w.channel(s.key, self._schema(kind)), data, now, published)
             if self.foxglove is not None:
                 self.foxglove.on_message(kind, msg, now)
             if kind == "est" and self.final is not None and msg.k == self.final[0]:

@@ -16,7 +16,7 @@ from swarmcore.scenario import Scenario
 from .bus.messages import MessageError, decode, parse_key
 from .mcaplog import iter_messages
 
-__all__ = ["Recording", "load_recording"]
+__all__ = ["Recording", "BusTimes", "load_recording"]
 
 
 @dataclass
@@ -50,6 +50,16 @@ class Recording:
     link_latencies: list = field(default_factory=list)  # (sender, receiver, sent step, latency s)
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
     rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
+    bus: "BusTimes | None" = None  # every bus message's sender, kind, step, publish and receive time
+
+    def bus_latency_ms(self, published_from_ns: int | None = None, published_to_ns: int | None = None) -> dict:
+        """Per sender (``agent-3``, ``world``, ...): the one-way bus latency of its messages
+        (recorder receive time − the publisher's Zenoh timestamp, ms) as ``n``, ``min``,
+        ``p50``, ``p95``, ``max``; optionally only messages published in
+        ``[published_from_ns, published_to_ns)`` (Unix ns). Messages that carried no
+        timestamp (publish time = log time in the file) are left out and counted as
+        ``unstamped``."""
+        return self.bus.latency_stats(published_from_ns, published_to_ns) if self.bus is not None else {}
 
     def errors(self):
         a, dr = pose_errors(self.est_q, self.est_r, self.truth_q[:, None], self.truth_r[:, None])
@@ -81,6 +91,7 @@ class Recording:
                 "measurements_per_step_mean": float(self.taken.sum(axis=(1, 2)).mean()),
                 **(late_summary(self.late_used, self.late_dropped, self.replayed) if sc.links.enabled else {}),
                 **({"links": link_summary(self.link_counters(), self.link_latencies)} if self.links is not None else {}),
+                **({"bus_latency_ms": lat} if (lat := self.bus_latency_ms()) else {}),
                 "faults": self.faults,
                 "selector_fallback_steps": self.fallback_steps,
                 "messages": self.counts,
@@ -91,6 +102,42 @@ class Recording:
         """The cumulative per-link counters of the last step recorded."""
         m = self.links
         return LinkCounters(**{name: np.rint(getattr(m, name).array()).astype(int) for name in LinkCounters.__dataclass_fields__})
+
+
+@dataclass
+class BusTimes:
+    """Publish and receive times of every bus message of a recording (one row each)."""
+
+    sender: np.ndarray  # (M,) str: the message header's sender
+    kind: np.ndarray  # (M,) str: message kind (est, meas, health, ...)
+    k: np.ndarray  # (M,) step
+    published_ns: np.ndarray  # (M,) int64: MCAP publish time (the publisher's Zenoh timestamp)
+    received_ns: np.ndarray  # (M,) int64: MCAP log time (the recorder's receive time)
+
+    @property
+    def latency_ms(self) -> np.ndarray:
+        return (self.received_ns - self.published_ns) / 1e6
+
+    def latency_stats(self, published_from_ns: int | None = None, published_to_ns: int | None = None) -> dict:
+        sel = np.ones(self.k.shape, dtype=bool)
+        if published_from_ns is not None:
+            sel &= self.published_ns >= published_from_ns
+        if published_to_ns is not None:
+            sel &= self.published_ns < published_to_ns
+        lat = self.latency_ms
+        out = {}
+        for sender in sorted(set(self.sender[sel].tolist())):
+            mine = sel & (self.sender == sender)
+            stamped = mine & (self.published_ns != self.received_ns)
+            x = lat[stamped]
+            row = {"n": int(x.size)}
+            if x.size:
+                row.update({"min": round(float(x.min()), 3), "p50": round(float(np.percentile(x, 50)), 3),
+                            "p95": round(float(np.percentile(x, 95)), 3), "max": round(float(x.max()), 3)})
+            if (unstamped := int(mine.sum() - stamped.sum())):
+                row["unstamped"] = unstamped
+            out[sender] = row
+        return out
 
 
 def _shape(path) -> tuple[int, int]:
@@ -139,7 +186,8 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
         replayed=np.zeros((K, F), dtype=int),
     )
     counts: dict[str, int] = {}
-    for topic, _schema, data, log_ns, _pub in iter_messages(path):
+    bus_rows: list[tuple[str, str, int, int, int]] = []
+    for topic, _schema, data, log_ns, pub_ns in iter_messages(path):
         try:
             _run, kind, _sat = parse_key(topic)
         except MessageError:
@@ -154,6 +202,7 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             m = decode(kind, data)
         except MessageError:
             continue
+        bus_rows.append((m.sender, kind, m.k, pub_ns, log_ns))
         k = m.k
         if not 0 <= k < K:
             continue
@@ -207,8 +256,13 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
                     "camera": m.camera,
                     "state": m.state,
                     "rate": m.rate,
+                    "netem": m.netem,
                     "detail": m.detail,
+                    "log_time_ns": log_ns,
                 }
             )
     rec.counts = counts
+    if bus_rows:
+        sender, kinds, ks, pub, log = zip(*bus_rows)
+        rec.bus = BusTimes(np.array(sender), np.array(kinds), np.array(ks), np.array(pub, dtype=np.int64), np.array(log, dtype=np.int64))
     return rec

@@ -338,6 +338,7 @@ FaultAction = Literal[
     "drop",
     "partition",
     "heal",
+    "netem",
 ]
 FAULT_ACTIONS: tuple[str, ...] = get_args(FaultAction)
 #: Faults on an agent's process, carried out by the supervisor (``swarm run``) or Docker.
@@ -345,7 +346,8 @@ AGENT_PROCESS_FAULTS = ("kill-agent", "restart-agent", "stop-agent")
 #: Faults on the selector's process.
 SELECTOR_PROCESS_FAULTS = ("kill-selector", "restart-selector")
 #: Faults on a container's network: compose only (local processes share one network).
-NETWORK_FAULTS = ("partition", "heal")
+#: netem: Linux traffic control (delay, jitter, loss, rate) in the container's namespace.
+NETWORK_FAULTS = ("partition", "heal", "netem")
 #: Faults some process other than the bus roles carries out (supervisor, Docker).
 PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS
 #: Faults that name a satellite.

@@ -93,6 +93,14 @@ def test_role_modules_start(image, role):
     assert "usage" in r.stdout.lower()
 
 
+def test_image_carries_traffic_control(image):
+    """`swarm fault --compose netem` runs tc (iproute2) and, on kernels without netem,
+    iptables and `python -m swarm.netemd` in a helper container of this image."""
+    r = docker_run(image, "sh", "-c", "tc -V && iptables --version && ip -V && python -m swarm.netemd --help")
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "iproute2" in r.stdout and "iptables v" in r.stdout and "NFQUEUE" in r.stdout, r.stdout
+
+
 @pytest.mark.render
 @pytest.mark.parametrize("platform", ["egl", "osmesa"])
 def test_headless_render_in_container(image, platform):

@@ -36,9 +36,11 @@ import re
 from typing import Annotated, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
 
 from swarmcore.scenario import FaultAction
+
+from ..netem import NetemError, validate_field
 
 SCHEMA_VERSION = 1
 
@@ -253,7 +255,27 @@ class Fault(_Header):
     camera: int | None = Field(None, ge=0, le=5)
     state: Literal["on", "off"] | None = None
     rate: float | None = Field(None, ge=0.0, le=1.0)
+    netem: str | None = Field(
+        None, max_length=200, description="netem: the tc netem arguments applied to the target's container "
+        "('delay 200ms 50ms loss 10% rate 1mbit', canonical form) or 'clear'"
+    )
     detail: str = ""
+
+    @field_validator("netem")
+    @classmethod
+    def _netem_args(cls, v):
+        if v is None:
+            return v
+        try:
+            return validate_field(v)
+        except NetemError as exc:
+            raise ValueError(str(exc)) from None
+
+    @model_validator(mode="after")
+    def _netem_needs_args(self):
+        if self.action == "netem" and self.netem is None:
+            raise ValueError("action netem needs netem (tc netem arguments or 'clear')")
+        return self
 
 
 class Health(_Header):

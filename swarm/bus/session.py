@@ -14,6 +14,7 @@ import logging
 import os
 import queue
 import threading
+import time
 from dataclasses import dataclass, field
 
 import zenoh
@@ -43,6 +44,11 @@ class BusConfig:
         if self.listen:
             cfg.insert_json5("listen/endpoints", json.dumps(self.listen))
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(self.multicast_scouting))
+        # Every put carries the publishing session's clock (an HLC time, NTP64; Zenoh only
+        # stamps on routers by default): the recorder's receive time minus it is the
+        # message's one-way bus latency (containers share the host's clock; across hosts
+        # it includes their clock offset).
+        cfg.insert_json5("timestamping/enabled", "true")
         return cfg
 
     def as_args(self) -> list[str]:
@@ -83,6 +89,8 @@ class Sample:
     key: str
     payload: bytes
     kind: str  # "put" or "delete"
+    published_ns: int | None = None  # the sample's timestamp (publisher's clock, Unix ns), if stamped
+    received_ns: int = 0  # when the callback saw it (time.time_ns())
 
 
 class Inbox:
@@ -99,8 +107,11 @@ class Inbox:
 
     def callback(self, sample) -> None:
         try:
+            now = time.time_ns()
             kind = "delete" if sample.kind == zenoh.SampleKind.DELETE else "put"
-            self._q.put_nowait(Sample(str(sample.key_expr), bytes(sample.payload.to_bytes()), kind))
+            ts = sample.timestamp
+            pub = ts.get_time_as_ntp64().as_nanos() if ts is not None else None
+            self._q.put_nowait(Sample(str(sample.key_expr), bytes(sample.payload.to_bytes()), kind, pub, now))
         except queue.Full:
             with self._lock:
                 self.dropped += 1
