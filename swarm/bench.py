@@ -65,15 +65,51 @@ def _time_filter(params, est0, inputs, method: str, warmup: int) -> list[float]:
     return times
 
 
+def _time_update_vs_peer(params, est0, inputs, warmup: int, repeats: int) -> tuple[list[float], list[float]]:
+    """The measurement update alone on the same prior and the same measurements: ours
+    (``update``, the auto form) and filterpy's ``KalmanFilter.update`` on the stacked
+    problem (H, y, R of :func:`swarmcore.mekf.stacked_problem`, at the same linearisation).
+    filterpy is the well-known peer: a textbook EKF update (S, K by inversion, Joseph P)."""
+    from filterpy.kalman import KalmanFilter
+
+    from swarmcore.mekf import gate, linearize, stacked_problem
+
+    ours, peer = [], []
+    est = est0
+    for k, (gyro, ab, rel) in enumerate(inputs[: warmup + repeats]):
+        prior = predict(est, params, gyro)
+        t0 = time.perf_counter()
+        est, _ = update(prior, params, ab, rel, method="auto")
+        t_ours = (time.perf_counter() - t0) * 1e3
+        # The peer gets the same accepted set at the same linearisation (its update has no gate).
+        *_, accepted = gate(prior, params, rel)
+        lin = linearize(prior, params, ab, rel.subset(accepted))
+        N = prior.P.shape[0]
+        H, y, R = stacked_problem(N, prior.n, lin)
+        kf = KalmanFilter(dim_x=N, dim_z=y.size)
+        kf.x = np.zeros(N)
+        kf.P = prior.P.copy()
+        t0 = time.perf_counter()
+        kf.update(y, R=R, H=H)
+        t_peer = (time.perf_counter() - t0) * 1e3
+        if k >= warmup:
+            ours.append(t_ours)
+            peer.append(t_peer)
+    return ours, peer
+
+
 def bench_filter(
     sats: list[int],
     graph: str = "complete",
     steps: int | None = None,
     stacked_max_n: int = 25,
+    peer_max_n: int = 25,
     seed: int = 0,
     log: Callable[[str], None] = print,
 ) -> list[dict]:
-    """Median ms per filter step (predict + update, one filter), fast vs stacked reference."""
+    """Median ms per filter step (predict + update, one filter), fast vs stacked reference;
+    and the update alone against filterpy's ``KalmanFilter.update`` on the same stacked
+    problem (the peer column), measured in the same run."""
     rows = []
     for n in sats:
         k = steps or (30 if n <= 25 else 8 if n <= 60 else 5)
@@ -93,11 +129,23 @@ def bench_filter(
             stacked = _time_filter(params, est0, inputs[:ks], "stacked", warm)
             row["stacked_ms_per_step_median"] = statistics.median(stacked)
             row["ratio"] = row["stacked_ms_per_step_median"] / row["ms_per_step_median"]
+        row["update_ms_median"] = row["filterpy_update_ms_median"] = row["peer_ratio"] = None
+        if n <= peer_max_n:
+            ours, peer = _time_update_vs_peer(params, est0, inputs, warm, 10 if n <= 12 else 3)
+            row["update_ms_median"] = statistics.median(ours)
+            row["filterpy_update_ms_median"] = statistics.median(peer)
+            row["peer_ratio"] = row["filterpy_update_ms_median"] / row["update_ms_median"]
         log(
             f"n={n:4d} {graph:12s} m={row['measurements_per_step']:5d}  fast {row['ms_per_step_median']:9.3f} ms"
             + (
                 f"  stacked {row['stacked_ms_per_step_median']:9.3f} ms  ratio {row['ratio']:7.1f}×"
                 if row["ratio"] is not None
+                else ""
+            )
+            + (
+                f"  | update {row['update_ms_median']:8.3f} ms  filterpy {row['filterpy_update_ms_median']:9.3f} ms"
+                f"  peer ratio {row['peer_ratio']:6.1f}×"
+                if row["peer_ratio"] is not None
                 else ""
             )
         )

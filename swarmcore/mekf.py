@@ -58,6 +58,7 @@ __all__ = [
     "RelativeMeasurements",
     "UpdateReport",
     "observed_indices",
+    "stacked_problem",
     "init_estimate",
     "predict",
     "gate",
@@ -556,23 +557,30 @@ def _rows(lin: Linearized, n: int):
     return rows
 
 
-def _solve_stacked(P: np.ndarray, n: int, lin: Linearized):
-    """Reference (dissertation): stack every measurement, one gain, Joseph form. O(m³)."""
-    N = P.shape[0]
+def stacked_problem(N: int, n: int, lin: Linearized) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(H, y, R)`` of every measurement of a step stacked (the dissertation's form):
+    H (M, N), y (M,), block-diagonal R (M, M)."""
     rows = _rows(lin, n)
-    if not rows:
-        return np.zeros(N), P, 0.0
     sizes = [r[1].shape[0] for r in rows]
     tot = sum(sizes)
     H = np.zeros((tot, N))
     y = np.zeros(tot)
     R = np.zeros((tot, tot))
     r0 = 0
-    for (idx, yk, Hk, Rk), k in zip(rows, sizes):
+    for (idx, yk, Hk, Rk), k in zip(rows, sizes, strict=True):
         H[r0 : r0 + k, idx] = Hk
         y[r0 : r0 + k] = yk
         R[r0 : r0 + k, r0 : r0 + k] = Rk
         r0 += k
+    return H, y, R
+
+
+def _solve_stacked(P: np.ndarray, n: int, lin: Linearized):
+    """Reference (dissertation): stack every measurement, one gain, Joseph form. O(m³)."""
+    N = P.shape[0]
+    if lin.count == 0:
+        return np.zeros(N), P, 0.0
+    H, y, R = stacked_problem(N, n, lin)
     S = H @ P @ H.T + R
     K = np.linalg.solve(S, H @ P).T
     A = np.eye(N) - K @ H
