@@ -113,7 +113,7 @@ class Detections:
     def __len__(self) -> int:
         return int(self.target.shape[0])
 
-    def subset(self, idx) -> "Detections":
+    def subset(self, idx) -> Detections:
         return Detections(self.observer, self.target[idx], self.camera[idx], self.q_BjBi[idx], self.r_ij_Bi[idx])
 
 
@@ -128,7 +128,7 @@ class SyntheticPoseEstimator:
         self.rel = sc.sensors.relative
 
     @classmethod
-    def from_relative(cls, rel) -> "SyntheticPoseEstimator":
+    def from_relative(cls, rel) -> SyntheticPoseEstimator:
         """From the ``sensors.relative`` section alone."""
         self = cls.__new__(cls)
         self.rel = rel

@@ -44,7 +44,7 @@ class Intrinsics:
     cy: float
 
     @classmethod
-    def from_fov(cls, width: int, height: int, fov_deg: float) -> "Intrinsics":
+    def from_fov(cls, width: int, height: int, fov_deg: float) -> Intrinsics:
         """Horizontal field of view ``fov_deg`` across ``width`` pixels, centred principal point."""
         f = 0.5 * width / np.tan(np.radians(fov_deg) / 2.0)
         return cls(width, height, f, f, (width - 1) / 2.0, (height - 1) / 2.0)

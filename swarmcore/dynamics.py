@@ -84,7 +84,7 @@ def euler_rate(omega: np.ndarray, J: np.ndarray, J_inv: np.ndarray, torque: np.n
 
 def _att_rhs(q, w, J, J_inv, torque):
     # q̇ = ½ [ω;0] ⊗ q
-    wq = np.concatenate([w, np.zeros(w.shape[:-1] + (1,))], axis=-1)
+    wq = np.concatenate([w, np.zeros((*w.shape[:-1], 1))], axis=-1)
     return 0.5 * quat.qmul(wq, q), euler_rate(w, J, J_inv, torque)
 
 

@@ -95,7 +95,7 @@ class LinkCounters:
     bytes_delivered: np.ndarray
 
     @classmethod
-    def zeros(cls, n: int) -> "LinkCounters":
+    def zeros(cls, n: int) -> LinkCounters:
         z = lambda dt=int: np.zeros((n, n), dtype=dt)  # noqa: E731
         return cls(z(), z(), z(), z(), z(), z(), z())
 

@@ -11,8 +11,9 @@ only as what a real camera would deliver (detections, or images): never the trut
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Protocol
 
 import numpy as np
 

@@ -47,6 +47,7 @@ from dataclasses import dataclass, field, replace
 from functools import lru_cache
 
 import numpy as np
+
 from . import kernels, quat
 from .dynamics import T_IH, hcw_noise_cov, hcw_phi, rk4_attitude
 from .linalg import chol, expm_batched, tri_solve
@@ -122,7 +123,7 @@ class FilterParams:
         object.__setattr__(self, "phi_trans", hcw_phi(self.mean_motion, self.dt))
         object.__setattr__(self, "q_trans", hcw_noise_cov(self.mean_motion, self.dt, self.accel, self.pos_rw))
 
-    def with_own(self, own: int) -> "FilterParams":
+    def with_own(self, own: int) -> FilterParams:
         return replace(self, own=own)
 
 
@@ -171,7 +172,7 @@ class RelativeMeasurements:
         return int(self.observer.shape[0])
 
     @classmethod
-    def empty(cls) -> "RelativeMeasurements":
+    def empty(cls) -> RelativeMeasurements:
         return cls(
             np.zeros(0, dtype=int),
             np.zeros(0, dtype=int),
@@ -180,7 +181,7 @@ class RelativeMeasurements:
             np.zeros((0, 6, 6)),
         )
 
-    def subset(self, mask_or_idx) -> "RelativeMeasurements":
+    def subset(self, mask_or_idx) -> RelativeMeasurements:
         return RelativeMeasurements(
             self.observer[mask_or_idx],
             self.target[mask_or_idx],
@@ -189,13 +190,13 @@ class RelativeMeasurements:
             self.R_Bi[mask_or_idx],
         )
 
-    def canonical(self) -> "RelativeMeasurements":
+    def canonical(self) -> RelativeMeasurements:
         """Sorted by (observer, target): the order every filter applies them in."""
         order = np.lexsort((self.target, self.observer))
         return self.subset(order)
 
     @staticmethod
-    def concat(batches) -> "RelativeMeasurements":
+    def concat(batches) -> RelativeMeasurements:
         batches = [b for b in batches if len(b)]
         if not batches:
             return RelativeMeasurements.empty()
@@ -369,7 +370,7 @@ def predict(est: SwarmEstimate, params: FilterParams, gyro_rate_B: np.ndarray | 
     own = params.own
     dt = params.dt
     omega_own = est.omega_BI_B[own] if gyro_rate_B is None else np.asarray(gyro_rate_B, float) - est.bias_B
-    phi, Q, omega_hat = state_jacobian_blocks(est, params, omega_own)
+    phi, Q, _omega_hat = state_jacobian_blocks(est, params, omega_own)
 
     # States: others' attitude and rate by RK4 on Euler's equations (torque-free mean),
     # own attitude by the exact constant-rate step, translation by closed-form HCW.
@@ -503,7 +504,7 @@ class Linearized:
     def count(self) -> int:
         return int(self.observer.size) + (self.ya is not None)
 
-    def shifted(self, dx: np.ndarray, n: int) -> "Linearized":
+    def shifted(self, dx: np.ndarray, n: int) -> Linearized:
         """Residuals plus ``H δx_O`` (the iterated-EKF residual about the prior)."""
         dO = dx.reshape(n, BLOCK)[:, np.r_[0:3, 6:9]]  # (n, 6)
         y = self.y + (self.Hi @ dO[self.observer][:, :, None])[:, :, 0] + (self.Hj @ dO[self.target][:, :, None])[:, :, 0]

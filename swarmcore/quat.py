@@ -85,7 +85,7 @@ _SKEW = np.array([_skew_ref(_E3[i]).ravel() for i in range(3)])  # (3, 9)
 
 def _outer(a, b, k):
     shape = np.broadcast_shapes(a.shape[:-1], b.shape[:-1])
-    return (a[..., :, None] * b[..., None, :]).reshape(shape + (k,))
+    return (a[..., :, None] * b[..., None, :]).reshape((*shape, k))
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -96,7 +96,7 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrix ``[v×]`` so that ``skew(v) @ w == np.cross(v, w)``."""
     v = np.asarray(v, dtype=float)
-    return (v @ _SKEW).reshape(v.shape[:-1] + (3, 3))
+    return (v @ _SKEW).reshape((*v.shape[:-1], 3, 3))
 
 
 def normalize(q: np.ndarray) -> np.ndarray:
@@ -120,7 +120,7 @@ def qconj(q: np.ndarray) -> np.ndarray:
 def attitude_matrix(q: np.ndarray) -> np.ndarray:
     """``T(q) = (q4² − |e|²) I + 2 e eᵀ − 2 q4 [e×]`` (maps "from" to "to" coordinates)."""
     q = np.asarray(q, dtype=float)
-    return (_outer(q, q, 16) @ _ATT).reshape(q.shape[:-1] + (3, 3))
+    return (_outer(q, q, 16) @ _ATT).reshape((*q.shape[:-1], 3, 3))
 
 
 def from_attitude_matrix(T: np.ndarray) -> np.ndarray:
@@ -130,7 +130,7 @@ def from_attitude_matrix(T: np.ndarray) -> np.ndarray:
     T = np.asarray(T, dtype=float)
     flat = T.reshape(-1, 3, 3)
     q = Rotation.from_matrix(np.swapaxes(flat, -1, -2)).as_quat()
-    return normalize(q.reshape(T.shape[:-2] + (4,)))
+    return normalize(q.reshape((*T.shape[:-2], 4)))
 
 
 def rotvec_to_quat(theta: np.ndarray) -> np.ndarray:
@@ -162,7 +162,7 @@ def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
 def dq_from_err(a: np.ndarray) -> np.ndarray:
     """Error quaternion ``δq(a) = normalise([a/2, 1])`` (retraction of the MEKF)."""
     a = np.asarray(a, dtype=float)
-    q = np.concatenate([0.5 * a, np.ones(a.shape[:-1] + (1,))], axis=-1)
+    q = np.concatenate([0.5 * a, np.ones((*a.shape[:-1], 1))], axis=-1)
     return q / np.linalg.norm(q, axis=-1, keepdims=True)
 
 

@@ -351,7 +351,7 @@ NETWORK_FAULTS = ("partition", "heal", "netem")
 #: Faults some process other than the bus roles carries out (supervisor, Docker).
 PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS
 #: Faults that name a satellite.
-TARGETED_FAULTS = AGENT_PROCESS_FAULTS + ("camera", "drop") + NETWORK_FAULTS
+TARGETED_FAULTS = (*AGENT_PROCESS_FAULTS, "camera", "drop", *NETWORK_FAULTS)
 
 
 class FaultSpec(_Model):
@@ -431,7 +431,7 @@ class Scenario(_Model):
 
     @property
     def steps(self) -> int:
-        return int(round(self.duration_s / self.dt_s)) + 1
+        return round(self.duration_s / self.dt_s) + 1
 
     @model_validator(mode="after")
     def _cross_checks(self):

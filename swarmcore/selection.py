@@ -144,8 +144,6 @@ __all__ = [
     "choose_pairs",
     "selector_prior",
     "mask_dead",
-    "STRATEGIES",
-    "STATE_FREE",
     "NEEDS_STATE",
 ]
 
@@ -198,7 +196,7 @@ class Candidates:
     def __len__(self) -> int:
         return int(self.observer.size)
 
-    def subset(self, idx) -> "Candidates":
+    def subset(self, idx) -> Candidates:
         return Candidates(self.observer[idx], self.target[idx], self.Hi[idx], self.Hj[idx], self.R_Bi[idx])
 
     @property

@@ -46,7 +46,7 @@ def camera_axis_variances(sigma_att_C, sigma_pos_C, range_m, reference_range_m: 
 
 def camera_to_body(cov_C: np.ndarray, T_CB_: np.ndarray) -> np.ndarray:
     """(…, 6, 6) camera-frame covariance of ``[a_C, e_C]`` → B_i (``T_CB_``: body → camera)."""
-    G = np.zeros(np.shape(T_CB_)[:-2] + (6, 6))
+    G = np.zeros((*np.shape(T_CB_)[:-2], 6, 6))
     T_BC = np.swapaxes(T_CB_, -1, -2)
     G[..., :3, :3] = T_BC
     G[..., 3:, 3:] = T_BC

@@ -18,8 +18,8 @@ One step k (t_k = k dt):
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -240,7 +240,7 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
             seen = cameras.observe(truth, obs, tgt, camera_ok, predicted=[f.est for f in filters])
             if lm is None:
                 rel = RelativeMeasurements.concat([estimator.measure(i, seen[i], filters[i].est, k)[0] for i in sorted(seen)])
-                inputs = {i: (rel, None) for i in range(n)}
+                inputs = dict.fromkeys(range(n), (rel, None))
             else:
                 assert wire_size is not None  # checked with the link model
                 inputs = _through_links(lm, k, truth, seen, estimator, filters, wire_size, rec)
@@ -262,7 +262,7 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
     return res
 
 
-def _through_links(lm: LinkModel, k: int, truth, seen, estimator, filters, wire_size: WireSize, rec: "Recorder"):
+def _through_links(lm: LinkModel, k: int, truth, seen, estimator, filters, wire_size: WireSize, rec: Recorder):
     """Every observer's batch through the radio; what each receiver holds at step k: its
     own batch and the copies that arrived (on time), and the late ones by their step."""
     n = len(filters)
