@@ -46,18 +46,62 @@ def _percentiles(x):
     return {"p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "samples": int(a.size)}
 
 
+def _batch(n: int):
+    """A realistic measurement batch: observer 0's relative poses of the n−1 others, with
+    the covariances the sensor model reports (what one agent broadcasts at n satellites)."""
+    from swarmcore.cameras import best_camera
+    from swarmcore.scenario import Scenario
+    from swarmcore.world import initial_truth, relative_measurements, relative_truth, world_params
+
+    sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=10.0)
+    wp = world_params(sc)
+    tr = initial_truth(sc)
+    obs, tgt = np.zeros(n - 1, dtype=int), np.arange(1, n)
+    rel = relative_measurements(wp, tr, obs, tgt)
+    _q, r = relative_truth(wp.mean_motion, tr.t, tr.q_BI, tr.r_H, obs, tgt)
+    return rel, best_camera(r)
+
+
+def codec_cost(n: int, repeat: int = 200) -> dict:
+    """CPU time (µs, median) to turn one agent's batch at swarm size n into bytes (message
+    construction + encoding) and back into the filter's arrays (decoding, validation,
+    conversion): the work every agent does once, and n−1 times, per step."""
+    from swarm.bus.convert import batch_msg, relative_from_batches
+    from swarm.bus.messages import decode, encode
+
+    rel, cams = _batch(n)
+
+    def enc():
+        return encode(batch_msg(rel, cams, run="bench", sender="agent-0", k=1, t_s=1.0, observer=0))
+
+    raw = enc()
+
+    def dec():
+        return relative_from_batches([decode("meas", raw)])
+
+    back = dec()
+    assert np.array_equal(back.R_Bi, rel.R_Bi) and np.array_equal(back.q_BjBi, rel.q_BjBi), "the batch did not round-trip"
+    out = {"bytes": len(raw)}
+    for name, f in (("encode_us", enc), ("decode_us", dec)):
+        ts = []
+        for _ in range(repeat):
+            t0 = time.thread_time_ns()
+            f()
+            ts.append((time.thread_time_ns() - t0) / 1e3)
+        out[name] = float(np.median(ts))
+    out["decode_all_peers_ms"] = out["decode_us"] * (n - 1) / 1e3
+    return out
+
+
 def _batch_payload(n: int = 10) -> bytes:
-    """A realistic measurement batch: one observer's n−1 relative poses with covariances."""
-    from swarm.bus.messages import MeasBatch, RelMeas, encode
+    from swarm.bus.convert import batch_msg
+    from swarm.bus.messages import encode
 
-    meas = [
-        RelMeas(observer=0, target=j, camera=j % 6, q_BjBi=[0.1, 0.2, 0.3, 0.927], r_ij_Bi_m=[1.234567, -2.345678, 9.87654], R_Bi=list(np.eye(6).ravel() * 1e-4))
-        for j in range(1, n)
-    ]
-    return encode(MeasBatch(run="bench", sender="agent-0", k=1, t_s=1.0, observer=0, meas=meas))
+    rel, cams = _batch(n)
+    return encode(batch_msg(rel, cams, run="bench", sender="agent-0", k=1, t_s=1.0, observer=0))
 
 
-def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[dict]:
+def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_sizes=(10, 40)) -> list[dict]:
     import zenoh
 
     from .launch import free_port
@@ -94,10 +138,9 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[
                 pub.put(seq.to_bytes(8, "little") + b"warmup")
                 if got.wait(0.05):
                     break
-            for name, payload, count in (
-                ("measurement batch (n=10)", _batch_payload(10), samples),
-                ("1 MB payload", bytes(np.random.default_rng(0).integers(0, 256, 1 << 20, dtype=np.uint8)), big_samples),
-            ):
+            cases = [(f"measurement batch (n={n})", _batch_payload(n), samples, n) for n in batch_sizes]
+            cases.append(("1 MB payload", bytes(np.random.default_rng(0).integers(0, 256, 1 << 20, dtype=np.uint8)), big_samples, None))
+            for name, payload, count, n_batch in cases:
                 rtt = []
                 for _ in range(count + 5):
                     seq += 1
@@ -112,7 +155,13 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[
                 rtt = rtt[5:]
                 one_way = [r / 2 for r in rtt]
                 row = {"payload": name, "bytes": len(payload), "path": "client → router → client (loopback)", "one_way": _percentiles(one_way), "round_trip": _percentiles(rtt)}
-                log(f"{name:26s} {len(payload):8d} B  one-way p50 {row['one_way']['p50_ms']:.3f} ms  p99 {row['one_way']['p99_ms']:.3f} ms")
+                line = f"{name:26s} {len(payload):8d} B  one-way p50 {row['one_way']['p50_ms']:.3f} ms  p99 {row['one_way']['p99_ms']:.3f} ms"
+                if n_batch is not None:
+                    row["n"] = n_batch
+                    row["codec"] = codec_cost(n_batch)
+                    c = row["codec"]
+                    line += f"  encode {c['encode_us']:.0f} µs  decode {c['decode_us']:.0f} µs (×{n_batch - 1} peers: {c['decode_all_peers_ms']:.2f} ms)"
+                log(line)
                 rows.append(row)
             pub.put(b"stop")
             sub.undeclare()

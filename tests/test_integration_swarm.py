@@ -258,9 +258,12 @@ def test_bench_bus_prints_and_writes_json(tmp_path):
     p = subprocess.run([sys.executable, "-m", "swarm.cli", "bench", "bus", "--samples", "30", "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     rows = json.loads(out.read_text())["rows"]
-    assert [r["bytes"] > 1_000_000 for r in rows] == [False, True]
+    assert [r["bytes"] > 1_000_000 for r in rows] == [False, False, True]
+    assert [r.get("n") for r in rows] == [10, 40, None]
     for r in rows:
         assert 0 < r["one_way"]["p50_ms"] <= r["one_way"]["p99_ms"]
+    for r in rows[:2]:
+        assert r["codec"]["encode_us"] > 0 and r["codec"]["decode_us"] > 0 and r["codec"]["bytes"] == r["bytes"]
 
 
 def test_bench_run_measures_a_real_swarm(tmp_path):
