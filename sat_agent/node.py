@@ -21,10 +21,11 @@ from swarm.bus.convert import (
     estimate_from_full,
     estimate_msg,
     full_estimate_msg,
+    gyro_from_sensors,
     relative_from_batches,
     views_from_images,
 )
-from swarm.bus.messages import Fault, Health
+from swarm.bus.messages import Fault, Health, codec_cpu_ms, replace
 from swarm.node import Node
 from swarmcore import kernels
 from swarmcore.mekf import RelativeMeasurements, predict, reframe
@@ -135,7 +136,7 @@ class Agent(Node):
             self.drop_rate = float(f.rate or 0.0)
             self.log.info("dropping %.0f%% of outgoing messages", 100 * self.drop_rate)
             k = -1 if self.est is None else self.est.step
-            self.put(self.keys.fault(), f.model_copy(update={"phase": "done", "sender": self.name, "k": max(k, 0)}))
+            self.put(self.keys.fault(), replace(f, phase="done", sender=self.name, k=max(k, 0)))
 
     def wait_for(self, cond, timeout: float, wake=None) -> bool:
         """Pump events until ``cond()`` holds or ``timeout`` passes. ``wake()`` may name an
@@ -277,13 +278,14 @@ class Agent(Node):
         self.batches_missing += len(missing)
         batches = [got[j] for j in sorted(got)]
         rel = RelativeMeasurements.concat([rel_own, relative_from_batches(batches)])
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self._catch_up(k)
         gyro = None if sens is None else _gyro(sens)
         absm = None if sens is None else absolute_from_sensors(sens)
         self.est, report = filter_step(self.est, self.params, gyro, absm, rel, self.sc.filter.mode, propagate=k > 0 and self.est.step < k)
         self.last_step = k
         ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.vision is not None else 0.0)
+        cpu_ms = (time.thread_time() - c0) * 1e3
         msg = estimate_msg(
             self.est,
             run=self.run,
@@ -291,6 +293,8 @@ class Agent(Node):
             own=self.i,
             report=report,
             step_ms=ms,
+            step_cpu_ms=cpu_ms,
+            codec_cpu_ms=codec_cpu_ms(),
             batches_used=sorted(got),
             batches_missing=missing,
             batches_late=self.batches_late,
@@ -359,4 +363,4 @@ def claim_id(sc: Scenario, run: str, bus, timeout: float | None = None) -> tuple
 
 
 def _gyro(sens):
-    return None if sens.gyro_rate_B_rad_s is None else np.asarray(sens.gyro_rate_B_rad_s, dtype=float)
+    return gyro_from_sensors(sens)

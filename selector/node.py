@@ -13,8 +13,8 @@ import time
 
 import numpy as np
 
-from swarm.bus.convert import estimate_from_full
-from swarm.bus.messages import Fault, Select
+from swarm.bus.convert import estimate_from_full, select_msg
+from swarm.bus.messages import Fault
 from swarm.node import Node
 from swarmcore.scenario import Scenario
 from swarmcore.sim import choose_pairs, scenario_graph
@@ -90,12 +90,13 @@ class Selector(Node):
         ms = (time.perf_counter() - t0) * 1e3
         self.put(
             self.keys.select(),
-            Select(
+            select_msg(
+                obs,
+                tgt,
                 run=self.run,
                 sender=self.name,
                 k=k,
                 t_s=k * sc.dt_s,
-                pairs=[(int(a), int(b)) for a, b in zip(obs, tgt)],
                 strategy=sc.selection.strategy,
                 ref_agent=ref,
                 select_ms=ms,

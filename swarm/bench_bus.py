@@ -189,32 +189,52 @@ def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir
         sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=duration_s)
         out = base / f"n{n}"
         sw = LocalSwarm(sc, out, log=lambda s: None)
-        t_start = time.perf_counter()
+        t_start, t_start_ns = time.perf_counter(), time.time_ns()
         try:
             sw.start()
             code = sw.run_to_end()
         finally:
             sw.stop()
         total = time.perf_counter() - t_start
-        clocks = [lt for topic, _s, _d, lt, _p in iter_messages(out / "run.mcap") if topic.endswith("/clock")]
-        wall = (max(clocks) - min(clocks)) / 1e9
-        steps_ms = []
+        from .bus.messages import MessageError, decode
+
+        clocks, est = [], []
         est_prefix = f"{sw.keys.root}/est/"  # the agents' own channels, not the derived /foxglove/est/<i>
-        for topic, _s, data, _lt, _p in iter_messages(out / "run.mcap"):
-            if topic.startswith(est_prefix):
-                m = json.loads(data)
-                if m.get("phase") == "posterior":
-                    steps_ms.append(m.get("step_ms", 0.0))
+        for topic, _s, data, lt, _p in iter_messages(out / "run.mcap"):
+            if topic.endswith("/clock"):
+                clocks.append(lt)
+            elif topic.startswith(est_prefix):
+                try:
+                    m = decode("est", data)
+                except MessageError:
+                    continue
+                if m.phase == "posterior" and m.k >= 2:  # steady state: past the first update
+                    est.append((m.step_ms, m.step_cpu_ms, m.codec_cpu_ms))
+        wall = (max(clocks) - min(clocks)) / 1e9
+        startup = (min(clocks) - t_start_ns) / 1e9
+        e = np.array(est, dtype=float).reshape(-1, 3)
+        filt_cpu = float(np.median(e[:, 1])) if len(e) else None
+        codec_cpu = float(np.median(e[:, 2])) if len(e) else None
         row = {
             "n": n,
             "time_mode": "lockstep",
             "sim_seconds": duration_s,
             "stepping_wall_s": wall,
             "realtime_factor": duration_s / wall if wall > 0 else None,
+            "startup_s": startup,
             "total_wall_s_with_startup": total,
-            "agent_filter_ms_median": statistics.median(steps_ms) if steps_ms else None,
+            "agent_filter_ms_median": float(np.median(e[:, 0])) if len(e) else None,
+            "agent_filter_cpu_ms_median": filt_cpu,
+            "agent_codec_cpu_ms_median": codec_cpu,
+            # CPU an agent spends on messages per step, over its filter step's CPU (same run).
+            "codec_share_of_filter": codec_cpu / filt_cpu if filt_cpu else None,
+            "codec_share_of_filter_mean": float(e[:, 2].sum() / e[:, 1].sum()) if len(e) and e[:, 1].sum() > 0 else None,
             "world_exit_code": code,
         }
-        log(f"n={n:3d}: {duration_s:.0f} sim s in {wall:.1f} wall s → real-time factor {row['realtime_factor']:.1f}× (with start-up {total:.1f} s)")
+        log(
+            f"n={n:3d}: {duration_s:.0f} sim s in {wall:.1f} wall s → real-time factor {row['realtime_factor']:.1f}×, "
+            f"start-up {startup:.1f} s (total {total:.1f} s); agent per step: filter {filt_cpu:.2f} ms CPU, "
+            f"messages {codec_cpu:.2f} ms CPU ({100 * row['codec_share_of_filter']:.0f} % of the filter)"
+        )
         rows.append(row)
     return rows

@@ -26,7 +26,7 @@ import yaml
 
 from swarmcore.scenario import Scenario
 
-from .bus.messages import Fault, Keys
+from .bus.messages import Fault, Keys, as_dict, replace
 from .bus.session import BusConfig
 from .node import Node
 
@@ -147,7 +147,7 @@ class LocalSwarm:
 
     # -- faults ------------------------------------------------------------------------
     def _report(self, f: Fault, phase: str, detail: str) -> None:
-        done = f.model_copy(update={"phase": phase, "sender": "supervisor", "k": self.k, "t_s": self.k * self.sc.dt_s, "detail": detail})
+        done = replace(f, phase=phase, sender="supervisor", k=self.k, t_s=self.k * self.sc.dt_s, detail=detail)
         self.node.put(self.keys.fault(), done)
 
     def _handle(self, ev) -> None:
@@ -156,7 +156,7 @@ class LocalSwarm:
         elif ev.kind == "fault" and ev.msg.phase == "command":
             self.execute(ev.msg)
         elif ev.kind == "fault":
-            self.faults.append(ev.msg.model_dump(exclude={"v", "run"}))
+            self.faults.append(as_dict(ev.msg, exclude=("schema_version", "run")))
 
     def execute(self, f: Fault) -> None:
         name = f"agent-{f.target}" if f.action in ("kill-agent", "restart-agent", "stop-agent") else "selector"

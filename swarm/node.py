@@ -15,7 +15,7 @@ import zenoh
 
 from swarmcore.scenario import Scenario
 
-from .bus.messages import Keys, MessageError, decode, encode, parse_key
+from .bus.messages import Keys, MessageError, check_key, counted, decode, encode, parse_key
 from .bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
 
 __all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scenario"]
@@ -34,19 +34,27 @@ class Event:
 
 
 def _id_fields(kind: str, msg) -> list[int]:
+    """Every satellite id a message names (each must be a satellite of this swarm)."""
     ids = []
-    for name in ("sat", "observer", "own", "target"):
-        v = getattr(msg, name, None)
-        if isinstance(v, int):
-            ids.append(v)
-    if kind == "meas":
-        ids += [m.target for m in msg.meas]
+    for name in ("sat", "observer", "own"):
+        if name in msg.DESCRIPTOR.fields_by_name:
+            ids.append(getattr(msg, name))
+    if kind == "fault" and msg.HasField("target"):
+        ids.append(msg.target)
+    if kind in ("meas", "select"):
+        ids += list(msg.target)
+    if kind == "select":
+        ids += list(msg.observer)
+        if msg.HasField("ref_agent"):
+            ids.append(msg.ref_agent)
     if kind == "cam":
         ids += [d.target for d in msg.detections]
-    if kind == "select":
-        ids += [x for p in msg.pairs for x in p]
+    if kind == "img":
+        ids += list(msg.targets)
     if kind == "clock":
         ids += list(msg.live_agents)
+    if kind == "est":
+        ids += list(msg.batches_used) + list(msg.batches_missing)
     return ids
 
 
@@ -126,7 +134,13 @@ class Node:
                 if reply.ok is None:
                     continue
                 try:
-                    return decode(kind, reply.ok.payload.to_bytes())
+                    rkey = str(reply.ok.key_expr)
+                    msg = decode(kind, reply.ok.payload.to_bytes())
+                    run, _kind, sat = parse_key(rkey)
+                    if run != self.run or msg.run != self.run:
+                        raise MessageError(f"a reply of another run ({run!r}, {msg.run!r})")
+                    check_key(rkey, kind, sat, msg)
+                    return msg
                 except MessageError as exc:
                     self.count_malformed(key, exc)
         except zenoh.ZError as exc:
@@ -155,6 +169,7 @@ class Node:
             if deadline is not None and time.monotonic() >= deadline:
                 return None
 
+    @counted
     def _decode(self, s) -> Event | None:
         try:
             run, kind, sat = parse_key(s.key)
@@ -173,9 +188,9 @@ class Node:
                 bad.append(sat)
             if bad:
                 raise MessageError(f"unknown satellite id(s) {sorted(set(bad))} (swarm has 0..{self.n - 1})")
-            own = getattr(msg, "sat", getattr(msg, "observer", getattr(msg, "own", None)))
-            if sat is not None and own is not None and own != sat:
-                raise MessageError(f"key says satellite {sat}, message says {own}")
+            if kind in ("est", "full_est") and len(msg.q_BI) != 4 * self.n:
+                raise MessageError(f"an estimate of {len(msg.q_BI) // 4} satellites (this swarm has {self.n})")
+            check_key(s.key, kind, sat, msg)
             return Event(s.key, kind, sat, msg=msg)
         except MessageError as exc:
             self.count_malformed(s.key, exc)

@@ -1,11 +1,16 @@
 """The recorder: every message of a run's key space into MCAP.
 
-One channel per key expression, one JSON schema per message type (from the message
-models), log time = arrival (ns), publish time = simulation time. Liveliness changes are
-recorded on ``swarm/<run>/alive`` and messages that fail validation on
-``swarm/<run>/_malformed`` (with the reason), so the recording tells the whole story.
-Flushes at least once per ``flush_every_s`` of simulated time (and once per wall second);
-the file is readable after a SIGKILL at any instant (see :mod:`swarm.mcaplog`).
+One channel per key expression, each with its protobuf schema (message encoding
+"protobuf", the schema a serialized FileDescriptorSet of ``swarm.v1.<Message>``), so
+Foxglove, the ``mcap`` CLI and any protobuf library decode every channel without the
+project's code. Each message is stored exactly as it travelled, except images, stored with
+their pixels cleared (``emulator.record_images`` adds them as ``foxglove.RawImage``).
+Log time = arrival (ns), publish time = simulation time. Liveliness changes are recorded
+on ``swarm/<run>/alive`` (``swarm.v1.Liveliness``) and messages that fail validation on
+``swarm/<run>/_malformed`` (``swarm.v1.Malformed``, with the reason), so the recording
+tells the whole story. Flushes at least once per ``flush_every_s`` of simulated time (and
+once per wall second); the file is readable after a SIGKILL at any instant (see
+:mod:`swarm.mcaplog`).
 
 python -m swarm.recorder --run RUN --out FILE.mcap [--flush-every-s 1] [bus flags]
 """
@@ -13,29 +18,16 @@ python -m swarm.recorder --run RUN --out FILE.mcap [--flush-every-s 1] [bus flag
 from __future__ import annotations
 
 import argparse
-import base64
-import json
 import logging
 import sys
 import threading
 import time
 
-from .bus.messages import MODELS, Keys, MessageError, decode, parse_key
+from .bus.messages import MODELS, Keys, Liveliness, Malformed, MessageError, check_key, decode, file_descriptor_set, parse_key, replace
 from .bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
 from .mcaplog import CheckpointWriter
 
 log = logging.getLogger("recorder")
-
-_ALIVE_SCHEMA = {
-    "title": "swarm.Liveliness",
-    "type": "object",
-    "properties": {"key": {"type": "string"}, "role": {"type": "string"}, "id": {"type": "string"}, "alive": {"type": "boolean"}},
-}
-_MALFORMED_SCHEMA = {
-    "title": "swarm.Malformed",
-    "type": "object",
-    "properties": {"key": {"type": "string"}, "error": {"type": "string"}, "payload_b64": {"type": "string"}},
-}
 
 
 class Recorder:
@@ -66,18 +58,12 @@ class Recorder:
             self.foxglove = FoxgloveDeriver(self.w, scenario.orbit.mean_motion_rad_s, scenario.spacecraft.half_size_m,
                                             images=scenario.emulator.record_images)
 
-    def _schema(self, kind: str) -> int:
+    def _channel(self, topic: str, kind: str) -> int:
         sid = self._schema_ids.get(kind)
         if sid is None:
-            if kind == "alive":
-                name, data = "swarm.Liveliness", _ALIVE_SCHEMA
-            elif kind == "malformed":
-                name, data = "swarm.Malformed", _MALFORMED_SCHEMA
-            else:
-                model = MODELS[kind]
-                name, data = f"swarm.{model.__name__}", model.model_json_schema()
-            sid = self._schema_ids[kind] = self.w.schema(name, "jsonschema", json.dumps(data).encode())
-        return sid
+            cls = {"alive": Liveliness, "malformed": Malformed}.get(kind) or MODELS[kind]
+            sid = self._schema_ids[kind] = self.w.schema(cls.DESCRIPTOR.full_name, "protobuf", file_descriptor_set(cls))
+        return self.w.channel(topic, sid, "protobuf")
 
     def record(self, s) -> None:
         now = time.time_ns()
@@ -87,17 +73,22 @@ class Recorder:
                 raise MessageError(f"foreign run {run!r}")
             if kind == "alive":
                 parts = s.key.split("/")
-                body = json.dumps({"key": s.key, "role": parts[3], "id": parts[4], "alive": s.kind == "put"}).encode()
-                self.w.add(self.w.channel(f"{self.keys.root}/alive", self._schema("alive")), body, now)
+                body = Liveliness(key=s.key, role=parts[3], id=parts[4], alive=s.kind == "put").SerializeToString()
+                self.w.add(self._channel(f"{self.keys.root}/alive", "alive"), body, now)
                 return
+            if s.kind == "delete":
+                raise MessageError("unexpected delete")
             msg = decode(kind, s.payload)
+            check_key(s.key, kind, _sat, msg)
             if kind == "est":
                 self._est_at.setdefault(msg.k, set()).add(msg.own)
                 self._est_at.pop(msg.k - 3, None)
-            # Images: the JSON header only on the bus channel (pixels as foxglove.RawImage when
+            # Images without their pixels on the bus channel (pixels as foxglove.RawImage when
             # emulator.record_images is on); every other message exactly as it travelled.
-            data = msg.header_json() if kind == "img" else s.payload
-            self.w.add(self.w.channel(s.key, self._schema(kind)), data, now, int(round(msg.t_s * 1e9)))
+            data = s.payload
+            if kind == "img":
+                data = replace(msg, views=[replace(v, images_mono8=[]) for v in msg.views]).SerializeToString()
+            self.w.add(self._channel(s.key, kind), data, now, int(round(msg.t_s * 1e9)))
             if self.foxglove is not None:
                 self.foxglove.on_message(kind, msg, now)
             if kind == "est" and self.final is not None and msg.k == self.final[0]:
@@ -110,8 +101,8 @@ class Recorder:
                     self.flush(msg.t_s)
         except MessageError as exc:
             self.malformed += 1
-            body = json.dumps({"key": s.key, "error": str(exc), "payload_b64": base64.b64encode(s.payload[:65536]).decode()}).encode()
-            self.w.add(self.w.channel(f"{self.keys.root}/_malformed", self._schema("malformed")), body, now)
+            body = Malformed(key=s.key, error=str(exc), payload=bytes(s.payload[:65536])).SerializeToString()
+            self.w.add(self._channel(f"{self.keys.root}/_malformed", "malformed"), body, now)
 
     def _seen_final(self, k: int) -> set[int]:
         return self._est_at.get(k, set())

@@ -51,12 +51,15 @@ def _watch_run(session, run: str, stop: threading.Event):
             logging.info("run %s is over; router exits", run)
             stop.set()
 
+    from .bus.messages import MessageError, check_key, decode
+
     def on_clock(sample):
         try:
-            done = json.loads(bytes(sample.payload.to_bytes())).get("done", False)
-        except (ValueError, AttributeError):
+            msg = decode("clock", sample.payload.to_bytes())
+            check_key(str(sample.key_expr), "clock", None, msg)
+        except MessageError:
             return
-        if done is True:
+        if msg.done and msg.run == run:
             with lock:
                 state["done"] = True
                 check()

@@ -15,8 +15,8 @@ import time
 
 import numpy as np
 
-from swarm.bus.convert import detections, full_estimate_msg, images_msg, sensors_msg
-from swarm.bus.messages import CameraOutput, Claim, Clock, Fault, Select, Truth
+from swarm.bus.convert import detections, full_estimate_msg, images_msg, pairs_from_select, select_msg, sensors_msg, truth_msg
+from swarm.bus.messages import CameraOutput, Claim, Clock, Fault, Select, replace
 from swarm.node import Node
 from swarmcore import graphs
 from swarmcore.cameras import best_camera
@@ -133,7 +133,7 @@ class World(Node):
             return
         if f.action == "camera" and f.target is not None and f.camera is not None:
             self.camera_ok[f.target, f.camera] = f.state == "on"
-            self.put(self.keys.fault(), f.model_copy(update={"phase": "done", "sender": "world", "k": self.k, "t_s": self.k * self.sc.dt_s}))
+            self.put(self.keys.fault(), replace(f, phase="done", sender="world", k=self.k, t_s=self.k * self.sc.dt_s))
             self.log.info("camera %d of satellite %d %s", f.camera, f.target, f.state)
 
     def wait_for(self, cond, timeout: float) -> bool:
@@ -181,6 +181,7 @@ class World(Node):
                 k=k,
                 t_s=k * self.sc.dt_s,
                 action=spec.action,
+                phase="command",
                 target=spec.target,
                 camera=spec.camera,
                 state=spec.state,
@@ -218,8 +219,7 @@ class World(Node):
             if self.fallback_active:
                 self.log.info("step %d: selector is back", k)
             self.fallback_active = False
-            pairs = np.array(sel.pairs, dtype=int).reshape(-1, 2)
-            return pairs[:, 0], pairs[:, 1]
+            return pairs_from_select(sel)
         # Fallback: a strategy that needs no state, chosen by the world itself.
         from swarmcore.selection import select_for_scenario
 
@@ -235,12 +235,13 @@ class World(Node):
         obs, tgt = select_for_scenario(fb, k, self.G, None, None, cam_ok)
         self.put(
             self.keys.select(),
-            Select(
+            select_msg(
+                obs,
+                tgt,
                 run=self.run,
                 sender="world",
                 k=k,
                 t_s=k * self.sc.dt_s,
-                pairs=[(int(a), int(b)) for a, b in zip(obs, tgt)],
                 strategy=self.sc.selection.fallback,
                 fallback=True,
                 select_ms=(time.perf_counter() - t0) * 1e3,
@@ -278,20 +279,7 @@ class World(Node):
                 self.truth, gyro = step_truth(self.wp, self.truth)
             tr = self.truth
             t = tr.t
-            self.put(
-                self.keys.truth(),
-                Truth(
-                    run=self.run,
-                    sender="world",
-                    k=k,
-                    t_s=t,
-                    q_BI=tr.q_BI.tolist(),
-                    omega_BI_B_rad_s=tr.omega_BI_B.tolist(),
-                    r_H_m=tr.r_H.tolist(),
-                    v_H_m_s=tr.v_H.tolist(),
-                    gyro_bias_B_rad_s=tr.bias_B.tolist(),
-                ),
-            )
+            self.put(self.keys.truth(), truth_msg(tr, run=self.run, k=k))
             # Drain pending events so the live set reflects deaths up to now.
             while self.pump(0):
                 pass
