@@ -62,7 +62,7 @@ class Agent(Node):
         self.subscribe(self.keys.cam(sat))
         self.subscribe(self.keys.meas())
         self.subscribe(self.keys.fault())
-        self.subscribe(self.keys.est())
+        self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.watch_liveliness(self.keys.alive("agent"))
         self.finished: dict[int, dict[int, float]] = {}  # step → {peer: when we learnt it is past it}

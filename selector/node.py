@@ -35,7 +35,7 @@ class Selector(Node):
         self.planned: set[int] = set()
         self.next_plan: dict[int, int] = {}  # agent → the step its latest estimate lets us plan
         self.clock_seen = False  # the run has started
-        self.subscribe(self.keys.est())
+        self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.fault())
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.clock())

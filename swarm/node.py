@@ -36,8 +36,9 @@ class Event:
 def _id_fields(kind: str, msg) -> list[int]:
     """Every satellite id a message names (each must be a satellite of this swarm)."""
     ids = []
+    fields = msg.DESCRIPTOR.fields_by_name
     for name in ("sat", "observer", "own"):
-        if name in msg.DESCRIPTOR.fields_by_name:
+        if name in fields and not fields[name].is_repeated:
             ids.append(getattr(msg, name))
     if kind == "fault" and msg.HasField("target"):
         ids.append(msg.target)
@@ -71,6 +72,7 @@ class Node:
         self.log = logging.getLogger(self.name)
         self.inbox = Inbox()
         self._handles: list = []
+        self._shallow: set[str] = set()  # key prefixes decoded shallowly
         self.malformed = 0
         self._malformed_logged = 0
         self.stop = threading.Event()
@@ -87,7 +89,12 @@ class Node:
             self.token = self.session.liveliness().declare_token(self.keys.alive(self.role, self.ident))
 
     # -- plumbing -------------------------------------------------------------
-    def subscribe(self, key: str) -> None:
+    def subscribe(self, key: str, shallow: bool = False) -> None:
+        """Samples of ``key`` go to the inbox. ``shallow``: this role reads only the header
+        and scalars of these messages (estimates: who, which step, which phase), so only
+        those are decoded and checked (:func:`swarm.bus.messages.decode`)."""
+        if shallow:
+            self._shallow.add(key.rsplit("/", 1)[0])
         self._handles.append(self.session.declare_subscriber(key, self.inbox.callback))
 
     def watch_liveliness(self, pattern: str | None = None) -> None:
@@ -180,7 +187,7 @@ class Node:
                 return Event(s.key, "alive", sat, alive=(s.kind == "put"), role=role)
             if s.kind == "delete":
                 raise MessageError("unexpected delete")
-            msg = decode(kind, s.payload)
+            msg = decode(kind, s.payload, shallow=s.key.rsplit("/", 1)[0] in self._shallow)
             if msg.run != self.run:
                 raise MessageError(f"message run id {msg.run!r} is not this swarm's")
             bad = [i for i in _id_fields(kind, msg) if i >= self.n]

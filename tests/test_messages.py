@@ -280,3 +280,21 @@ def test_keys_and_parsing():
         M.Keys("bad/run")
     with pytest.raises(ValueError, match="run id"):
         M.Keys("run\n")
+
+
+def test_shallow_decoding_of_estimates_checks_what_it_reads():
+    """Roles that read only who / which step / which phase of a peer's estimate decode it
+    shallowly: the arrays are neither converted nor checked, the rest is."""
+    bad = M.replace(EXAMPLES["est"])
+    bad.P_pose.data[0] = float("nan")
+    raw = M.encode(bad)
+    assert M.decode("est", raw, shallow=True).own == 1
+    with pytest.raises(M.MessageError, match="P_pose: not finite"):
+        M.decode("est", raw)
+    for change, reason in ((dict(phase="x"), "phase"), (dict(own=3), "own"), (dict(q_BI=[1.0] * 5), "q_BI"), (dict(schema_version=7), "version")):
+        with pytest.raises(M.MessageError, match=reason):
+            M.decode("est", _raw("est", **change), shallow=True)
+    assert M.SHALLOW_KINDS == ("est",)
+    assert M.decode("meas", M.encode(EXAMPLES["meas"]), shallow=True) == EXAMPLES["meas"]  # other kinds: always in full
+    with pytest.raises(M.MessageError, match="R_Bi: not finite"):
+        M.decode("meas", _nan_R(), shallow=True)

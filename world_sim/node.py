@@ -62,7 +62,7 @@ class World(Node):
         self.fault_done: list[Fault] = []
         self.k = 0
         self.fallback_active = False
-        self.subscribe(self.keys.est())
+        self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())
         self.subscribe(self.keys.fault())

@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 
 from swarmcore.mekf import AbsoluteMeasurement, RelativeMeasurements, SwarmEstimate, UpdateReport
-from swarmcore.sim import pose_cov_blocks
 
 from .messages import (
     CameraView,
@@ -67,6 +66,18 @@ def array(m: Matrix) -> np.ndarray:
     return np.asarray(m.data, dtype=float).reshape(shape)
 
 
+_POSE = np.r_[0:3, 6:9]  # [a, Δr] within a satellite's 12-state block (swarmcore.mekf.observed_indices)
+
+
+def pose_blocks(P: np.ndarray, n: int) -> np.ndarray:
+    """(n, 6, 6) covariance of each satellite's [a, Δr]: the same numbers as
+    :func:`swarmcore.sim.pose_cov_blocks` (copies), taken from the diagonal 12×12 blocks
+    without gathering the 6n×6n observed submatrix first."""
+    d = np.arange(n)
+    B = np.asarray(P).reshape(n, 12, n, 12)[d, :, d, :]  # (n, 12, 12) diagonal blocks
+    return B[:, _POSE][:, :, _POSE]
+
+
 def _rows(field, width: int) -> np.ndarray:
     return np.asarray(field, dtype=float).reshape(-1, width)
 
@@ -85,7 +96,7 @@ def estimate_msg(est: SwarmEstimate, *, run: str, sender: str, own: int, phase: 
         r_H_m=_l(est.r_H),
         v_H_m_s=_l(est.v_H),
         bias_B_rad_s=_l(est.bias_B),
-        P_pose=matrix(pose_cov_blocks(est.P, est.n)),
+        P_pose=matrix(pose_blocks(est.P, est.n)),
         P_diag=matrix(np.diag(est.P)),
     )
     if report is not None:

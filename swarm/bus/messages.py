@@ -79,6 +79,7 @@ __all__ = [
     "MAX_SAT_ID",
     "QUAT_TOL",
     "MAX_PAYLOAD_BYTES",
+    "SHALLOW_KINDS",
     "MessageError",
     "Header",
     "Matrix",
@@ -188,8 +189,12 @@ def encode(msg) -> bytes:
 
 
 @counted
-def decode(kind: str, payload: bytes | bytearray | memoryview):
-    """Parse and validate a payload of the given kind; :class:`MessageError` on any defect."""
+def decode(kind: str, payload: bytes | bytearray | memoryview, shallow: bool = False):
+    """Parse and validate a payload of the given kind; :class:`MessageError` on any defect.
+
+    ``shallow``: for a receiver that reads only the header and the scalars of an estimate
+    (who, which step, prior or posterior), check only those (:data:`SHALLOW_KINDS`); its
+    arrays are then not to be read. Everything else is always checked in full."""
     cls = MODELS.get(kind)
     if cls is None:
         raise MessageError(f"unknown message kind {kind!r}")
@@ -201,16 +206,16 @@ def decode(kind: str, payload: bytes | bytearray | memoryview):
         msg.ParseFromString(bytes(payload))
     except DecodeError as exc:
         raise MessageError(f"invalid {kind} message: not a {cls.DESCRIPTOR.full_name} ({exc})") from None
-    validate(msg, kind)
+    validate(msg, kind, shallow)
     return msg
 
 
-def validate(msg, kind: str | None = None) -> None:
+def validate(msg, kind: str | None = None, shallow: bool = False) -> None:
     """Check what the schema cannot (see the module doc); :class:`MessageError` names the field."""
     kind = kind or _KIND_OF[type(msg)]
     try:
         _header(msg)
-        _VALIDATORS[kind](msg)
+        ((shallow and _SHALLOW.get(kind)) or _VALIDATORS[kind])(msg)
     except MessageError as exc:
         raise MessageError(f"invalid {kind} message: {exc}") from None
 
@@ -379,6 +384,18 @@ def _est(m: Estimate) -> None:
     _ids("batches_missing", m.batches_missing)
 
 
+def _est_shallow(m: Estimate) -> None:
+    _id("own", m.own)
+    _choice("phase", m.phase, ("prior", "posterior"))
+    n, rest = divmod(len(m.q_BI), 4)
+    if n == 0 or rest:
+        raise MessageError(f"q_BI: {len(m.q_BI)} numbers, expected a positive multiple of 4")
+    if m.own >= n:
+        raise MessageError(f"own: satellite {m.own} in an estimate of {n}")
+    _ids("batches_used", m.batches_used)
+    _ids("batches_missing", m.batches_missing)
+
+
 def _full_est(m: FullEstimate) -> None:
     _id("own", m.own)
     n = _state(m)
@@ -484,6 +501,8 @@ _VALIDATORS = {
     "claim": _claim,
     "img": _img,
 }
+_SHALLOW = {"est": _est_shallow}
+SHALLOW_KINDS = tuple(_SHALLOW)
 _KIND_OF = {cls: kind for kind, cls in MODELS.items()}
 
 
