@@ -4,6 +4,7 @@ with malformed-message accounting, and the command-line scaffolding of a role's 
 from __future__ import annotations
 
 import argparse
+import functools
 import logging
 import signal
 import sys
@@ -33,13 +34,15 @@ class Event:
     role: str | None = None
 
 
+@functools.lru_cache(maxsize=None)
+def _scalar_ids(cls) -> tuple[str, ...]:
+    fields = cls.DESCRIPTOR.fields_by_name
+    return tuple(n for n in ("sat", "observer", "own") if n in fields and not fields[n].is_repeated)
+
+
 def _id_fields(kind: str, msg) -> list[int]:
     """Every satellite id a message names (each must be a satellite of this swarm)."""
-    ids = []
-    fields = msg.DESCRIPTOR.fields_by_name
-    for name in ("sat", "observer", "own"):
-        if name in fields and not fields[name].is_repeated:
-            ids.append(getattr(msg, name))
+    ids = [getattr(msg, name) for name in _scalar_ids(type(msg))]
     if kind == "fault" and msg.HasField("target"):
         ids.append(msg.target)
     if kind in ("meas", "select"):
@@ -190,11 +193,12 @@ class Node:
             msg = decode(kind, s.payload, shallow=s.key.rsplit("/", 1)[0] in self._shallow)
             if msg.run != self.run:
                 raise MessageError(f"message run id {msg.run!r} is not this swarm's")
-            bad = [i for i in _id_fields(kind, msg) if i >= self.n]
-            if sat is not None and sat >= self.n:
-                bad.append(sat)
-            if bad:
-                raise MessageError(f"unknown satellite id(s) {sorted(set(bad))} (swarm has 0..{self.n - 1})")
+            ids = _id_fields(kind, msg)
+            if sat is not None:
+                ids.append(sat)
+            if max(ids, default=-1) >= self.n:
+                bad = sorted({i for i in ids if i >= self.n})
+                raise MessageError(f"unknown satellite id(s) {bad} (swarm has 0..{self.n - 1})")
             if kind in ("est", "full_est") and len(msg.q_BI) != 4 * self.n:
                 raise MessageError(f"an estimate of {len(msg.q_BI) // 4} satellites (this swarm has {self.n})")
             check_key(s.key, kind, sat, msg)

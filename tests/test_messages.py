@@ -298,3 +298,28 @@ def test_shallow_decoding_of_estimates_checks_what_it_reads():
     assert M.decode("meas", M.encode(EXAMPLES["meas"]), shallow=True) == EXAMPLES["meas"]  # other kinds: always in full
     with pytest.raises(M.MessageError, match="R_Bi: not finite"):
         M.decode("meas", _nan_R(), shallow=True)
+
+
+def test_compiled_batch_checks_give_the_numpy_verdicts():
+    from swarm.bus import fastcheck as F
+
+    base = EXAMPLES["meas"]
+    q0 = np.asarray(base.q_BjBi).reshape(-1, 4)
+    r0 = np.asarray(base.r_ij_Bi_m).reshape(-1, 3)
+    R0 = array(base.R_Bi)
+    cases = {"sound": (q0, r0, R0), "empty": (np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 6, 6)))}
+    q = q0.copy(); q[1, 2] = np.nan; cases["q NaN"] = (q, r0, R0)
+    q = q0.copy(); q[0] *= 1.001; cases["q not unit"] = (q, r0, R0)
+    q = q0.copy(); q[0] *= 1 + 5e-7; cases["q within tolerance"] = (q, r0, R0)
+    r = r0.copy(); r[1, 0] = np.inf; cases["r inf"] = (q0, r, R0)
+    R = R0.copy(); R[1, 0, 5] = np.nan; cases["R NaN upper"] = (q0, r0, R)
+    R = R0.copy(); R[0, 4, 1] += 1e-3; cases["R asymmetric"] = (q0, r0, R)
+    R = R0.copy(); R[0, 4, 1] += 1e-12 * R0[0].max(); cases["R round-off"] = (q0, r0, R)
+    R = R0.copy(); R[1, 3, 3] = -R[1, 3, 3]; cases["R indefinite"] = (q0, r0, R)
+    R = R0.copy(); R[1] = np.ones((6, 6)); cases["R singular"] = (q0, r0, R)
+    want = {"sound": 0, "empty": 0, "q NaN": 1, "q not unit": 2, "q within tolerance": 0, "r inf": 3, "R NaN upper": 4,
+            "R asymmetric": 5, "R round-off": 0, "R indefinite": 6, "R singular": 6}
+    for name, (q, r, R) in cases.items():
+        got = (F.check_batch(q, r, R, 2 * M.QUAT_TOL, M.SYM_TOL), F.check_batch_numpy(q, r, R, 2 * M.QUAT_TOL, M.SYM_TOL))
+        assert got == (want[name], want[name]), name
+    assert F.HAVE_NUMBA  # the compiled form is the one the agents use

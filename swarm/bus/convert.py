@@ -22,6 +22,7 @@ from .messages import (
     Select,
     Sensors,
     Truth,
+    batch_arrays,
     counted,
     pixels,
 )
@@ -215,15 +216,15 @@ def batch_msg(rel: RelativeMeasurements, cameras: np.ndarray, *, run: str, sende
 
 @counted
 def relative_from_batches(batches: list[MeasBatch]) -> RelativeMeasurements:
-    batches = [b for b in batches if len(b.target)]
-    if not batches:
+    cols = [(b.observer, batch_arrays(b)) for b in batches if len(b.target)]
+    if not cols:
         return RelativeMeasurements.empty()
     return RelativeMeasurements(
-        observer=np.concatenate([np.full(len(b.target), b.observer, dtype=int) for b in batches]),
-        target=np.concatenate([np.asarray(b.target, dtype=int) for b in batches]),
-        q_BjBi=np.concatenate([_rows(b.q_BjBi, 4) for b in batches]),
-        r_ij_Bi=np.concatenate([_rows(b.r_ij_Bi_m, 3) for b in batches]),
-        R_Bi=np.concatenate([array(b.R_Bi).reshape(-1, 6, 6) for b in batches]),
+        observer=np.concatenate([np.full(len(a[0]), obs, dtype=int) for obs, a in cols]),
+        target=np.concatenate([a[0] for _o, a in cols]),
+        q_BjBi=np.concatenate([a[1] for _o, a in cols]),
+        r_ij_Bi=np.concatenate([a[2] for _o, a in cols]),
+        R_Bi=np.concatenate([a[3] for _o, a in cols]),
     )
 
 
