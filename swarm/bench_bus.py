@@ -27,6 +27,7 @@ cfg = zenoh.Config()
 cfg.insert_json5("mode", json.dumps("client"))
 cfg.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
 cfg.insert_json5("scouting/multicast/enabled", "false")
+cfg.insert_json5("transport/shared_memory/enabled", sys.argv[2])
 stop = threading.Event()
 with zenoh.open(cfg) as s:
     pub = s.declare_publisher("bench/pong", congestion_control=zenoh.CongestionControl.BLOCK)
@@ -104,6 +105,7 @@ def _batch_payload(n: int = 10) -> bytes:
 def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_sizes=(10, 40)) -> list[dict]:
     import zenoh
 
+    from .bus.session import shared_memory_enabled
     from .launch import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -111,12 +113,14 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_si
     echo = None
     try:
         assert b"READY" in router.stdout.readline()
-        echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint], stdout=subprocess.PIPE)
+        shm = json.dumps(shared_memory_enabled())  # as the swarm's processes have it
+        echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint, shm], stdout=subprocess.PIPE)
         assert b"READY" in echo.stdout.readline()
         cfg = zenoh.Config()
         cfg.insert_json5("mode", json.dumps("client"))
         cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
         cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("transport/shared_memory/enabled", shm)
         rows = []
         with zenoh.open(cfg) as s:
             got = threading.Event()

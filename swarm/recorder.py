@@ -148,7 +148,7 @@ class Recorder:
 
 
 def main(argv=None) -> int:
-    from .node import install_term_handler, setup_logging
+    from .node import freeze_startup_objects, install_term_handler, setup_logging
 
     p = argparse.ArgumentParser(description="recorder: every message of a run into MCAP")
     p.add_argument("--run", required=True)
@@ -168,6 +168,7 @@ def main(argv=None) -> int:
 
         sc = load_role_scenario(a.scenario, a.sets)
     r = Recorder(a.run, a.out, bus_config_from_args(a), a.flush_every_s, derive_foxglove=not a.no_foxglove, scenario=sc)
+    freeze_startup_objects()
     install_term_handler(r.stop)
     try:
         r.run_loop(max_linger_s=sc.emulator.shutdown_linger_s if sc is not None else 30.0)

@@ -26,6 +26,9 @@ def main(argv=None) -> int:
     cfg.insert_json5("mode", json.dumps("router"))
     cfg.insert_json5("listen/endpoints", json.dumps(a.listen or ["tcp/0.0.0.0:7447"]))
     cfg.insert_json5("scouting/multicast/enabled", "false")
+    from .bus.session import apply_shared_memory
+
+    apply_shared_memory(cfg)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())

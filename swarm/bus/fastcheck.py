@@ -16,7 +16,7 @@ import os
 
 import numpy as np
 
-__all__ = ["check_batch", "check_batch_numpy", "REASONS", "HAVE_NUMBA"]
+__all__ = ["check_batch", "check_batch_numpy", "warm_up", "REASONS", "HAVE_NUMBA"]
 
 # Verdict codes → the reason a MessageError gives.
 REASONS = {
@@ -114,6 +114,11 @@ if HAVE_NUMBA:
                     else:
                         L[i, j] = s / L[j, j]
         return 0
+
+
+def warm_up() -> None:
+    """Compile (or load from numba's cache) the compiled check now."""
+    check_batch(np.array([[0.0, 0.0, 0.0, 1.0]]), np.zeros((1, 3)), np.eye(6)[None], 1e-6, 1e-9)
 
 
 def check_batch(q: np.ndarray, r: np.ndarray, R: np.ndarray, quat_tol2: float, sym_tol: float) -> int:
