@@ -62,7 +62,7 @@ class Agent(Node):
         self.subscribe(self.keys.cam(sat))
         self.subscribe(self.keys.meas())
         self.subscribe(self.keys.fault())
-        self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
+        # Peers' progress comes from their health reports, not est/* (40 × 20 KB a step at n = 40).
         self.subscribe(self.keys.health())
         self.watch_liveliness(self.keys.alive("agent"))
         self.finished: dict[int, dict[int, float]] = {}  # step → {peer: when we learnt it is past it}
@@ -122,6 +122,7 @@ class Agent(Node):
             # Past a short grace it is lost, and waiting longer is pointless.
             if ev.msg.sat != self.i:
                 self.finished.setdefault(k, {}).setdefault(ev.msg.sat, time.monotonic())
+                self.peer_est_steps[ev.msg.sat] = max(k, self.peer_est_steps.get(ev.msg.sat, -1))
         elif ev.kind == "fault":
             self._on_fault(ev.msg)
         return True

@@ -23,7 +23,7 @@ import sys
 import threading
 import time
 
-from .bus.messages import MODELS, Keys, Liveliness, Malformed, MessageError, check_key, decode, file_descriptor_set, parse_key, replace
+from .bus.messages import MODELS, Keys, Liveliness, Malformed, MessageError, check_key, decode, file_descriptor_set, parse_key, prepare, replace
 from .bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
 from .mcaplog import CheckpointWriter
 
@@ -37,6 +37,7 @@ class Recorder:
         self.w = CheckpointWriter(out)
         self.flush_every_s = flush_every_s
         self.inbox = Inbox()
+        prepare("meas")  # it records batches: their checks loaded before it says it is alive
         self.session = open_session(bus)
         self.stop = threading.Event()
         self.done = False

@@ -323,3 +323,14 @@ def test_compiled_batch_checks_give_the_numpy_verdicts():
         got = (F.check_batch(q, r, R, 2 * M.QUAT_TOL, M.SYM_TOL), F.check_batch_numpy(q, r, R, 2 * M.QUAT_TOL, M.SYM_TOL))
         assert got == (want[name], want[name]), name
     assert F.HAVE_NUMBA  # the compiled form is the one the agents use
+
+
+def test_satellite_ids_are_checked_against_the_swarm_size():
+    raw = M.encode(EXAMPLES["meas"])  # observer 2, targets 0 and 1
+    assert M.decode("meas", raw, n_sats=3) == EXAMPLES["meas"]
+    with pytest.raises(M.MessageError, match=r"observer: satellite id 2 out of range \(0-1\)"):
+        M.decode("meas", raw, n_sats=2)
+    with pytest.raises(M.MessageError, match="live_agents: satellite id 2 out of range"):
+        M.decode("clock", M.encode(EXAMPLES["clock"]), n_sats=2)
+    with pytest.raises(M.MessageError, match="own: satellite id 1 out of range"):
+        M.decode("est", M.encode(EXAMPLES["est"]), shallow=True, n_sats=1)

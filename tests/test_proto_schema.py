@@ -140,3 +140,15 @@ def test_protoc_decode_of_recorded_messages_equals_the_python_values(recording):
             assert _numbers(text, "q_BI") == rec.truth_q[m.k].ravel().tolist()
             done.add("truth")
     assert done == {"est", "meas", "truth"}
+
+
+def test_a_recording_of_the_json_wire_format_is_refused_with_the_reason(tmp_path):
+    from swarm.mcaplog import CheckpointWriter
+    from swarm.recording import load_recording
+
+    w = CheckpointWriter(tmp_path / "old.mcap")
+    cid = w.channel("swarm/old-run/truth", w.schema("swarm.Truth", "jsonschema", b"{}"))
+    w.add(cid, b'{"v": 1, "run": "old-run", "sender": "world", "k": 0, "t_s": 0.0, "q_BI": [[0, 0, 0, 1]]}', 1)
+    w.close()
+    with pytest.raises(ValueError, match="JSON messages of swarm-coloc before the protobuf wire format"):
+        load_recording(tmp_path / "old.mcap")

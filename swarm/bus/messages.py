@@ -114,6 +114,7 @@ __all__ = [
     "opt",
     "pixels",
     "batch_arrays",
+    "prepare",
     "file_descriptor_set",
     "codec_cpu_ms",
     "counted",
@@ -148,9 +149,20 @@ _FAULT_NEEDS_TARGET = ("kill-agent", "restart-agent", "stop-agent", "camera", "d
 # `swarm bench run` sets against the filter's own CPU time. Thread CPU time, counted once
 # for nested calls (a conversion that encodes), from any thread (queryables reply on
 # Zenoh's threads).
-_codec_ns = [0]
-_codec_lock = threading.Lock()
-_codec_local = threading.local()
+class _Tally(threading.local):
+    """Per thread: whether a counted call is under way, and the nanoseconds counted
+    (each thread adds to its own cell; :func:`codec_cpu_ms` sums them: no lock per call)."""
+
+    def __init__(self):
+        self.busy = False
+        self.cell = [0]
+        with _cells_lock:
+            _cells.append(self.cell)
+
+
+_cells: list[list[int]] = []
+_cells_lock = threading.Lock()
+_tally = _Tally()
 
 
 def counted(fn):
@@ -158,27 +170,29 @@ def counted(fn):
 
     @functools.wraps(fn)
     def wrapper(*args, **kwargs):
-        if getattr(_codec_local, "busy", False):
+        t = _tally
+        if t.busy:
             return fn(*args, **kwargs)
-        _codec_local.busy = True
+        t.busy = True
         t0 = time.thread_time_ns()
         try:
             return fn(*args, **kwargs)
         finally:
-            dt = time.thread_time_ns() - t0
-            _codec_local.busy = False
-            with _codec_lock:
-                _codec_ns[0] += dt
+            t.cell[0] += time.thread_time_ns() - t0
+            t.busy = False
 
     return wrapper
 
 
 def codec_cpu_ms(reset: bool = True) -> float:
     """CPU time (ms) this process spent on messages since the last reset."""
-    with _codec_lock:
-        ns = _codec_ns[0]
-        if reset:
-            _codec_ns[0] = 0
+    with _cells_lock:
+        ns = 0
+        for c in _cells:
+            v = c[0]
+            ns += v
+            if reset:
+                c[0] -= v  # a concurrent add on another thread is kept, not lost
     return ns / 1e6
 
 
@@ -192,7 +206,7 @@ def encode(msg) -> bytes:
 
 
 @counted
-def decode(kind: str, payload: bytes | bytearray | memoryview, shallow: bool = False):
+def decode(kind: str, payload: bytes | bytearray | memoryview, shallow: bool = False, n_sats: int | None = None):
     """Parse and validate a payload of the given kind; :class:`MessageError` on any defect.
 
     ``shallow``: for a receiver that reads only the header and the scalars of an estimate
@@ -209,16 +223,18 @@ def decode(kind: str, payload: bytes | bytearray | memoryview, shallow: bool = F
         msg.ParseFromString(bytes(payload))
     except DecodeError as exc:
         raise MessageError(f"invalid {kind} message: not a {cls.DESCRIPTOR.full_name} ({exc})") from None
-    validate(msg, kind, shallow)
+    validate(msg, kind, shallow, n_sats)
     return msg
 
 
-def validate(msg, kind: str | None = None, shallow: bool = False) -> None:
-    """Check what the schema cannot (see the module doc); :class:`MessageError` names the field."""
+def validate(msg, kind: str | None = None, shallow: bool = False, n_sats: int | None = None) -> None:
+    """Check what the schema cannot (see the module doc); :class:`MessageError` names the field.
+    ``n_sats``: the swarm's size, which every satellite id must be below (else ``MAX_SAT_ID``)."""
     kind = kind or _KIND_OF[type(msg)]
+    top = MAX_SAT_ID if n_sats is None else n_sats - 1
     try:
         _header(msg)
-        ((shallow and _SHALLOW.get(kind)) or _VALIDATORS[kind])(msg)
+        ((shallow and _SHALLOW.get(kind)) or _VALIDATORS[kind])(msg, top)
     except MessageError as exc:
         raise MessageError(f"invalid {kind} message: {exc}") from None
 
@@ -228,7 +244,7 @@ def _header(m) -> None:
         if m.schema_version == 0:
             raise MessageError("schema_version: missing (not a swarm.v1 message)")
         raise MessageError(f"schema_version: unknown version {m.schema_version} (this receiver reads {SCHEMA_VERSION})")
-    if not _RUN_RE.fullmatch(m.run):
+    if not _run_ok(m.run):
         raise MessageError(f"run: {m.run[:80]!r} is not a run id (1-64 letters, digits, '_', '-', '.')")
     if not 1 <= len(m.sender) <= 64:
         raise MessageError(f"sender: {len(m.sender)} characters (1-64 allowed)")
@@ -236,16 +252,21 @@ def _header(m) -> None:
         raise MessageError(f"t_s: {m.t_s} is not finite")
 
 
+@functools.lru_cache(maxsize=256)
+def _run_ok(run: str) -> bool:
+    return _RUN_RE.fullmatch(run) is not None
+
+
 # -- field checks (vectorised: an agent at n = 40 validates ~80 messages a step) ----------
-def _id(name: str, v: int) -> None:
-    if v > MAX_SAT_ID:
-        raise MessageError(f"{name}: satellite id {v} out of range (0-{MAX_SAT_ID})")
+def _id(top: int, name: str, v: int) -> None:
+    if v > top:
+        raise MessageError(f"{name}: satellite id {v} out of range (0-{top})")
 
 
-def _ids(name: str, vals) -> None:
-    top = max(vals, default=0)  # a short list of ints: Python's max beats a numpy round trip
-    if top > MAX_SAT_ID:
-        raise MessageError(f"{name}: satellite id {top} out of range (0-{MAX_SAT_ID})")
+def _ids(top: int, name: str, vals) -> None:
+    big = max(vals, default=0)  # a short list of ints: Python's max beats a numpy round trip
+    if big > top:
+        raise MessageError(f"{name}: satellite id {big} out of range (0-{top})")
 
 
 def _finite(name: str, a: np.ndarray) -> np.ndarray:
@@ -311,13 +332,13 @@ def _nonneg(name: str, v: float) -> None:
         raise MessageError(f"{name}: {v} is not a finite number ≥ 0")
 
 
-def _clock(m: Clock) -> None:
-    _ids("live_agents", m.live_agents)
+def _clock(m: Clock, top: int) -> None:
+    _ids(top, "live_agents", m.live_agents)
     _choice("mode", m.mode, ("lockstep", "free"))
 
 
-def _sensors(m: Sensors) -> None:
-    _id("sat", m.sat)
+def _sensors(m: Sensors, top: int) -> None:
+    _id(top, "sat", m.sat)
     _optional_vec("gyro_rate_B_rad_s", m.gyro_rate_B_rad_s, 3)
     q = _optional_vec("q_BI_star", m.q_BI_star, 4)
     if q is not None:
@@ -329,26 +350,31 @@ def _sensors(m: Sensors) -> None:
             raise MessageError(f"{f}: {v} is not a finite number > 0")
 
 
-def _cam(m: CameraOutput) -> None:
-    _id("sat", m.sat)
-    for j, d in enumerate(m.detections):
-        _id(f"detections.{j}.target", d.target)
+def _cam(m: CameraOutput, top: int) -> None:
+    _id(top, "sat", m.sat)
+    q, r = [], []
+    for j, d in enumerate(m.detections):  # the scalars one by one, the numbers all at once
+        _id(top, f"detections.{j}.target", d.target)
         if d.target == m.sat:
             raise MessageError(f"detections.{j}.target: satellite {m.sat} cannot see itself")
         if d.camera > 5:
             raise MessageError(f"detections.{j}.camera: {d.camera} is not a face camera (0-5)")
-        _unit(f"detections.{j}.q_BjBi", _rows(f"detections.{j}.q_BjBi", d.q_BjBi, 4, 1))
-        _rows(f"detections.{j}.r_ij_Bi_m", d.r_ij_Bi_m, 3, 1)
+        if len(d.q_BjBi) != 4 or len(d.r_ij_Bi_m) != 3:
+            raise MessageError(f"detections.{j}: {len(d.q_BjBi)} numbers in q_BjBi (4), {len(d.r_ij_Bi_m)} in r_ij_Bi_m (3)")
+        q.extend(d.q_BjBi)
+        r.extend(d.r_ij_Bi_m)
+    _unit("detections.q_BjBi", _rows("detections.q_BjBi", q, 4))
+    _rows("detections.r_ij_Bi_m", r, 3)
     c = np.asarray(m.cameras_off, dtype=np.int64)
     if c.size and c.max() > 5:
         raise MessageError(f"cameras_off: {int(c.max())} is not a face camera (0-5)")
 
 
-def _meas(m: MeasBatch) -> None:
-    _id("observer", m.observer)
+def _meas(m: MeasBatch, top: int) -> None:
+    _id(top, "observer", m.observer)
     tgt = list(m.target)
     n = len(tgt)
-    _ids("target", tgt)
+    _ids(top, "target", tgt)
     if m.observer in tgt:
         raise MessageError(f"target: satellite {m.observer} cannot measure itself")
     if len(m.camera) != n:
@@ -365,13 +391,27 @@ def _meas(m: MeasBatch) -> None:
     q = np.asarray(m.q_BjBi, dtype=float).reshape(n, 4)
     r = np.asarray(m.r_ij_Bi_m, dtype=float).reshape(n, 3)
     R = np.asarray(m.R_Bi.data, dtype=float).reshape(n, 6, 6)
-    from .fastcheck import REASONS, check_batch  # numba, loaded by the first batch checked
-
-    code = check_batch(q, r, R, 2 * QUAT_TOL, SYM_TOL)
+    fc = _fastcheck()
+    code = fc.check_batch(q, r, R, 2 * QUAT_TOL, SYM_TOL)
     if code:
-        raise MessageError(REASONS[code])
+        raise MessageError(fc.REASONS[code])
     # The receiver's next step is converting these very arrays: keep them for it.
     _MEMO.put(m, (np.array(tgt, dtype=int), q, r, R))
+
+
+@functools.cache
+def _fastcheck():
+    """:mod:`.fastcheck` (numba), loaded when first needed, not at import."""
+    from . import fastcheck
+
+    return fastcheck
+
+
+def prepare(kind: str) -> None:
+    """Load now what decoding ``kind`` will need (measurement batches: the compiled
+    checks, about a second with numba's import), so the first message is not late."""
+    if kind == "meas":
+        _fastcheck().warm_up()
 
 
 class _Memo:
@@ -428,8 +468,8 @@ def _state(m, bias: str = "bias_B_rad_s") -> int:
     return n
 
 
-def _est(m: Estimate) -> None:
-    _id("own", m.own)
+def _est(m: Estimate, top: int) -> None:
+    _id(top, "own", m.own)
     _choice("phase", m.phase, ("prior", "posterior"))
     n = _state(m)
     if m.own >= n:
@@ -440,33 +480,31 @@ def _est(m: Estimate) -> None:
         raise MessageError("P_diag: a variance ≤ 0")
     for f in ("nis", "step_ms", "step_cpu_ms", "codec_cpu_ms"):
         _nonneg(f, getattr(m, f))
-    _ids("batches_used", m.batches_used)
-    _ids("batches_missing", m.batches_missing)
+    _ids(top, "batches_used", m.batches_used)
+    _ids(top, "batches_missing", m.batches_missing)
 
 
-def _est_shallow(m: Estimate) -> None:
-    _id("own", m.own)
+def _est_shallow(m: Estimate, top: int) -> None:
+    _id(top, "own", m.own)
     _choice("phase", m.phase, ("prior", "posterior"))
     n, rest = divmod(len(m.q_BI), 4)
     if n == 0 or rest:
         raise MessageError(f"q_BI: {len(m.q_BI)} numbers, expected a positive multiple of 4")
     if m.own >= n:
         raise MessageError(f"own: satellite {m.own} in an estimate of {n}")
-    _ids("batches_used", m.batches_used)
-    _ids("batches_missing", m.batches_missing)
 
 
-def _full_est(m: FullEstimate) -> None:
-    _id("own", m.own)
+def _full_est(m: FullEstimate, top: int) -> None:
+    _id(top, "own", m.own)
     n = _state(m)
     if m.own >= n:
         raise MessageError(f"own: satellite {m.own} in an estimate of {n}")
     _spd("P", _matrix("P", m.P, (12 * n, 12 * n))[None])
 
 
-def _select(m: Select) -> None:
-    _ids("observer", m.observer)
-    _ids("target", m.target)
+def _select(m: Select, top: int) -> None:
+    _ids(top, "observer", m.observer)
+    _ids(top, "target", m.target)
     if len(m.observer) != len(m.target):
         raise MessageError(f"observer/target: {len(m.observer)} observers for {len(m.target)} targets")
     if any(a == b for a, b in zip(m.observer, m.target)):
@@ -474,15 +512,15 @@ def _select(m: Select) -> None:
     if not 1 <= len(m.strategy) <= 64:
         raise MessageError(f"strategy: {len(m.strategy)} characters (1-64 allowed)")
     if m.HasField("ref_agent"):
-        _id("ref_agent", m.ref_agent)
+        _id(top, "ref_agent", m.ref_agent)
     _nonneg("select_ms", m.select_ms)
 
 
-def _fault(m: Fault) -> None:
+def _fault(m: Fault, top: int) -> None:
     _choice("action", m.action, FAULT_ACTIONS)
     _choice("phase", m.phase, ("command", "done", "failed"))
     if m.HasField("target"):
-        _id("target", m.target)
+        _id(top, "target", m.target)
     elif m.action in _FAULT_NEEDS_TARGET:
         raise MessageError(f"target: {m.action} needs a target satellite")
     if m.HasField("camera") and m.camera > 5:
@@ -499,8 +537,8 @@ def _fault(m: Fault) -> None:
         raise MessageError(f"detail: {len(m.detail)} characters (at most 1000)")
 
 
-def _health(m: Health) -> None:
-    _id("sat", m.sat)
+def _health(m: Health, top: int) -> None:
+    _id(top, "sat", m.sat)
     if len(m.camera_ok) != 6:
         raise MessageError(f"camera_ok: {len(m.camera_ok)} values, expected 6")
     if not 0.0 <= m.drop_rate <= 1.0:
@@ -509,19 +547,19 @@ def _health(m: Health) -> None:
         raise MessageError(f"host: {len(m.host)} characters (at most 253)")
 
 
-def _claim(m: Claim) -> None:
-    _id("sat", m.sat)
+def _claim(m: Claim, top: int) -> None:
+    _id(top, "sat", m.sat)
     if not 1 <= len(m.token) <= 128:
         raise MessageError(f"token: {len(m.token)} characters (1-128 allowed)")
 
 
-def _truth(m: Truth) -> None:
+def _truth(m: Truth, top: int) -> None:
     _state(m, "gyro_bias_B_rad_s")
 
 
-def _img(m: Images) -> None:
-    _id("sat", m.sat)
-    _ids("targets", m.targets)
+def _img(m: Images, top: int) -> None:
+    _id(top, "sat", m.sat)
+    _ids(top, "targets", m.targets)
     for j, v in enumerate(m.views):
         p = f"views.{j}"
         if v.camera > 6 + MAX_SAT_ID:
@@ -738,7 +776,12 @@ _KEY_RE = re.compile(
 
 def parse_key(key: str) -> tuple[str, str, int | None]:
     """``(run, kind, satellite id or None)`` of a key; :class:`MessageError` if unknown."""
-    m = _KEY_RE.match(str(key))
+    return _parse_key(str(key))
+
+
+@functools.lru_cache(maxsize=4096)  # a run's ~5n keys recur every step
+def _parse_key(key: str) -> tuple[str, str, int | None]:
+    m = _KEY_RE.match(key)
     if not m:
         raise MessageError(f"unexpected key {str(key)[:200]!r}")
     run = m["run"]
