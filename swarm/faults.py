@@ -17,7 +17,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from .bus.messages import Fault, Keys, MessageError, opt, replace, validate
+from .bus.messages import SCHEMA_VERSION, Fault, Keys, MessageError, opt, replace, validate
 from .bus.session import BusConfig
 from .node import Node
 
@@ -160,7 +160,7 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
             ev = node.next_event(5.0)
         if ev is not None:
             k, t = ev.msg.k, ev.msg.t_s
-        cmd = Fault(run=run, sender="cli", k=k, t_s=t, phase="command", **fields)
+        cmd = Fault(schema_version=SCHEMA_VERSION, run=run, sender="cli", k=k, t_s=t, phase="command", **fields)
         try:
             validate(cmd)
         except MessageError as exc:
