@@ -152,3 +152,22 @@ def test_a_recording_of_the_json_wire_format_is_refused_with_the_reason(tmp_path
     w.close()
     with pytest.raises(ValueError, match="JSON messages of swarm-coloc before the protobuf wire format"):
         load_recording(tmp_path / "old.mcap")
+
+
+@pytest.mark.integration
+def test_recover_keeps_every_channels_protobuf_schema(recording, tmp_path):
+    from swarm.mcaplog import iter_records, recover
+
+    path, _rec, _sc = recording
+    torn = tmp_path / "torn.mcap"
+    data = path.read_bytes()
+    torn.write_bytes(data[: int(len(data) * 0.8)])  # as a writer killed mid-file leaves it
+    n = recover(torn, tmp_path / "back.mcap")
+    assert n > 0
+    back = list(iter_records(tmp_path / "back.mcap"))
+    assert len(back) == n
+    original = {ch.topic: (s.name, s.encoding, s.data, ch.message_encoding) for s, ch, _m in iter_records(path)}
+    for s, ch, m in back:
+        assert (s.name, s.encoding, s.data, ch.message_encoding) == original[ch.topic]
+        if ch.topic.startswith("swarm/") and "/est/" in ch.topic:
+            assert M.decode("est", m.data).run == M.Header.FromString(m.data).run
