@@ -65,6 +65,11 @@ EXAMPLES = {
     "img": M.Images(**H, sat=1, targets=[0, 2], views=_img_views()),
     "truth": truth_msg(initial_truth(Scenario(n_sats=3, seed=2)), run=RUN, k=0),
 }
+_METER = M.replace(EXAMPLES["meas"], schema_version=M.SCHEMA_VERSION)  # a batch as the radio received it
+EXAMPLES["rx"] = M.Delivery(**H, sat=0, items=[M.Delivered(arrival_t_s=2.7, batch=_METER)])
+EXAMPLES["links"] = M.LinkStats(**H, **{f: matrix(np.arange(9.0).reshape(3, 3)) for f in M._LINK_COUNTERS}, queue_bytes=[0, 120, 4],
+                                latencies=[M.Latency(sender=2, receiver=0, sent_k=2, latency_s=0.7)])
+EXAMPLES["rejoin"] = M.RejoinFate(**H, sat=1, peer=2, bytes=12345, fate="delivered", arrival_t_s=3.4)
 
 
 def _raw(kind, **changes):
@@ -169,6 +174,13 @@ def _indefinite_R():
         ("fault", M.encode(M.Fault(**H, action="drop", phase="command", target=1, rate=1.5)), "rate"),
         ("fault", M.encode(M.Fault(**H, action="kill-agent", phase="command")), "needs a target"),
         ("health", _raw("health", camera_ok=[True] * 5), "camera_ok: 5 values"),
+        ("fault", M.encode(M.Fault(**H, action="netem", phase="command", target=1)), "action netem needs netem"),
+        ("rejoin", _raw("rejoin", fate="teleported"), "fate"),
+        ("rejoin", _raw("rejoin", arrival_t_s=None), "needs its arrival time"),
+        ("links", _raw("links", lost=matrix(-np.ones((3, 3)))), "lost: a negative count"),
+        ("links", _raw("links", sent=matrix(np.ones((2, 3)))), "sent: shape"),
+        ("rx", M.encode(M.Delivery(**H, sat=0, items=[M.Delivered(arrival_t_s=1.0, batch=M.replace(_METER, q_BjBi=[0.0] * 8))])), "items.0.batch: .*unit quaternion"),
+        ("rx", M.encode(M.Delivery(**H, sat=2, items=[M.Delivered(arrival_t_s=1.0, batch=_METER)])), "own batch"),
         ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], width_px=0)]), "width_px"),
         ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], images_mono8=[bytes(14)])]), "needs 15 bytes, got 14"),
         ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], T_CB=[2.0] + [0.0] * 8)]), "rotation"),
@@ -246,7 +258,7 @@ def test_replace_as_dict_and_optional_fields():
     f = M.Fault(**H, action="kill-selector", phase="command")
     assert M.opt(f, "target") is None and f.target == 0
     d = M.as_dict(M.replace(f, phase="done", detail="x"), exclude=("schema_version", "run"))
-    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x"}
+    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None}
     assert f.phase == "command", "replace must not touch the original"
     g = M.replace(EXAMPLES["fault"], target=None)
     assert not g.HasField("target") and EXAMPLES["fault"].target == 1

@@ -40,6 +40,9 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/fault                CLI / roles → all     Fault
     swarm/<run>/health/<i>           agent i → all         Health
     swarm/<run>/truth                world → recorder      Truth   (agents never subscribe)
+    swarm/<run>/rx/<i>               world → agent i       Delivery (links.enabled: what the radio delivered)
+    swarm/<run>/links                world → recorder      LinkStats (links.enabled: per-link counters)
+    swarm/<run>/rejoin/<i>[/<j>/<B>] world (queryable)     RejoinFate (links.enabled: a restart's state transfer)
     swarm/<run>/alive/<role>/<id>    liveliness tokens
 """
 
@@ -62,6 +65,7 @@ from swarm.v1.estimate_pb2 import Estimate, FullEstimate
 from swarm.v1.fault_pb2 import Fault
 from swarm.v1.health_pb2 import Health
 from swarm.v1.images_pb2 import CameraView, Images
+from swarm.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
 from swarm.v1.measurements_pb2 import MeasBatch
 from swarm.v1.recording_pb2 import Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
@@ -99,6 +103,11 @@ __all__ = [
     "Claim",
     "Images",
     "CameraView",
+    "Delivery",
+    "Delivered",
+    "Latency",
+    "LinkStats",
+    "RejoinFate",
     "Liveliness",
     "Malformed",
     "Keys",
@@ -138,10 +147,13 @@ MODELS: dict[str, type] = {
     "truth": Truth,
     "claim": Claim,
     "img": Images,
+    "rx": Delivery,
+    "links": LinkStats,
+    "rejoin": RejoinFate,
 }
 
-FAULT_ACTIONS = ("kill-agent", "restart-agent", "stop-agent", "camera", "kill-selector", "restart-selector", "drop", "partition", "heal")
-_FAULT_NEEDS_TARGET = ("kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal")
+FAULT_ACTIONS = ("kill-agent", "restart-agent", "stop-agent", "camera", "kill-selector", "restart-selector", "drop", "partition", "heal", "netem")
+_FAULT_NEEDS_TARGET = ("kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal", "netem")
 
 
 # -- CPU time spent on messages ---------------------------------------------------------
@@ -533,6 +545,10 @@ def _fault(m: Fault, top: int) -> None:
         raise MessageError(f"rate: {m.rate} is not in [0, 1]")
     if m.action == "drop" and not m.HasField("rate"):
         raise MessageError("rate: a drop fault needs a rate")
+    if m.HasField("netem") and not 1 <= len(m.netem) <= 200:
+        raise MessageError(f"netem: {len(m.netem)} characters (1-200 allowed)")
+    if m.action == "netem" and not m.HasField("netem"):
+        raise MessageError("netem: action netem needs netem (tc netem arguments or 'clear')")
     if len(m.detail) > 1000:
         raise MessageError(f"detail: {len(m.detail)} characters (at most 1000)")
 
@@ -586,6 +602,50 @@ def _img(m: Images, top: int) -> None:
                 raise MessageError(f"{p}.images_mono8.{i}: {v.height_px}×{v.width_px} image needs {need} bytes, got {len(im)}")
 
 
+def _rx(m: Delivery, top: int) -> None:
+    _id(top, "sat", m.sat)
+    for j, it in enumerate(m.items):
+        if not math.isfinite(it.arrival_t_s):
+            raise MessageError(f"items.{j}.arrival_t_s: not finite")
+        b = it.batch
+        try:
+            _header(b)
+            _meas(b, top)
+        except MessageError as exc:
+            raise MessageError(f"items.{j}.batch: {exc}") from None
+        if b.observer == m.sat:
+            raise MessageError(f"items.{j}.batch: satellite {m.sat}'s own batch delivered to it")
+
+
+_LINK_COUNTERS = ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable", "bytes_delivered")
+
+
+def _links(m: LinkStats, top: int) -> None:
+    n = len(m.queue_bytes)
+    if n == 0:
+        raise MessageError("queue_bytes: no transmitters")
+    _id(top, "queue_bytes (swarm size - 1)", n - 1)
+    for f in _LINK_COUNTERS:
+        a = _matrix(f, getattr(m, f), (n, n))
+        if (a < 0).any():
+            raise MessageError(f"{f}: a negative count")
+    for j, lat in enumerate(m.latencies):
+        _id(top, f"latencies.{j}.sender", lat.sender)
+        _id(top, f"latencies.{j}.receiver", lat.receiver)
+        if not (math.isfinite(lat.latency_s) and lat.latency_s >= 0):
+            raise MessageError(f"latencies.{j}.latency_s: {lat.latency_s} is not a finite number ≥ 0")
+
+
+def _rejoin(m: RejoinFate, top: int) -> None:
+    _id(top, "sat", m.sat)
+    _id(top, "peer", m.peer)
+    _choice("fate", m.fate, ("delivered", "lost", "dropped", "unreachable"))
+    if m.HasField("arrival_t_s") and not math.isfinite(m.arrival_t_s):
+        raise MessageError("arrival_t_s: not finite")
+    if m.fate == "delivered" and not m.HasField("arrival_t_s"):
+        raise MessageError("arrival_t_s: a delivered transfer needs its arrival time")
+
+
 _VALIDATORS = {
     "clock": _clock,
     "sensors": _sensors,
@@ -599,6 +659,9 @@ _VALIDATORS = {
     "truth": _truth,
     "claim": _claim,
     "img": _img,
+    "rx": _rx,
+    "links": _links,
+    "rejoin": _rejoin,
 }
 _SHALLOW = {"est": _est_shallow}
 SHALLOW_KINDS = tuple(_SHALLOW)
@@ -606,8 +669,8 @@ _KIND_OF = {cls: kind for kind, cls in MODELS.items()}
 
 
 # -- the message against its key ----------------------------------------------------------
-_WORLD_KEYS = ("clock", "sensors", "cam", "img", "truth", "claim")
-_OWNER_FIELD = {"sensors": "sat", "cam": "sat", "img": "sat", "health": "sat", "meas": "observer", "est": "own", "full_est": "own"}
+_WORLD_KEYS = ("clock", "sensors", "cam", "img", "truth", "claim", "rx", "links", "rejoin")
+_OWNER_FIELD = {"sensors": "sat", "cam": "sat", "img": "sat", "health": "sat", "meas": "observer", "est": "own", "full_est": "own", "rx": "sat", "rejoin": "sat"}
 
 
 def check_key(key: str, kind: str, sat: int | None, msg) -> None:
@@ -754,6 +817,18 @@ class Keys:
     def truth(self) -> str:
         return f"{self.root}/truth"
 
+    def rx(self, i: int | str = "*") -> str:
+        return f"{self.root}/rx/{i}"
+
+    def links(self) -> str:
+        return f"{self.root}/links"
+
+    def rejoin(self, i: int | str = "*", peer: int | str | None = None, size: int | None = None) -> str:
+        """``rejoin/<i>``: the fates the world gives agent i's rejoin transfers (recorded);
+        ``rejoin/<i>/<peer>/<bytes>``: agent i's question about one (a query)."""
+        tail = "" if peer is None else f"/{peer}/{size}"
+        return f"{self.root}/rejoin/{i}{tail}"
+
     def claim(self, token: str = "*") -> str:
         return f"{self.root}/claim/{token}"
 
@@ -766,9 +841,9 @@ class Keys:
 
 _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
-    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)"
+    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)|(?P<links>links)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
-    r"|(?P<idkind>meas|est|health|cov|init)/(?P<id>\d+)"
+    r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin)/(?P<id>\d+)(?:/\d+/\d+)?"
     r"|claim/(?P<token>[^/]+)"
     r"|alive/(?P<role>[^/]+)/(?P<ident>[^/]+))$"
 )
@@ -785,7 +860,7 @@ def _parse_key(key: str) -> tuple[str, str, int | None]:
     if not m:
         raise MessageError(f"unexpected key {str(key)[:200]!r}")
     run = m["run"]
-    for k in ("clock", "select", "fault", "truth"):
+    for k in ("clock", "select", "fault", "truth", "links"):
         if m[k]:
             return run, k, None
     if m["satkind"]:
