@@ -85,12 +85,13 @@ COPY docker/entrypoint.sh /usr/local/bin/swarm-entrypoint
 COPY scenarios/ /app/scenarios/
 COPY --from=wheel /dist/ /tmp/dist/
 # Install the project (not editable); fail the build, not the first run, when
-# a library is missing; and run the demo once so numba's compiled kernels are
-# cached in the image (each container would otherwise spend ~3 s compiling;
-# on a CPU of another kind numba notices and compiles afresh).
+# a library is missing; and run the demo once (and the bus's batch checks) so
+# numba's compiled kernels are cached in the image (each container would
+# otherwise spend ~3 s compiling; on a CPU of another kind numba notices and
+# compiles afresh).
 RUN pip install -q --no-deps --no-index /tmp/dist/*.whl \
  && rm -rf /tmp/dist /root/.cache \
- && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli" \
+ && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli; from swarm.bus import fastcheck; fastcheck.warm_up()" \
  && { swarm sim scenarios/demo.yaml --out /tmp/warm --no-arrays >/tmp/warm.log 2>&1 \
       || { cat /tmp/warm.log; exit 1; }; } \
  && rm -rf /tmp/warm /tmp/warm.log

@@ -39,7 +39,7 @@ from swarm.bus.convert import (
     observation_from_images,
     relative_from_batches,
 )
-from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Images, Keys, MeasBatch, Sensors
+from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Images, Keys, MeasBatch, Sensors, codec_cpu_ms, replace
 from swarm.protocol import Event, Query, Send, Wait
 from swarmcore.agent import AgentFilter, filter_params
 from swarmcore.measurement import PoseEstimator
@@ -147,6 +147,7 @@ class AgentProtocol:
             # Past a short grace it is lost, and waiting longer is pointless.
             if ev.msg.sat != self.i:
                 self.finished.setdefault(k, {}).setdefault(ev.msg.sat, self.clock())
+                self.peer_est_steps[ev.msg.sat] = max(k, self.peer_est_steps.get(ev.msg.sat, -1))
         elif ev.kind == "fault":
             return self._on_fault(ev.msg)
         return []
@@ -161,7 +162,7 @@ class AgentProtocol:
             self.drop_rate = float(f.rate or 0.0)
             self.log.info("dropping %.0f%% of outgoing messages", 100 * self.drop_rate)
             k = -1 if self.est is None else self.est.step
-            return [Send(self.keys.fault(), f.model_copy(update={"phase": "done", "sender": self.name, "k": max(k, 0)}))]
+            return [Send(self.keys.fault(), replace(f, phase="done", sender=self.name, k=max(k, 0)))]
         return []
 
     # -- start ------------------------------------------------------------------
@@ -315,12 +316,13 @@ class AgentProtocol:
         missing = [j for j in expected if j not in got]
         self.batches_missing += len(missing)
         rel = RelativeMeasurements.concat([rel_own, relative_from_batches([got[j] for j in sorted(got)])])
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self.flt.coast_to(k, self._gyro_of)
         report, _late = self.flt.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel)
         self.last_step = k
         ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
         msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
+                           step_cpu_ms=(time.thread_time() - c0) * 1e3, codec_cpu_ms=codec_cpu_ms(),
                            batches_used=sorted(got), batches_missing=missing, batches_late=self.batches_late)
         if not self._dropped(k, 1):
             yield Send(self.keys.est(self.i), msg)
@@ -349,7 +351,7 @@ class AgentProtocol:
                 late_by_step.setdefault(b.k, []).append(b)
         rel = RelativeMeasurements.concat([rel_own, relative_from_batches(sorted(on_time, key=lambda b: b.observer))])
         late = {s: relative_from_batches(sorted(v, key=lambda b: b.observer)) for s, v in late_by_step.items()}
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         self.flt.coast_to(k, self._gyro_of)
         report, lrep = self.flt.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel, late=late)
         self.last_step = k
@@ -359,6 +361,7 @@ class AgentProtocol:
         self.batches_late += sum(len(v) for v in late_by_step.values())
         ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
         msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
+                           step_cpu_ms=(time.thread_time() - c0) * 1e3, codec_cpu_ms=codec_cpu_ms(),
                            batches_used=sorted(b.observer for b in on_time), batches_late=self.batches_late,
                            late_used=lrep.used, late_dropped=lrep.dropped, replayed_steps=lrep.replayed_steps)
         if not self._dropped(k, 1):

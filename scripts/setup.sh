@@ -1,14 +1,17 @@
 #!/usr/bin/env bash
 # Set up everything the project needs on a fresh Debian 12 machine (idempotent).
-#   - Debian packages from scripts/apt-packages.txt (when root and apt-get exists)
+#   - Debian packages from scripts/apt-packages.txt and scripts/apt-packages-dev.txt
+#     (when root and apt-get exists)
 #   - a virtualenv in .venv with the project, its extras and pinned versions
+#   - a check that cargo (the Rust toolchain, from rustup) is there for the Rust
+#     participant (participants/rust-watch, built by tests/test_rust_participant.py)
 # Usage: scripts/setup.sh            (SKIP_APT=1 to skip the system packages)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 
 if [ "${SKIP_APT:-0}" != "1" ] && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = "0" ]; then
-  mapfile -t pkgs < <(grep -v '^\s*#' scripts/apt-packages.txt | grep -v '^\s*$')
+  mapfile -t pkgs < <(cat scripts/apt-packages.txt scripts/apt-packages-dev.txt | grep -v '^\s*#' | grep -v '^\s*$')
   missing=()
   for p in "${pkgs[@]}"; do
     dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -32,5 +35,8 @@ if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
   # dependencies come from the "vision" extra above, so install it without deps.
   .venv/bin/python -m pip install -q --no-deps -c constraints.txt "pyrender==0.1.45"
   echo "$want" > "$stamp"
+fi
+if ! command -v cargo >/dev/null 2>&1 && [ ! -x "$HOME/.cargo/bin/cargo" ]; then
+  echo "setup: warning: cargo not found; the Rust participant test needs the Rust toolchain (rustup)" >&2
 fi
 echo "setup: ok ($(.venv/bin/python --version), venv in .venv)"

@@ -14,7 +14,8 @@ class Selector(Node):
     def __init__(self, sc: Scenario, run: str, bus):
         super().__init__("selector", 0, run, sc.n_sats, bus, announce=False)
         self.machine = SelectorProtocol(sc, run)
-        for key in (self.keys.est(), self.keys.fault(), self.keys.health(), self.keys.clock()):
+        self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
+        for key in (self.keys.fault(), self.keys.health(), self.keys.clock()):
             self.subscribe(key)
         self.watch_liveliness(self.keys.alive("agent"))
         self.announce()

@@ -15,8 +15,8 @@ from typing import Callable
 
 import numpy as np
 
-from swarm.bus.convert import estimate_from_full
-from swarm.bus.messages import Fault, Keys, Select
+from swarm.bus.convert import estimate_from_full, select_msg
+from swarm.bus.messages import Fault, Keys
 from swarm.protocol import Event, Query, Send, Wait
 from swarmcore.agent import filter_params
 from swarmcore.graphs import scenario_graph
@@ -80,9 +80,8 @@ class SelectorProtocol:
             est = estimate_from_full(msg, self.n)
         obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(self.camera_ok, self.alive))
         ms = (time.perf_counter() - t0) * 1e3
-        yield Send(self.keys.select(), Select(run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
-                                              pairs=[(int(a), int(b)) for a, b in zip(obs, tgt, strict=True)],
-                                              strategy=sc.selection.strategy, ref_agent=ref, select_ms=ms))
+        yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
+                                                  strategy=sc.selection.strategy, ref_agent=ref, select_ms=ms))
         self.planned.add(k)
 
     def plan_first(self, ref: int):

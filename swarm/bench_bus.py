@@ -27,6 +27,7 @@ cfg = zenoh.Config()
 cfg.insert_json5("mode", json.dumps("client"))
 cfg.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
 cfg.insert_json5("scouting/multicast/enabled", "false")
+cfg.insert_json5("transport/shared_memory/enabled", sys.argv[2])
 stop = threading.Event()
 with zenoh.open(cfg) as s:
     pub = s.declare_publisher("bench/pong", congestion_control=zenoh.CongestionControl.BLOCK)
@@ -46,20 +47,64 @@ def _percentiles(x):
     return {"p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "samples": int(a.size)}
 
 
+def _batch(n: int):
+    """A realistic measurement batch: observer 0's relative poses of the n−1 others, with
+    the covariances the sensor model reports (what one agent broadcasts at n satellites)."""
+    from swarmcore.agent import SyntheticPoseEstimator
+    from swarmcore.scenario import Scenario
+    from swarmcore.world import SyntheticCameras, initial_truth, world_params
+
+    sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=10.0)
+    wp = world_params(sc)
+    tr = initial_truth(sc)
+    obs, tgt = np.zeros(n - 1, dtype=int), np.arange(1, n)
+    seen = SyntheticCameras(wp).observe(tr, obs, tgt)
+    return SyntheticPoseEstimator(sc).measure(0, seen[0])
+
+
+def codec_cost(n: int, repeat: int = 200) -> dict:
+    """CPU time (µs, median) to turn one agent's batch at swarm size n into bytes (message
+    construction + encoding) and back into the filter's arrays (decoding, validation,
+    conversion): the work every agent does once, and n−1 times, per step."""
+    from swarm.bus.convert import batch_msg, relative_from_batches
+    from swarm.bus.messages import decode, encode
+
+    rel, cams = _batch(n)
+
+    def enc():
+        return encode(batch_msg(rel, cams, run="bench", sender="agent-0", k=1, t_s=1.0, observer=0))
+
+    raw = enc()
+
+    def dec():
+        return relative_from_batches([decode("meas", raw)])
+
+    back = dec()
+    assert np.array_equal(back.R_Bi, rel.R_Bi) and np.array_equal(back.q_BjBi, rel.q_BjBi), "the batch did not round-trip"
+    out = {"bytes": len(raw)}
+    for name, f in (("encode_us", enc), ("decode_us", dec)):
+        ts = []
+        for _ in range(repeat):
+            t0 = time.thread_time_ns()
+            f()
+            ts.append((time.thread_time_ns() - t0) / 1e3)
+        out[name] = float(np.median(ts))
+    out["decode_all_peers_ms"] = out["decode_us"] * (n - 1) / 1e3
+    return out
+
+
 def _batch_payload(n: int = 10) -> bytes:
-    """A realistic measurement batch: one observer's n−1 relative poses with covariances."""
-    from swarm.bus.messages import MeasBatch, RelMeas, encode
+    from swarm.bus.convert import batch_msg
+    from swarm.bus.messages import encode
 
-    meas = [
-        RelMeas(observer=0, target=j, camera=j % 6, q_BjBi=[0.1, 0.2, 0.3, 0.927], r_ij_Bi_m=[1.234567, -2.345678, 9.87654], R_Bi=list(np.eye(6).ravel() * 1e-4))
-        for j in range(1, n)
-    ]
-    return encode(MeasBatch(run="bench", sender="agent-0", k=1, t_s=1.0, observer=0, meas=meas))
+    rel, cams = _batch(n)
+    return encode(batch_msg(rel, cams, run="bench", sender="agent-0", k=1, t_s=1.0, observer=0))
 
 
-def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[dict]:
+def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_sizes=(10, 40)) -> list[dict]:
     import zenoh
 
+    from .bus.session import shared_memory_enabled
     from .launch import free_port
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
@@ -67,12 +112,14 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[
     echo = None
     try:
         assert b"READY" in router.stdout.readline()
-        echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint], stdout=subprocess.PIPE)
+        shm = json.dumps(shared_memory_enabled())  # as the swarm's processes have it
+        echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint, shm], stdout=subprocess.PIPE)
         assert b"READY" in echo.stdout.readline()
         cfg = zenoh.Config()
         cfg.insert_json5("mode", json.dumps("client"))
         cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
         cfg.insert_json5("scouting/multicast/enabled", "false")
+        cfg.insert_json5("transport/shared_memory/enabled", shm)
         rows = []
         with zenoh.open(cfg) as s:
             got = threading.Event()
@@ -94,10 +141,9 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[
                 pub.put(seq.to_bytes(8, "little") + b"warmup")
                 if got.wait(0.05):
                     break
-            for name, payload, count in (
-                ("measurement batch (n=10)", _batch_payload(10), samples),
-                ("1 MB payload", bytes(np.random.default_rng(0).integers(0, 256, 1 << 20, dtype=np.uint8)), big_samples),
-            ):
+            cases = [(f"measurement batch (n={n})", _batch_payload(n), samples, n) for n in batch_sizes]
+            cases.append(("1 MB payload", bytes(np.random.default_rng(0).integers(0, 256, 1 << 20, dtype=np.uint8)), big_samples, None))
+            for name, payload, count, n_batch in cases:
                 rtt = []
                 for _ in range(count + 5):
                     seq += 1
@@ -112,7 +158,13 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print) -> list[
                 rtt = rtt[5:]
                 one_way = [r / 2 for r in rtt]
                 row = {"payload": name, "bytes": len(payload), "path": "client → router → client (loopback)", "one_way": _percentiles(one_way), "round_trip": _percentiles(rtt)}
-                log(f"{name:26s} {len(payload):8d} B  one-way p50 {row['one_way']['p50_ms']:.3f} ms  p99 {row['one_way']['p99_ms']:.3f} ms")
+                line = f"{name:26s} {len(payload):8d} B  one-way p50 {row['one_way']['p50_ms']:.3f} ms  p99 {row['one_way']['p99_ms']:.3f} ms"
+                if n_batch is not None:
+                    row["n"] = n_batch
+                    row["codec"] = codec_cost(n_batch)
+                    c = row["codec"]
+                    line += f"  encode {c['encode_us']:.0f} µs  decode {c['decode_us']:.0f} µs (×{n_batch - 1} peers: {c['decode_all_peers_ms']:.2f} ms)"
+                log(line)
                 rows.append(row)
             pub.put(b"stop")
             sub.undeclare()
@@ -140,32 +192,52 @@ def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir
         sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=duration_s)
         out = base / f"n{n}"
         sw = LocalSwarm(sc, out, log=lambda s: None)
-        t_start = time.perf_counter()
+        t_start, t_start_ns = time.perf_counter(), time.time_ns()
         try:
             sw.start()
             code = sw.run_to_end()
         finally:
             sw.stop()
         total = time.perf_counter() - t_start
-        clocks = [lt for topic, _s, _d, lt, _p in iter_messages(out / "run.mcap") if topic.endswith("/clock")]
-        wall = (max(clocks) - min(clocks)) / 1e9
-        steps_ms = []
+        from .bus.messages import MessageError, decode
+
+        clocks, est = [], []
         est_prefix = f"{sw.keys.root}/est/"  # the agents' own channels, not the derived /foxglove/est/<i>
-        for topic, _s, data, _lt, _p in iter_messages(out / "run.mcap"):
-            if topic.startswith(est_prefix):
-                m = json.loads(data)
-                if m.get("phase") == "posterior":
-                    steps_ms.append(m.get("step_ms", 0.0))
+        for topic, _s, data, lt, _p in iter_messages(out / "run.mcap"):
+            if topic.endswith("/clock"):
+                clocks.append(lt)
+            elif topic.startswith(est_prefix):
+                try:
+                    m = decode("est", data)
+                except MessageError:
+                    continue
+                if m.phase == "posterior" and m.k >= 2:  # steady state: past the first update
+                    est.append((m.step_ms, m.step_cpu_ms, m.codec_cpu_ms))
+        wall = (max(clocks) - min(clocks)) / 1e9
+        startup = (min(clocks) - t_start_ns) / 1e9
+        e = np.array(est, dtype=float).reshape(-1, 3)
+        filt_cpu = float(np.median(e[:, 1])) if len(e) else None
+        codec_cpu = float(np.median(e[:, 2])) if len(e) else None
         row = {
             "n": n,
             "time_mode": "lockstep",
             "sim_seconds": duration_s,
             "stepping_wall_s": wall,
             "realtime_factor": duration_s / wall if wall > 0 else None,
+            "startup_s": startup,
             "total_wall_s_with_startup": total,
-            "agent_filter_ms_median": statistics.median(steps_ms) if steps_ms else None,
+            "agent_filter_ms_median": float(np.median(e[:, 0])) if len(e) else None,
+            "agent_filter_cpu_ms_median": filt_cpu,
+            "agent_codec_cpu_ms_median": codec_cpu,
+            # CPU an agent spends on messages per step, over its filter step's CPU (same run).
+            "codec_share_of_filter": codec_cpu / filt_cpu if filt_cpu else None,
+            "codec_share_of_filter_mean": float(e[:, 2].sum() / e[:, 1].sum()) if len(e) and e[:, 1].sum() > 0 else None,
             "world_exit_code": code,
         }
-        log(f"n={n:3d}: {duration_s:.0f} sim s in {wall:.1f} wall s → real-time factor {row['realtime_factor']:.1f}× (with start-up {total:.1f} s)")
+        log(
+            f"n={n:3d}: {duration_s:.0f} sim s in {wall:.1f} wall s → real-time factor {row['realtime_factor']:.1f}×, "
+            f"start-up {startup:.1f} s (total {total:.1f} s); agent per step: filter {filt_cpu:.2f} ms CPU, "
+            f"messages {codec_cpu:.2f} ms CPU ({100 * row['codec_share_of_filter']:.0f} % of the filter)"
+        )
         rows.append(row)
     return rows

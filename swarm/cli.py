@@ -484,14 +484,17 @@ def bench_late_cmd(
 @bench_app.command("bus")
 def bench_bus_cmd(
     out: Path = typer.Option(Path("bench-bus.json"), "--out", "-o", help="JSON file to write"),
-    samples: int = typer.Option(400, help="round trips of the measurement batch"),
+    samples: int = typer.Option(400, help="round trips of each measurement batch"),
+    batch_sats: str = typer.Option("10,40", "--batch-sats", help="swarm sizes whose measurement batch to send"),
 ):
-    """Bus latency p50/p99 of a measurement batch and of a 1 MB payload (loopback, via a router)."""
+    """Bus latency p50/p99 of measurement batches and of a 1 MB payload (loopback, via a router),
+    and the CPU cost of encoding and decoding a batch."""
     from .bench import machine_info
     from .bench_bus import bench_latency
     from .outputs import write_json
 
-    rows = bench_latency(samples=samples, log=lambda s: console.print(s, highlight=False))
+    sizes = [int(x) for x in batch_sats.split(",") if x.strip()]
+    rows = bench_latency(samples=samples, log=lambda s: console.print(s, highlight=False), batch_sizes=sizes)
     write_json(out, {"machine": machine_info(), "rows": rows})
     console.print(f"wrote {out}")
 

@@ -24,7 +24,7 @@ import zenoh
 
 from swarmcore.scenario import NETWORK_FAULTS, PROCESS_FAULTS, SELECTOR_PROCESS_FAULTS
 
-from .bus.messages import Fault, Keys
+from .bus.messages import SCHEMA_VERSION, Fault, Keys, MessageError, opt, replace, validate
 from .bus.session import BusConfig
 from .netem import CLEAR, NO_QDISC, UNKNOWN_QDISC, netemd_args, show_script, tc_script
 from .node import Node
@@ -255,16 +255,20 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
             ev = node.next_event(5.0)
         if ev is not None:
             k, t = ev.msg.k, ev.msg.t_s
-        cmd = Fault(run=run, sender="cli", k=k, t_s=t, **fields)
+        cmd = Fault(schema_version=SCHEMA_VERSION, run=run, sender="cli", k=k, t_s=t, phase="command", **fields)
+        try:
+            validate(cmd)
+        except MessageError as exc:
+            raise ValueError(str(exc)) from None
         if compose and cmd.action in PROCESS_FAULTS:
-            node.put(keys.fault(), cmd.model_copy(update={"detail": "compose"}))
+            node.put(keys.fault(), replace(cmd, detail="compose"))
             try:
                 detail = _compose_action(node, cmd, project, network)
             except RuntimeError as exc:
-                node.put(keys.fault(), cmd.model_copy(update={"phase": "failed", "sender": "cli", "detail": str(exc)[:200]}))
+                node.put(keys.fault(), replace(cmd, phase="failed", sender="cli", detail=str(exc)[:200]))
                 raise
-            node.put(keys.fault(), cmd.model_copy(update={"phase": "done", "sender": "cli", "detail": detail}))
-            return f"{cmd.action} {cmd.target if cmd.target is not None else ''}: done ({detail})"
+            node.put(keys.fault(), replace(cmd, phase="done", sender="cli", detail=detail))
+            return f"{cmd.action} {cmd.target if cmd.HasField('target') else ''}: done ({detail})"
         if not compose and cmd.action in NETWORK_FAULTS:
             raise ValueError(f"{cmd.action} needs --compose (local processes share one network)")
         node.put(keys.fault(), cmd)
@@ -273,8 +277,8 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
             ev = node.next_event(deadline - time.monotonic())
             if ev is None:
                 break
-            if ev.kind == "fault" and ev.msg.phase in ("done", "failed") and ev.msg.action == cmd.action and ev.msg.target == cmd.target:
-                return f"{cmd.action} {cmd.target if cmd.target is not None else ''}: {ev.msg.phase} by {ev.msg.sender} at step {ev.msg.k} {ev.msg.detail}".strip()
+            if ev.kind == "fault" and ev.msg.phase in ("done", "failed") and ev.msg.action == cmd.action and opt(ev.msg, "target") == opt(cmd, "target"):
+                return f"{cmd.action} {cmd.target if cmd.HasField('target') else ''}: {ev.msg.phase} by {ev.msg.sender} at step {ev.msg.k} {ev.msg.detail}".strip()
         return f"{cmd.action}: sent at step {k}; no executor reported back within {timeout:.0f} s"
     finally:
         node.close()

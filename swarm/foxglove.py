@@ -41,11 +41,13 @@ from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from foxglove_schemas_protobuf.SpherePrimitive_pb2 import SpherePrimitive
 from foxglove_schemas_protobuf.TextPrimitive_pb2 import TextPrimitive
 from foxglove_schemas_protobuf.Vector3_pb2 import Vector3
-from google.protobuf import descriptor_pb2
 from google.protobuf.duration_pb2 import Duration
 from google.protobuf.timestamp_pb2 import Timestamp
 
 from swarmcore import quat
+
+from .bus.convert import array
+from .bus.messages import file_descriptor_set, pixels
 
 __all__ = ["FoxgloveDeriver", "file_descriptor_set", "q_BH", "CHANNELS", "LINK_STATES", "link_states"]
 
@@ -85,25 +87,6 @@ _PALETTE = [
     (0.74, 0.74, 0.13),
     (0.09, 0.75, 0.81),
 ]
-
-
-def file_descriptor_set(message_class) -> bytes:
-    """The FileDescriptorSet of a protobuf message class and everything it imports."""
-    fds = descriptor_pb2.FileDescriptorSet()
-    seen: set[str] = set()
-
-    def add(fd):
-        if fd.name in seen:
-            return
-        seen.add(fd.name)
-        for dep in fd.dependencies:
-            add(dep)
-        proto = descriptor_pb2.FileDescriptorProto()
-        fd.CopyToProto(proto)
-        fds.file.append(proto)
-
-    add(message_class.DESCRIPTOR.file)
-    return fds.SerializeToString()
 
 
 def q_BH(q_BI: np.ndarray, mean_motion: float, t: float) -> np.ndarray:
@@ -181,17 +164,17 @@ class FoxgloveDeriver:
 
     def _images(self, m, log_ns: int) -> None:
         """Every rendered view as ``foxglove.RawImage`` (mono8) on ``/sat<i>/cam<c>[/left|/right]``."""
-        pix = iter(m.pixels)
+        pix = iter(pixels(m))
         for v in m.views:
-            for side in (("",) if v.n_images == 1 else ("/left", "/right")):
+            for side in (("",) if len(v.images_mono8) == 1 else ("/left", "/right")):
                 im = next(pix)
                 msg = RawImage(timestamp=_ts(int(round(m.t_s * 1e9))), frame_id=f"sat{m.sat}/cam{v.camera}",
                                width=v.width_px, height=v.height_px, encoding="mono8", step=v.width_px, data=im.tobytes())
                 self._put(f"/sat{m.sat}/cam{v.camera}{side}", msg, log_ns)
 
     def _truth(self, m, log_ns: int) -> None:
-        q = q_BH(np.asarray(m.q_BI), self.mean_motion, m.t_s)
-        r = np.asarray(m.r_H_m)
+        q = q_BH(np.asarray(m.q_BI).reshape(-1, 4), self.mean_motion, m.t_s)
+        r = np.asarray(m.r_H_m).reshape(-1, 3)
         self._truth_r = r
         self._truth_at[m.k] = r
         self._truth_at.pop(m.k - 8, None)
@@ -224,26 +207,30 @@ class FoxgloveDeriver:
         self._put("/foxglove/truth", SceneUpdate(entities=ents), log_ns)
 
     def _estimate(self, m, log_ns: int) -> None:
-        q = q_BH(np.asarray(m.q_BI), self.mean_motion, m.t_s)
-        r = np.asarray(m.r_H_m)
-        P = m.P_pose.array()  # (n, 6, 6), [a_B, r_H]
-        ents = []
-        for j in range(r.shape[0]):
-            w, V = np.linalg.eigh(0.5 * (P[j, 3:, 3:] + P[j, 3:, 3:].T))
-            axes = 2 * 3 * np.sqrt(np.clip(w, 0, None))  # 3σ ellipsoid diameters
-            if np.linalg.det(V) < 0:
-                V[:, 0] = -V[:, 0]
-            q_ell = quat.normalize(quat.from_attitude_matrix(V.T))  # principal axes in H
-            ents.append(
-                SceneEntity(
-                    timestamp=_ts(log_ns),
-                    frame_id="hcw",
-                    id=f"est{m.own}-sat{j}",
-                    lifetime=Duration(seconds=0),
-                    cubes=[CubePrimitive(pose=_pose(r[j], q[j]), size=Vector3(x=self.size, y=self.size, z=self.size), color=_color(m.own, 0.35))],
-                    spheres=[SpherePrimitive(pose=_pose(r[j], q_ell), size=Vector3(x=axes[0], y=axes[1], z=axes[2]), color=_color(m.own, 0.25))],
-                )
+        q = q_BH(np.asarray(m.q_BI).reshape(-1, 4), self.mean_motion, m.t_s)
+        r = np.asarray(m.r_H_m).reshape(-1, 3)
+        P = array(m.P_pose)  # (n, 6, 6), [a_B, r_H]
+        # Every satellite's 3σ position ellipsoid at once (an agent's scene at n = 40 is 40
+        # of them, 40 times a step): principal axes of the symmetrised position blocks.
+        Pr = P[:, 3:, 3:]
+        w, V = np.linalg.eigh(0.5 * (Pr + np.swapaxes(Pr, -1, -2)))
+        axes = 2 * 3 * np.sqrt(np.clip(w, 0, None))  # 3σ ellipsoid diameters
+        V[np.linalg.det(V) < 0, :, 0] *= -1  # proper rotations
+        q_ell = quat.normalize(quat.from_attitude_matrix(np.swapaxes(V, -1, -2)))  # principal axes in H
+        ts, size, cube_c, sph_c = _ts(log_ns), Vector3(x=self.size, y=self.size, z=self.size), _color(m.own, 0.35), _color(m.own, 0.25)
+        no_life = Duration(seconds=0)
+        r, q, q_ell, axes = r.tolist(), q.tolist(), q_ell.tolist(), axes.tolist()  # Python floats build messages faster
+        ents = [
+            SceneEntity(
+                timestamp=ts,
+                frame_id="hcw",
+                id=f"est{m.own}-sat{j}",
+                lifetime=no_life,
+                cubes=[CubePrimitive(pose=_pose(r[j], q[j]), size=size, color=cube_c)],
+                spheres=[SpherePrimitive(pose=_pose(r[j], q_ell[j]), size=Vector3(x=axes[j][0], y=axes[j][1], z=axes[j][2]), color=sph_c)],
             )
+            for j in range(len(r))
+        ]
         self._put(f"/foxglove/est/{m.own}", SceneUpdate(entities=ents), log_ns)
 
     def _measurements(self, m, log_ns: int) -> None:
@@ -256,10 +243,10 @@ class FoxgloveDeriver:
                 pose=_pose([0, 0, 0], [0, 0, 0, 1]),
                 thickness=2.0,
                 scale_invariant=True,
-                points=[Point3(x=r[x.observer, 0], y=r[x.observer, 1], z=r[x.observer, 2]), Point3(x=r[x.target, 0], y=r[x.target, 1], z=r[x.target, 2])],
+                points=[Point3(x=r[i, 0], y=r[i, 1], z=r[i, 2]), Point3(x=r[j, 0], y=r[j, 1], z=r[j, 2])],
                 color=_color(m.observer, 0.8),
             )
-            for x in m.meas
+            for i, j in ((m.observer, t) for t in m.target)
         ]
         ent = SceneEntity(timestamp=_ts(log_ns), frame_id="hcw", id=f"meas{m.observer}", lifetime=Duration(seconds=0), lines=lines)
         self._put("/foxglove/measurements", SceneUpdate(entities=[ent]), log_ns)
@@ -268,7 +255,7 @@ class FoxgloveDeriver:
         """One entity ``links`` per step (it replaces the previous step's): a LINE_LIST per
         state, each directed link i → j from r_i to the midpoint of i and j, and the state of
         every link with traffic as metadata (``"i->j": state``)."""
-        cur = {k: np.rint(getattr(m, k).array()).astype(np.int64) for k in _LINK_COUNTERS}
+        cur = {k: np.rint(array(getattr(m, k))).astype(np.int64) for k in _LINK_COUNTERS}
         states = link_states(self._link_prev, cur)
         self._link_prev = cur
         r = self._truth_at.get(m.k, self._truth_r)

@@ -31,7 +31,7 @@ from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, DataEnd, Footer, Header, Message, Schema
 from mcap.writer import MCAP0_MAGIC, CompressionType, Writer
 
-__all__ = ["CheckpointWriter", "iter_messages", "recover", "PROFILE"]
+__all__ = ["CheckpointWriter", "iter_messages", "iter_records", "recover", "PROFILE"]
 
 PROFILE = "swarm-coloc"
 _PRIVATE = 0xFF
@@ -129,6 +129,13 @@ def iter_messages(path: str | Path) -> Iterator[tuple[str, str, bytes, int, int]
     Uses ``mcap.reader.make_reader``; a file torn by something other than our recorder
     (e.g. a killed ``mcap.Writer``) falls back to streaming every complete record.
     """
+    for schema, channel, msg in iter_records(path):
+        yield channel.topic, schema.name if schema else "", msg.data, msg.log_time, msg.publish_time
+
+
+def iter_records(path: str | Path) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    """``(schema, channel, message)`` records of every message, in file order (as
+    :func:`iter_messages`, with the schemas' encodings and data)."""
     from mcap.reader import make_reader
     from mcap.stream_reader import StreamReader
 
@@ -136,7 +143,7 @@ def iter_messages(path: str | Path) -> Iterator[tuple[str, str, bytes, int, int]
         try:
             reader = make_reader(f)
             for schema, channel, msg in reader.iter_messages(log_time_order=False):
-                yield channel.topic, schema.name if schema else "", msg.data, msg.log_time, msg.publish_time
+                yield schema, channel, msg
             return
         except Exception:
             f.seek(0)
@@ -150,8 +157,7 @@ def iter_messages(path: str | Path) -> Iterator[tuple[str, str, bytes, int, int]
                     channels[rec.id] = rec
                 elif isinstance(rec, Message) and rec.channel_id in channels:
                     ch = channels[rec.channel_id]
-                    sc = schemas.get(ch.schema_id)
-                    yield ch.topic, sc.name if sc else "", rec.data, rec.log_time, rec.publish_time
+                    yield schemas.get(ch.schema_id), ch, rec
         except Exception:
             return
 
@@ -197,12 +203,11 @@ def recover(path: str | Path, out: str | Path | None = None) -> int:
     path = Path(path)
     out = Path(out) if out else path.with_name(path.stem + ".recovered.mcap")
     w = CheckpointWriter(out)
-    schema_data: dict[str, int] = {}
     count = 0
-    for topic, sname, data, lt, pt in iter_messages(path):
-        sid = schema_data.get(sname) or w.schema(sname or "raw", "jsonschema", b"{}")
-        schema_data[sname] = sid
-        w.add(w.channel(topic, sid), data, lt, pt)
+    for schema, channel, msg in iter_records(path):
+        # Each channel keeps its schema (encoding and data) and message encoding.
+        sid = w.schema(schema.name, schema.encoding, schema.data) if schema is not None else w.schema("raw", "", b"")
+        w.add(w.channel(channel.topic, sid, channel.message_encoding, channel.metadata), msg.data, msg.log_time, msg.publish_time)
         count += 1
     w.close(finalize=True)
     return count

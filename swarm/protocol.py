@@ -17,14 +17,14 @@ as that sequence, and the generator's frame is the machine's state.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Generator, Protocol
+from typing import Any, Callable, Generator, NamedTuple, Protocol
 
 __all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock"]
 
 
-@dataclass(frozen=True)
-class Event:
-    """A decoded sample: a message (``msg``) or a liveliness change (``alive`` True/False)."""
+class Event(NamedTuple):
+    """A decoded sample: a message (``msg``) or a liveliness change (``alive`` True/False).
+    (A named tuple: made ~120 times a step per agent at n = 40, it is the cheapest record.)"""
 
     key: str
     kind: str

@@ -1,8 +1,11 @@
-"""Read a run's MCAP back into arrays and the ``summary.json`` contract of ``swarm sim``."""
+"""Read a run's MCAP back into arrays and the ``summary.json`` contract of ``swarm sim``.
+
+Reads recordings of the protobuf wire format (schema ``swarm.v1``). Recordings made before
+it (JSON messages, schemas named ``swarm.<Message>``) are refused with a message saying so.
+"""
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -13,7 +16,8 @@ from swarmcore.metrics import pose_errors, pose_nees, summarize
 from swarmcore.sim import late_summary, link_summary
 from swarmcore.scenario import Scenario
 
-from .bus.messages import MessageError, decode, parse_key
+from .bus.convert import array, pairs_from_select
+from .bus.messages import Liveliness, MessageError, as_dict, decode, parse_key
 from .mcaplog import iter_messages
 
 __all__ = ["Recording", "BusTimes", "load_recording"]
@@ -140,21 +144,36 @@ class BusTimes:
         return out
 
 
+def _check_format(topic: str, schema: str) -> None:
+    if schema.startswith("swarm.") and not schema.startswith("swarm.v1."):
+        raise ValueError(
+            f"{topic}: recorded with schema {schema!r}, the JSON messages of swarm-coloc before the "
+            "protobuf wire format (swarm.v1); this version reads only swarm.v1 recordings"
+        )
+
+
 def _shape(path) -> tuple[int, int]:
     """(n, K) from the truth messages of a recording."""
     n, K = 0, 0
-    for topic, _s, data, _lt, _pt in iter_messages(path):
+    for topic, schema, data, _lt, _pt in iter_messages(path):
         try:
             kind = parse_key(topic)[1]
         except MessageError:
             continue  # our own channels and the derived Foxglove ones (``/foxglove/truth`` too)
         if kind == "truth":
-            m = json.loads(data)
-            n = max(n, len(m["q_BI"]))
-            K = max(K, int(m["k"]) + 1)
+            _check_format(topic, schema)
+            try:
+                m = decode("truth", data)
+            except MessageError:
+                continue
+            n = max(n, len(m.q_BI) // 4)
+            K = max(K, int(m.k) + 1)
     if not n:
         raise ValueError(f"{path}: no truth messages; cannot tell the swarm's size")
     return n, K
+
+
+_USED = ("truth", "est", "select", "meas", "fault")
 
 
 def load_recording(path: str | Path, n: int | None = None, K: int | None = None) -> Recording:
@@ -187,16 +206,17 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
     )
     counts: dict[str, int] = {}
     bus_rows: list[tuple[str, str, int, int, int]] = []
-    for topic, _schema, data, log_ns, pub_ns in iter_messages(path):
+    for topic, schema, data, log_ns, pub_ns in iter_messages(path):
+        _check_format(topic, schema)
         try:
             _run, kind, _sat = parse_key(topic)
         except MessageError:
             # Our alive / _malformed channels, and the derived Foxglove ones.
             kind = topic if topic.startswith("/") else topic.rsplit("/", 1)[-1]
         counts[kind] = counts.get(kind, 0) + 1
-        if kind in ("alive", "_malformed"):
-            if kind == "alive":
-                rec.liveliness.append({**json.loads(data), "log_time_ns": log_ns})
+        if kind == "alive":
+            rec.liveliness.append({**as_dict(Liveliness.FromString(data)), "log_time_ns": log_ns})
+        if kind not in _USED:
             continue
         try:
             m = decode(kind, data)
@@ -208,15 +228,15 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             continue
         if kind == "truth":
             rec.t[k] = m.t_s
-            rec.truth_q[k] = m.q_BI
-            rec.truth_r[k] = m.r_H_m
+            rec.truth_q[k] = np.asarray(m.q_BI).reshape(-1, 4)
+            rec.truth_r[k] = np.asarray(m.r_H_m).reshape(-1, 3)
         elif kind == "est" and m.phase == "posterior":
             f = m.own
             rec.alive[k, f] = True
-            rec.est_q[k, f] = m.q_BI
-            rec.est_r[k, f] = m.r_H_m
-            rec.P_pose[k, f] = m.P_pose.array()
-            rec.P_diag[k, f] = m.P_diag.array()
+            rec.est_q[k, f] = np.asarray(m.q_BI).reshape(-1, 4)
+            rec.est_r[k, f] = np.asarray(m.r_H_m).reshape(-1, 3)
+            rec.P_pose[k, f] = array(m.P_pose)
+            rec.P_diag[k, f] = array(m.P_diag)
             rec.gate_accepted[k, f] = m.gate_accepted
             rec.gate_rejected[k, f] = m.gate_rejected
             rec.nis[k, f] = m.nis
@@ -236,31 +256,17 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
                    ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")]
             rec.link_series.append((m.k, tot, list(m.queue_bytes)))
         elif kind == "select":
-            for i, j in m.pairs:
-                rec.schedule[k, i, j] = True
+            obs, tgt = pairs_from_select(m)
+            rec.schedule[k, obs, tgt] = True
             if m.fallback:
                 rec.fallback_steps.append(k)
             rec.select_ms.append(m.select_ms)
         elif kind == "meas":
-            for r in m.meas:
-                rec.taken[k, r.observer, r.target] = True
+            rec.taken[k, m.observer, np.asarray(m.target, dtype=int)] = True
         elif kind == "fault":
-            rec.faults.append(
-                {
-                    "k": m.k,
-                    "t_s": m.t_s,
-                    "action": m.action,
-                    "phase": m.phase,
-                    "sender": m.sender,
-                    "target": m.target,
-                    "camera": m.camera,
-                    "state": m.state,
-                    "rate": m.rate,
-                    "netem": m.netem,
-                    "detail": m.detail,
-                    "log_time_ns": log_ns,
-                }
-            )
+            d = as_dict(m)
+            rec.faults.append({**{f: d[f] for f in ("k", "t_s", "action", "phase", "sender", "target", "camera", "state", "rate",
+                                                  "netem", "detail")}, "log_time_ns": log_ns})
     rec.counts = counts
     if bus_rows:
         sender, kinds, ks, pub, log = zip(*bus_rows)

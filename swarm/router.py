@@ -26,6 +26,9 @@ def main(argv=None) -> int:
     cfg.insert_json5("mode", json.dumps("router"))
     cfg.insert_json5("listen/endpoints", json.dumps(a.listen or ["tcp/0.0.0.0:7447"]))
     cfg.insert_json5("scouting/multicast/enabled", "false")
+    from .bus.session import apply_shared_memory
+
+    apply_shared_memory(cfg)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
@@ -51,12 +54,15 @@ def _watch_run(session, run: str, stop: threading.Event):
             logging.info("run %s is over; router exits", run)
             stop.set()
 
+    from .bus.messages import MessageError, check_key, decode
+
     def on_clock(sample):
         try:
-            done = json.loads(bytes(sample.payload.to_bytes())).get("done", False)
-        except (ValueError, AttributeError):
+            msg = decode("clock", sample.payload.to_bytes())
+            check_key(str(sample.key_expr), "clock", None, msg)
+        except MessageError:
             return
-        if done is True:
+        if msg.done and msg.run == run:
             with lock:
                 state["done"] = True
                 check()

@@ -14,9 +14,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from swarm.bus.messages import Keys
+from swarm.bus import messages as M
+from swarm.bus.messages import Clock, Keys
 from swarm.bus.session import BusConfig
+from swarm.bus.convert import batch_msg
 from swarmcore.cameras import best_camera
+from swarmcore.mekf import RelativeMeasurements
 from swarmcore.sim import simulate
 from swarmcore.sensors import relative_pose
 from swarmcore.world import initial_truth, step_truth, world_params
@@ -156,7 +159,7 @@ def test_camera_off_produces_nothing_after_the_fault(tmp_path):
     for topic, _s, data, _lt, _pt in iter_messages(tmp_path / "run" / "run.mcap"):
         if topic.endswith(f"/meas/{sat}"):
             m = decode("meas", data)
-            n_cam = sum(1 for r in m.meas if r.camera == cam)
+            n_cam = sum(1 for c in m.camera if c == cam)
             used["before" if m.k < k_fault else "after"] += n_cam
     assert used["before"] > 0, "the camera saw nothing before the fault: the test would prove nothing"
     assert used["after"] == 0
@@ -205,21 +208,41 @@ def test_restarted_agent_reconverges(tmp_path):
 
 
 def _garbage(keys: Keys, n: int):
-    good_hdr = {"v": 1, "run": keys.run, "sender": "evil", "k": 1, "t_s": 1.0}
+    """Malformed and hostile payloads: not protobuf, truncated, an unknown schema version,
+    another run, a message of the wrong type, NaN, a non-unit quaternion, an indefinite
+    covariance, a huge announced array, an oversized payload, wrong senders."""
+    hdr = dict(run=keys.run, sender="evil", k=1, t_s=1.0)
+    rel = RelativeMeasurements(np.array([0]), np.array([1]), np.array([[0, 0, 0, 1.0]]), np.array([[1.0, 2, 3]]), np.eye(6)[None] * 1e-4)
+    good_meas = batch_msg(rel, np.array([0]), run=keys.run, sender="agent-0", k=1, t_s=1.0, observer=0)
+
+    def meas(**ch):
+        return M.encode(M.replace(good_meas, **ch))
+
+    nan_R = M.replace(good_meas)
+    nan_R.R_Bi.data[0] = float("nan")
+    bad_R = M.replace(good_meas)
+    bad_R.R_Bi.data[0] = -1.0
     payloads = [
-        b"\x00\x01\x02 not json",
+        b"\x00\x01\x02 not protobuf",
+        b"",
         b"{}",
-        json.dumps({**good_hdr, "v": 99}).encode(),
-        json.dumps({**good_hdr, "run": "another-run"}).encode(),
-        b'{"v": 1, "run": "' + keys.run.encode() + b'", "k": "x"}',
-        b"[" * 5000,
+        M.encode(good_meas)[:-7],  # truncated
+        M.encode(M.Clock(schema_version=99, **hdr, mode="lockstep")),
+        M.encode(M.Clock(**{**hdr, "run": "another-run"}, mode="lockstep")),
+        M.encode(M.Health(**hdr, sat=0, camera_ok=[True] * 6)),  # a message of another type, on every key
+        M.encode(nan_R),
+        meas(q_BjBi=[0.0, 0.0, 0.0, 2.0]),
+        M.encode(bad_R),
+        meas(R_Bi=M.Matrix(shape=[1 << 31, 6, 6], data=[1.0])),  # a huge array announced
+        meas(sender="agent-2"),  # observer 0's batch from someone else
         os.urandom(3000),
     ]
     targets = [keys.clock(), keys.select(), keys.fault(), keys.truth()]
     for i in range(n):
         targets += [keys.sensors(i), keys.cam(i), keys.meas(i), keys.est(i), keys.health(i)]
     targets += [keys.meas(99), keys.est(77), keys.sensors(12345)]  # unknown satellites
-    return targets, payloads, good_hdr
+    huge = meas(r_ij_Bi_m=np.zeros(1_100_000).tolist())  # ~9 MB: over the size limit
+    return targets, payloads, hdr, huge
 
 
 def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
@@ -229,16 +252,22 @@ def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
 
     def flood(sw):
         keys = Keys(sw.run)
-        targets, payloads, hdr = _garbage(keys, sc.n_sats)
+        targets, payloads, hdr, huge = _garbage(keys, sc.n_sats)
         # Well-formed messages that name satellites this swarm does not have.
-        payloads.append(json.dumps({**hdr, "observer": 7, "meas": []}).encode())
-        payloads.append(json.dumps({**hdr, "live_agents": [0, 1, 2, 50]}).encode())
+        payloads.append(M.encode(M.MeasBatch(**{**hdr, "sender": "agent-7"}, observer=7, R_Bi=M.Matrix(shape=[0, 6, 6]))))
+        payloads.append(M.encode(M.Clock(**{**hdr, "sender": "world"}, live_agents=[0, 1, 2, 50], mode="lockstep")))
         with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
+            rounds = 0
             while not stop.is_set() and sw.procs["world"].poll() is None:
                 for key in targets:
                     for p in payloads:
                         s.put(key, p)
                         sent["n"] += 1
+                if rounds % 10 == 0:
+                    for key in (keys.meas(0), keys.est(1), keys.clock()):
+                        s.put(key, huge)
+                        sent["huge"] = sent.get("huge", 0) + 1
+                rounds += 1
                 stop.wait(0.05)
 
     try:
@@ -249,7 +278,16 @@ def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
     for name, code in codes.items():
         assert code in (0, None), f"{name} exited with {code}"
     assert codes["world"] == 0 and rec.alive.all()
-    assert summary["messages"].get("_malformed", 0) > 100
+    assert summary["messages"].get("_malformed", 0) > 100 and sent.get("huge", 0) > 0
+    # Every agent counted what it dropped (its health reports say so).
+    from swarm.mcaplog import iter_messages
+
+    malformed = {}
+    for topic, _s, data, _lt, _pt in iter_messages(tmp_path / "run" / "run.mcap"):
+        if "/health/" in topic:
+            h = M.decode("health", data)
+            malformed[h.sat] = max(malformed.get(h.sat, 0), h.malformed)
+    assert sorted(malformed) == [0, 1, 2] and min(malformed.values()) > 100, malformed
     ref = simulate(sc).summary()
     assert summary["rms"] == ref["rms"], "garbage changed the numbers"
 
@@ -261,7 +299,7 @@ def test_recorder_sigkill_leaves_a_readable_file(tmp_path):
     def kill_recorder(sw):
         with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
             seen = threading.Event()
-            sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: json.loads(bytes(smp.payload.to_bytes()))["k"] >= 12 and seen.set())
+            sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= 12 and seen.set())
             assert seen.wait(120)
             sw.procs["recorder"].send_signal(signal.SIGKILL)
             killed["at"] = True
@@ -295,7 +333,7 @@ def test_cli_faults_against_a_running_swarm_and_dropped_messages(tmp_path):
     def inject(sw):
         with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
             seen = threading.Event()
-            sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: json.loads(bytes(smp.payload.to_bytes()))["k"] >= 10 and seen.set())
+            sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= 10 and seen.set())
             assert seen.wait(120)
             sub.undeclare()
         for args in (["camera", str(sat), str(cam), "off"], ["drop", "3", "--rate", "0.5"]):
@@ -315,7 +353,7 @@ def test_cli_faults_against_a_running_swarm_and_dropped_messages(tmp_path):
         if topic.endswith(f"/meas/{sat}"):
             m = decode("meas", data)
             if m.k > done["camera"]:
-                after += sum(1 for r in m.meas if r.camera == cam)
+                after += sum(1 for c in m.camera if c == cam)
     assert after == 0
     # Agent 3 lost about half its batches after the drop fault; everyone coped and finished.
     k_drop = done["drop"]
@@ -340,9 +378,12 @@ def test_bench_bus_prints_and_writes_json(tmp_path):
     p = subprocess.run([sys.executable, "-m", "swarm.cli", "bench", "bus", "--samples", "30", "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     rows = json.loads(out.read_text())["rows"]
-    assert [r["bytes"] > 1_000_000 for r in rows] == [False, True]
+    assert [r["bytes"] > 1_000_000 for r in rows] == [False, False, True]
+    assert [r.get("n") for r in rows] == [10, 40, None]
     for r in rows:
         assert 0 < r["one_way"]["p50_ms"] <= r["one_way"]["p99_ms"]
+    for r in rows[:2]:
+        assert r["codec"]["encode_us"] > 0 and r["codec"]["decode_us"] > 0 and r["codec"]["bytes"] == r["bytes"]
 
 
 def test_bench_run_measures_a_real_swarm(tmp_path):

@@ -1,22 +1,28 @@
-"""Every bus message round-trips exactly; malformed payloads are refused with a reason."""
-
-import json
+"""Every bus message round-trips exactly; malformed and hostile payloads are refused with a reason."""
 
 import numpy as np
 import pytest
 
 from swarm.bus import messages as M
 from swarm.bus.convert import (
+    array,
     batch_msg,
     estimate_from_full,
     estimate_msg,
     full_estimate_msg,
     images_msg,
+    matrix,
+    pairs_from_select,
     relative_from_batches,
     observation_from_images,
+    select_msg,
+    truth_msg,
 )
 from swarmcore import quat
 from swarmcore.mekf import RelativeMeasurements, SwarmEstimate
+from swarmcore.scenario import Scenario
+from swarmcore.metrics import pose_cov_blocks
+from swarmcore.world import initial_truth
 
 RUN = "t-1"
 H = dict(run=RUN, sender="test", k=3, t_s=3.0)
@@ -25,35 +31,56 @@ rng = np.random.default_rng(0)
 
 def _est(n=3):
     A = rng.normal(size=(12 * n, 12 * n))
-    return SwarmEstimate(
-        3, 3.0, quat.random_quaternion(rng, n), rng.normal(size=(n, 3)), rng.normal(size=(n, 3)),
-        rng.normal(size=(n, 3)), rng.normal(size=3), A @ A.T,
+    P = A @ A.T + 12 * n * np.eye(12 * n)
+    return SwarmEstimate(3, 3.0, quat.random_quaternion(rng, n), rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=(n, 3)), rng.normal(size=3), 0.5 * (P + P.T))
+
+
+def _rel(m=2, observer=2):
+    return RelativeMeasurements(
+        np.full(m, observer), np.array([j for j in range(m + 1) if j != observer][:m]), quat.random_quaternion(rng, m), rng.normal(size=(m, 3)),
+        np.stack([np.diag(rng.uniform(0.1, 1, 6)) for _ in range(m)]),
     )
 
 
+def _img_views():
+    return [
+        M.CameraView(camera=2, T_CB=[0, 1.0, 0, 0, 0, 1, 1, 0, 0], r_C_B_m=[0, 0.2, 0], width_px=5, height_px=3, fx_px=4.0, fy_px=4.0, cx_px=2.0, cy_px=1.0, target=-1,
+                     images_mono8=[rng.integers(0, 256, (3, 5), dtype=np.uint8).tobytes()]),
+        M.CameraView(camera=8, T_CB=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], r_C_B_m=[0, 0, 0], width_px=4, height_px=2, fx_px=9.0, fy_px=9.0, cx_px=1.5, cy_px=0.5, target=2, baseline_m=0.5,
+                     images_mono8=[rng.integers(0, 256, (2, 4), dtype=np.uint8).tobytes(), bytes(8)]),
+    ]
+
+
 EXAMPLES = {
-    "clock": M.Clock(**H, live_agents=[0, 2]),
+    "clock": M.Clock(**H, live_agents=[0, 2], mode="lockstep"),
     "sensors": M.Sensors(**H, sat=1, gyro_rate_B_rad_s=[1e-3, 2e-3, -3e-3], q_BI_star=[0, 0, 0, 1.0], r_H_gps_m=[1.0, 2, 3], sigma_star_rad=2.9e-5, sigma_gps_m=0.01),
     "cam": M.CameraOutput(**H, sat=1, detections=[M.Detection(target=2, camera=4, q_BjBi=[0, 0, 0.6, 0.8], r_ij_Bi_m=[0.1, 0.2, 9.9])], cameras_off=[3]),
-    "meas": M.MeasBatch(**H, observer=1, meas=[M.RelMeas(observer=1, target=0, camera=0, q_BjBi=[0, 0, 0, 1.0], r_ij_Bi_m=[1.0, 0, 0], R_Bi=list(np.eye(6).ravel()))]),
+    "meas": batch_msg(_rel(), np.array([1, 5]), run=RUN, sender="agent-2", k=1, t_s=1.0, observer=2),
     "est": estimate_msg(_est(), run=RUN, sender="agent-1", own=1),
     "full_est": full_estimate_msg(_est(), run=RUN, sender="agent-1", own=1),
-    "select": M.Select(**H, pairs=[(0, 1), (2, 0)], strategy="greedy", ref_agent=0, select_ms=1.5),
-    "fault": M.Fault(**H, action="camera", target=1, camera=2, state="off"),
+    "select": select_msg([0, 2], [1, 0], **H, strategy="greedy", ref_agent=0, select_ms=1.5),
+    "fault": M.Fault(**H, action="camera", phase="command", target=1, camera=2, state="off"),
     "health": M.Health(**H, sat=1, camera_ok=[True] * 5 + [False], malformed=2),
     "claim": M.Claim(**H, sat=2, token="abc123", running=True),
-    "img": M.Images(**H, sat=1, targets=[0, 2], views=[
-        M.ViewMeta(camera=2, T_CB=[0, 1.0, 0, 0, 0, 1, 1, 0, 0], r_C_B_m=[0, 0.2, 0], width_px=5, height_px=3, fx_px=4.0, fy_px=4.0, cx_px=2.0, cy_px=1.0),
-        M.ViewMeta(camera=8, T_CB=[1.0, 0, 0, 0, 1, 0, 0, 0, 1], r_C_B_m=[0, 0, 0], width_px=4, height_px=2, fx_px=9.0, fy_px=9.0, cx_px=1.5, cy_px=0.5, target=2, baseline_m=0.5, n_images=2),
-    ]).with_pixels([rng.integers(0, 256, (3, 5), dtype=np.uint8), rng.integers(0, 256, (2, 4), dtype=np.uint8), np.zeros((2, 4), np.uint8)]),
-    "truth": M.Truth(**H, q_BI=[[0, 0, 0, 1.0]], omega_BI_B_rad_s=[[0, 0, 0.1]], r_H_m=[[1, 2, 3.0]], v_H_m_s=[[0, 0, 0.0]], gyro_bias_B_rad_s=[[0, 0, 0.0]]),
-    "rx": M.Delivery(**H, sat=2, items=[M.Delivered(arrival_t_s=6.5, batch=M.MeasBatch(**{**H, "k": 5}, observer=1, meas=[
-        M.RelMeas(observer=1, target=2, camera=6, q_BjBi=[0, 0, 0, 1.0], r_ij_Bi_m=[1.0, 2, 3], R_Bi=list(np.eye(6).ravel()))]))]),
-    "links": M.LinkStats(**H, **{f: M.B64Array.of(np.arange(9.0).reshape(3, 3)) for f in (
+    "img": M.Images(**H, sat=1, targets=[0, 2], views=_img_views()),
+    "truth": truth_msg(initial_truth(Scenario(n_sats=3, seed=2)), run=RUN, k=0),
+    "rx": M.Delivery(**H, sat=2, items=[M.Delivered(arrival_t_s=6.5, batch=batch_msg(
+        RelativeMeasurements(np.array([1]), np.array([2]), np.array([[0, 0, 0, 1.0]]), np.array([[1.0, 2, 3]]), np.eye(6)[None]),
+        np.array([6]), run=RUN, sender="agent-1", k=5, t_s=5.0, observer=1))]),
+    "links": M.LinkStats(**H, **{f: matrix(np.arange(9.0).reshape(3, 3)) for f in (
         "sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable", "bytes_delivered")},
-        queue_bytes=[0, 120, 5], latencies=[(0, 1, 6, 0.25)]),
+        queue_bytes=[0, 120, 5], latencies=[M.Latency(sender=0, receiver=1, sent_k=6, latency_s=0.25)]),
     "rejoin": M.RejoinFate(**H, sat=2, peer=0, bytes=25959, fate="delivered", arrival_t_s=16.8),
 }
+_METER = M.replace(EXAMPLES["meas"], schema_version=M.SCHEMA_VERSION)  # a batch as the radio received it
+EXAMPLES["rx"] = M.Delivery(**H, sat=0, items=[M.Delivered(arrival_t_s=2.7, batch=_METER)])
+EXAMPLES["links"] = M.LinkStats(**H, **{f: matrix(np.arange(9.0).reshape(3, 3)) for f in M._LINK_COUNTERS}, queue_bytes=[0, 120, 4],
+                                latencies=[M.Latency(sender=2, receiver=0, sent_k=2, latency_s=0.7)])
+EXAMPLES["rejoin"] = M.RejoinFate(**H, sat=1, peer=2, bytes=12345, fate="delivered", arrival_t_s=3.4)
+
+
+def _raw(kind, **changes):
+    return M.encode(M.replace(EXAMPLES[kind], **changes))
 
 
 def test_every_kind_has_an_example():
@@ -66,8 +93,8 @@ def test_round_trip_exact_with_version(kind):
     raw = M.encode(msg)
     back = M.decode(kind, raw)
     assert back == msg
-    header = raw.partition(b"\n")[0] if kind == "img" else raw
-    assert json.loads(header)["v"] == M.SCHEMA_VERSION == 1
+    assert M.Header.FromString(raw).schema_version == M.SCHEMA_VERSION == 1  # any payload reads as a Header
+    assert M.Header.FromString(raw).run == RUN
     assert M.encode(back) == raw
 
 
@@ -78,29 +105,99 @@ def test_estimate_arrays_are_bit_exact():
         np.testing.assert_array_equal(getattr(back, f), getattr(est, f))
     with pytest.raises(ValueError, match="this swarm has 5"):
         estimate_from_full(M.decode("full_est", M.encode(full_estimate_msg(est, run=RUN, sender="a", own=2))), 5)
+    m = M.decode("est", M.encode(estimate_msg(est, run=RUN, sender="a", own=2)))
+    np.testing.assert_array_equal(array(m.P_pose), pose_cov_blocks(est.P, 4))
+    np.testing.assert_array_equal(array(m.P_diag), np.diag(est.P))
 
 
 def test_measurement_batches_round_trip():
-    rel = RelativeMeasurements(
-        np.array([2, 2]), np.array([0, 1]), quat.random_quaternion(rng, 2), rng.normal(size=(2, 3)),
-        np.stack([np.diag(rng.uniform(0.1, 1, 6)) for _ in range(2)]),
-    )
+    rel = _rel()
     msg = M.decode("meas", M.encode(batch_msg(rel, np.array([1, 5]), run=RUN, sender="a", k=1, t_s=1.0, observer=2)))
     back = relative_from_batches([msg])
     for f in ("observer", "target", "q_BjBi", "r_ij_Bi", "R_Bi"):
         np.testing.assert_array_equal(getattr(back, f), getattr(rel, f))
+    assert list(msg.camera) == [1, 5] and list(msg.R_Bi.shape) == [2, 6, 6]
+    empty = M.decode("meas", M.encode(batch_msg(RelativeMeasurements.empty(), np.zeros(0, int), run=RUN, sender="a", k=1, t_s=1.0, observer=2)))
+    assert len(relative_from_batches([empty])) == 0
+    with pytest.raises(ValueError, match="batch of observer 1"):
+        batch_msg(rel, np.array([1, 5]), run=RUN, sender="a", k=1, t_s=1.0, observer=1)
+
+
+def test_select_pairs_round_trip():
+    obs, tgt = pairs_from_select(M.decode("select", M.encode(EXAMPLES["select"])))
+    assert obs.tolist() == [0, 2] and tgt.tolist() == [1, 0]
+
+
+def _nan_R():
+    m = M.replace(EXAMPLES["meas"])
+    m.R_Bi.data[7] = float("nan")
+    return M.encode(m)
+
+
+def _asym_R():
+    m = M.replace(EXAMPLES["meas"])
+    m.R_Bi.data[1] = 0.3  # (0, 1) without (1, 0)
+    return M.encode(m)
+
+
+def _indefinite_R():
+    m = M.replace(EXAMPLES["meas"])
+    m.R_Bi.data[0] = -1.0
+    return M.encode(m)
 
 
 @pytest.mark.parametrize(
     "kind,payload,reason",
     [
         ("clock", b"\x00\xff garbage", "invalid clock"),
-        ("clock", b'{"v": 2, "run": "t-1", "sender": "w", "k": 0, "t_s": 0, "live_agents": []}', "v"),
-        ("clock", b'{"v": 1, "run": "t-1", "sender": "w", "k": -1, "t_s": 0, "live_agents": []}', "k"),
-        ("sensors", b'{"v": 1, "run": "t-1", "sender": "w", "k": 0, "t_s": 0, "sat": 0, "gyro_rate_B_rad_s": [1, 2], "sigma_star_rad": 1, "sigma_gps_m": 1}', "gyro_rate_B_rad_s"),
-        ("meas", b'{"v": 1, "run": "t-1", "sender": "a", "k": 0, "t_s": 0, "observer": 1, "meas": [{"observer": 2, "target": 0, "camera": 0, "q_BjBi": [0,0,0,1], "r_ij_Bi_m": [1,0,0], "R_Bi": [' + b",".join([b"1"] * 36) + b"]}]}", "batch of observer 1"),
-        ("select", b'{"v": 1, "run": "t-1", "sender": "s", "k": 0, "t_s": 0, "pairs": [[0, 1]], "strategy": "x", "bogus": 1}', "bogus"),
-        ("fault", b'{"v": 1, "run": "t-1", "sender": "c", "k": 0, "t_s": 0, "action": "explode"}', "action"),
+        ("clock", b"", "schema_version: missing"),
+        ("clock", M.encode(M.Clock(schema_version=2, run=RUN, sender="world", mode="free")), "unknown version 2"),
+        ("clock", _raw("clock", mode="sometimes"), "mode"),
+        ("clock", _raw("clock", t_s=float("nan")), "t_s"),
+        ("clock", _raw("clock", run="a/b"), "run"),
+        ("sensors", _raw("sensors", gyro_rate_B_rad_s=[1.0, 2.0]), "gyro_rate_B_rad_s: 2 numbers"),
+        ("sensors", _raw("sensors", q_BI_star=[0, 0, 0.5, 0.5]), "not a unit quaternion"),
+        ("sensors", _raw("sensors", r_H_gps_m=[0, float("inf"), 0]), "r_H_gps_m: not finite"),
+        ("sensors", _raw("sensors", sigma_gps_m=0.0), "sigma_gps_m"),
+        ("meas", _raw("meas", camera=[1]), "camera: 1 values for 2 measurements"),
+        ("meas", _raw("meas", target=[2, 0]), "cannot measure itself"),
+        ("meas", _raw("meas", target=[0, 10_001]), "out of range"),
+        ("meas", _raw("meas", q_BjBi=[0.0] * 8), "unit quaternion"),
+        ("meas", _raw("meas", r_ij_Bi_m=[1.0] * 5), "r_ij_Bi_m: 5 numbers, expected 2 × 3"),
+        ("meas", _nan_R(), "R_Bi: not finite"),
+        ("meas", _asym_R(), "R_Bi: not symmetric"),
+        ("meas", _indefinite_R(), "R_Bi: not positive-definite"),
+        ("meas", _raw("meas", R_Bi=M.Matrix(shape=[2, 6, 6], data=[1.0] * 71)), "needs 72 numbers, got 71"),
+        # A hostile shape: announced, never allocated.
+        ("meas", _raw("meas", R_Bi=M.Matrix(shape=[1 << 30, 1 << 30, 6], data=[1.0])), "shape"),
+        ("est", _raw("est", phase="maybe"), "phase"),
+        ("est", _raw("est", own=5), "own: satellite 5 in an estimate of 3"),
+        ("est", _raw("est", P_diag=matrix(-np.ones(36))), "P_diag"),
+        ("est", _raw("est", v_H_m_s=[0.0] * 8), "v_H_m_s"),
+        ("full_est", _raw("full_est", P=matrix(-np.eye(36))), "positive-definite"),
+        ("select", _raw("select", target=[1]), "2 observers for 1 targets"),
+        ("fault", _raw("fault", action="explode"), "action"),
+        ("fault", _raw("fault", camera=None), "camera fault needs camera and state"),
+        ("fault", M.encode(M.Fault(**H, action="drop", phase="command", target=1, rate=1.5)), "rate"),
+        ("fault", M.encode(M.Fault(**H, action="kill-agent", phase="command")), "needs a target"),
+        ("health", _raw("health", camera_ok=[True] * 5), "camera_ok: 5 values"),
+        ("fault", M.encode(M.Fault(**H, action="netem", phase="command", target=1)), "action netem needs netem"),
+        ("rejoin", _raw("rejoin", fate="teleported"), "fate"),
+        ("rejoin", _raw("rejoin", arrival_t_s=None), "needs its arrival time"),
+        ("links", _raw("links", lost=matrix(-np.ones((3, 3)))), "lost: a negative count"),
+        ("links", _raw("links", sent=matrix(np.ones((2, 3)))), "sent: shape"),
+        ("rx", M.encode(M.Delivery(**H, sat=0, items=[M.Delivered(arrival_t_s=1.0, batch=M.replace(_METER, q_BjBi=[0.0] * 8))])), "items.0.batch: .*unit quaternion"),
+        ("rx", M.encode(M.Delivery(**H, sat=2, items=[M.Delivered(arrival_t_s=1.0, batch=_METER)])), "own batch"),
+        ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], width_px=0)]), "width_px"),
+        ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], images_mono8=[bytes(14)])]), "needs 15 bytes, got 14"),
+        ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], T_CB=[2.0] + [0.0] * 8)]), "rotation"),
+        # A message of another type on this key: decoded, then refused for what it lacks.
+        ("est", M.encode(EXAMPLES["clock"]), "invalid est message: phase"),
+        ("truth", M.encode(EXAMPLES["health"]), "invalid truth message"),
+        ("fault", M.encode(EXAMPLES["health"]), "action"),
+        # Truncated.
+        ("est", M.encode(EXAMPLES["est"])[:-9], "invalid est"),
+        ("meas", M.encode(EXAMPLES["meas"])[:40], "invalid meas"),
     ],
 )
 def test_malformed_payloads_are_refused_with_the_reason(kind, payload, reason):
@@ -108,20 +205,39 @@ def test_malformed_payloads_are_refused_with_the_reason(kind, payload, reason):
         M.decode(kind, payload)
 
 
-def test_images_carry_pixels_exactly_and_refuse_a_short_payload():
-    msg = EXAMPLES["img"]
-    raw = M.encode(msg)
-    back = M.decode("img", raw)
-    assert [p.tolist() for p in back.pixels] == [p.tolist() for p in msg.pixels]
-    assert all(p.flags["WRITEABLE"] and p.flags["C_CONTIGUOUS"] for p in back.pixels)
-    with pytest.raises(M.MessageError, match="need 31 pixel bytes, got 30"):
-        M.decode("img", raw[:-1])
-    with pytest.raises(M.MessageError, match="no newline"):
-        M.decode("img", raw.partition(b"\n")[0])
-    with pytest.raises(M.MessageError, match="width_px"):
-        M.decode("img", raw.replace(b'"width_px":5', b'"width_px":0'))
-    with pytest.raises(M.MessageError, match="do not match"):
-        msg.model_copy().with_pixels([np.zeros((3, 5), np.uint8)])
+def test_oversized_payloads_are_refused_before_parsing():
+    # ~9 MB of packed doubles: more than any batch may have; refused on its length alone.
+    big = M.encode(M.MeasBatch(run=RUN, sender="agent-0", observer=0, q_BjBi=np.zeros(1_200_000).tolist()))
+    assert len(big) > M.MAX_PAYLOAD_DEFAULT
+    with pytest.raises(M.MessageError, match="more than the"):
+        M.decode("meas", big)
+
+
+def test_keys_and_senders():
+    k = M.Keys(RUN)
+    est = EXAMPLES["est"]  # agent-1's, own = 1
+    M.check_key(k.est(1), "est", 1, est)
+    with pytest.raises(M.MessageError, match="key says satellite 2"):
+        M.check_key(k.est(2), "est", 2, est)
+    with pytest.raises(M.MessageError, match="may not publish"):
+        M.check_key(k.est(1), "est", 1, M.replace(est, sender="agent-2"))
+    with pytest.raises(M.MessageError, match="may not publish"):
+        M.check_key(k.clock(), "clock", None, M.replace(EXAMPLES["clock"], sender="agent-0"))
+    prior = M.replace(EXAMPLES["full_est"], sender="world")
+    M.check_key(k.init(1), "full_est", 1, prior)
+    with pytest.raises(M.MessageError, match="may not publish"):
+        M.check_key(k.cov(1), "full_est", 1, prior)
+    M.check_key(k.fault(), "fault", None, M.replace(EXAMPLES["fault"], sender="agent-7"))
+    with pytest.raises(M.MessageError, match="may not publish"):
+        M.check_key(k.fault(), "fault", None, M.replace(EXAMPLES["fault"], sender="evil"))
+
+
+def test_images_carry_pixels_exactly():
+    msg = M.decode("img", M.encode(EXAMPLES["img"]))
+    pix = M.pixels(msg)
+    assert [p.shape for p in pix] == [(3, 5), (2, 4), (2, 4)]
+    assert all(p.flags["WRITEABLE"] and p.flags["C_CONTIGUOUS"] for p in pix)
+    assert [p.tobytes() for p in pix] == [im for v in EXAMPLES["img"].views for im in v.images_mono8]
 
 
 def test_views_round_trip_through_an_images_message():
@@ -134,7 +250,7 @@ def test_views_round_trip_through_an_images_message():
         View(1, 8, 7, 7.0, (np.ones((4, 6), np.uint8), np.zeros((4, 6), np.uint8)), np.eye(3), np.zeros(3), intr, target=2, baseline_m=0.5),
     ]
     msg = M.decode("img", M.encode(images_msg(views, run=RUN, k=7, t_s=7.0, sat=1, targets=np.array([2, 0]))))
-    assert msg.targets == [0, 2]
+    assert list(msg.targets) == [0, 2]
     obs = observation_from_images(msg)
     assert obs.targets.tolist() == [0, 2]
     back = obs.views
@@ -144,14 +260,29 @@ def test_views_round_trip_through_an_images_message():
         np.testing.assert_array_equal(a.T_CB, b.T_CB)
         np.testing.assert_array_equal(a.r_C_B, b.r_C_B)
         assert len(a.images) == len(b.images) and all(np.array_equal(x, y) for x, y in zip(a.images, b.images, strict=True))
+    with pytest.raises(ValueError, match="images of shapes"):
+        images_msg([View(1, 3, 7, 7.0, (np.zeros((3, 6), np.uint8),), T_CB[3].copy(), np.zeros(3), intr)], run=RUN, k=7, t_s=7.0, sat=1, targets=[])
 
 
-def test_bad_array_payload():
-    est = json.loads(M.encode(EXAMPLES["est"]))
-    est["P_pose"]["b64"] = est["P_pose"]["b64"][:-8]
-    msg = M.decode("est", json.dumps(est).encode())
-    with pytest.raises(M.MessageError, match="bytes"):
-        msg.P_pose.array()
+def test_replace_as_dict_and_optional_fields():
+    f = M.Fault(**H, action="kill-selector", phase="command")
+    assert M.opt(f, "target") is None and f.target == 0
+    d = M.as_dict(M.replace(f, phase="done", detail="x"), exclude=("schema_version", "run"))
+    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None}
+    assert f.phase == "command", "replace must not touch the original"
+    g = M.replace(EXAMPLES["fault"], target=None)
+    assert not g.HasField("target") and EXAMPLES["fault"].target == 1
+    assert M.replace(EXAMPLES["clock"], live_agents=[5]).live_agents == [5]
+    with pytest.raises(AttributeError, match="no field"):
+        M.replace(f, bogus=1)
+
+
+def test_codec_time_is_counted_once_for_nested_calls():
+    M.codec_cpu_ms()  # reset
+    for _ in range(200):
+        M.decode("est", M.encode(estimate_msg(_est(6), run=RUN, sender="agent-1", own=1)))
+    ms = M.codec_cpu_ms()
+    assert ms > 0 and M.codec_cpu_ms(reset=False) == 0.0
 
 
 def test_keys_and_parsing():
@@ -162,9 +293,66 @@ def test_keys_and_parsing():
     assert M.parse_key(k.img(5)) == ("r1", "img", 5)
     assert M.parse_key(k.clock()) == ("r1", "clock", None)
     assert M.parse_key(k.cov(4)) == ("r1", "full_est", 4)
+    assert M.parse_key(k.claim("tok")) == ("r1", "claim", None)
     assert M.parse_key(k.alive("agent", 7)) == ("r1", "alive", 7)
     for bad in ("swarm/r1/meas/x", "swarm/r1/nope", "other/r1/clock", "swarm/r1/sat/1/gyro"):
         with pytest.raises(M.MessageError):
             M.parse_key(bad)
     with pytest.raises(ValueError, match="run id"):
         M.Keys("bad/run")
+    with pytest.raises(ValueError, match="run id"):
+        M.Keys("run\n")
+
+
+def test_shallow_decoding_of_estimates_checks_what_it_reads():
+    """Roles that read only who / which step / which phase of a peer's estimate decode it
+    shallowly: the arrays are neither converted nor checked, the rest is."""
+    bad = M.replace(EXAMPLES["est"])
+    bad.P_pose.data[0] = float("nan")
+    raw = M.encode(bad)
+    assert M.decode("est", raw, shallow=True).own == 1
+    with pytest.raises(M.MessageError, match="P_pose: not finite"):
+        M.decode("est", raw)
+    for change, reason in ((dict(phase="x"), "phase"), (dict(own=3), "own"), (dict(q_BI=[1.0] * 5), "q_BI"), (dict(schema_version=7), "version")):
+        with pytest.raises(M.MessageError, match=reason):
+            M.decode("est", _raw("est", **change), shallow=True)
+    assert M.SHALLOW_KINDS == ("est",)
+    assert M.decode("meas", M.encode(EXAMPLES["meas"]), shallow=True) == EXAMPLES["meas"]  # other kinds: always in full
+    with pytest.raises(M.MessageError, match="R_Bi: not finite"):
+        M.decode("meas", _nan_R(), shallow=True)
+
+
+def test_compiled_batch_checks_give_the_numpy_verdicts():
+    from swarm.bus import fastcheck as F
+
+    base = EXAMPLES["meas"]
+    q0 = np.asarray(base.q_BjBi).reshape(-1, 4)
+    r0 = np.asarray(base.r_ij_Bi_m).reshape(-1, 3)
+    R0 = array(base.R_Bi)
+    cases = {"sound": (q0, r0, R0), "empty": (np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 6, 6)))}
+    q = q0.copy(); q[1, 2] = np.nan; cases["q NaN"] = (q, r0, R0)
+    q = q0.copy(); q[0] *= 1.001; cases["q not unit"] = (q, r0, R0)
+    q = q0.copy(); q[0] *= 1 + 5e-7; cases["q within tolerance"] = (q, r0, R0)
+    r = r0.copy(); r[1, 0] = np.inf; cases["r inf"] = (q0, r, R0)
+    R = R0.copy(); R[1, 0, 5] = np.nan; cases["R NaN upper"] = (q0, r0, R)
+    R = R0.copy(); R[0, 4, 1] += 1e-3; cases["R asymmetric"] = (q0, r0, R)
+    R = R0.copy(); R[0, 4, 1] += 1e-12 * R0[0].max(); cases["R round-off"] = (q0, r0, R)
+    R = R0.copy(); R[1, 3, 3] = -R[1, 3, 3]; cases["R indefinite"] = (q0, r0, R)
+    R = R0.copy(); R[1] = np.ones((6, 6)); cases["R singular"] = (q0, r0, R)
+    want = {"sound": 0, "empty": 0, "q NaN": 1, "q not unit": 2, "q within tolerance": 0, "r inf": 3, "R NaN upper": 4,
+            "R asymmetric": 5, "R round-off": 0, "R indefinite": 6, "R singular": 6}
+    for name, (q, r, R) in cases.items():
+        got = (F.check_batch(q, r, R, 2 * M.QUAT_TOL, M.SYM_TOL), F.check_batch_numpy(q, r, R, 2 * M.QUAT_TOL, M.SYM_TOL))
+        assert got == (want[name], want[name]), name
+    assert F.HAVE_NUMBA  # the compiled form is the one the agents use
+
+
+def test_satellite_ids_are_checked_against_the_swarm_size():
+    raw = M.encode(EXAMPLES["meas"])  # observer 2, targets 0 and 1
+    assert M.decode("meas", raw, n_sats=3) == EXAMPLES["meas"]
+    with pytest.raises(M.MessageError, match=r"observer: satellite id 2 out of range \(0-1\)"):
+        M.decode("meas", raw, n_sats=2)
+    with pytest.raises(M.MessageError, match="live_agents: satellite id 2 out of range"):
+        M.decode("clock", M.encode(EXAMPLES["clock"]), n_sats=2)
+    with pytest.raises(M.MessageError, match="own: satellite id 1 out of range"):
+        M.decode("est", M.encode(EXAMPLES["est"]), shallow=True, n_sats=1)

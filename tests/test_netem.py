@@ -79,18 +79,23 @@ def test_incomplete_impairments_are_refused():
 
 
 def test_the_fault_message_carries_canonical_netem_arguments():
-    f = M.Fault(**H, action="netem", target=3, netem="delay 0.2s 50ms loss 10% rate 1000kbit")
-    assert f.netem == "delay 200ms 50ms loss 10% rate 1mbit"
+    from swarm.netem import validate_field
+
+    args = validate_field("delay 0.2s 50ms loss 10% rate 1000kbit")
+    assert args == "delay 200ms 50ms loss 10% rate 1mbit"
+    f = M.Fault(**H, action="netem", phase="command", target=3, netem=args)
     assert M.decode("fault", M.encode(f)) == f
-    c = M.Fault(**H, action="netem", target=3, netem=CLEAR)
+    c = M.Fault(**H, action="netem", phase="command", target=3, netem=CLEAR)
     assert M.decode("fault", M.encode(c)) == c
-    for payload, reason in [
-        (b'{"run":"r","sender":"c","k":0,"t_s":0,"action":"netem","target":3}', "action netem needs netem"),
-        (b'{"run":"r","sender":"c","k":0,"t_s":0,"action":"netem","target":3,"netem":"loss 200%"}', "netem: .*loss '200%'"),
-        (b'{"run":"r","sender":"c","k":0,"t_s":0,"action":"netem","target":3,"netem":"loss 1% ; rm -rf /"}', "netem: .*unexpected ';'"),
+    for fields, reason in [
+        ({}, "action netem needs netem"),
+        ({"netem": "loss 200%"}, "netem: .*loss '200%'"),
+        ({"netem": "loss 1% ; rm -rf /"}, "netem: .*unexpected ';'"),
+        ({"netem": "delay 0.2s"}, "not in canonical form"),
     ]:
+        raw = M.encode(M.Fault(**H, action="netem", phase="command", target=3, **fields))
         with pytest.raises(M.MessageError, match=reason):
-            M.decode("fault", payload)
+            M.decode("fault", raw)
 
 
 def test_netem_is_a_compose_only_network_fault():

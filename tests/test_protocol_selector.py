@@ -42,7 +42,7 @@ def test_step_zero_is_planned_from_agent_zero_once_every_agent_is_up():
     assert not d.sent_on(K.select()), "agent 3 alone is not the reference of step 0"
     d.feed(alive(0), alive(1), alive(2))
     (sel,) = d.sent_on(K.select())
-    assert sel.k == 0 and sel.ref_agent == 0 and len(sel.pairs) == 3
+    assert sel.k == 0 and sel.ref_agent == 0 and len(sel.observer) == 3
     assert [q.key for q in d.queries][-1] == K.cov(0)
 
 
@@ -60,4 +60,4 @@ def test_next_step_planned_from_the_lowest_live_agent_and_dead_observers_masked(
     d.feed(Event(K.est(1), "est", 1, msg=estimate_msg(post[1], run=RUN, sender="agent-1", own=1)))
     (sel,) = d.sent_on(K.select())
     assert sel.k == 1 and sel.ref_agent == 1
-    assert all(o != 0 for o, _t in sel.pairs), "a dead satellite measures nothing"
+    assert all(o != 0 for o in sel.observer), "a dead satellite measures nothing"

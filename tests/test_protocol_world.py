@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from protocol_driver import Driver, FakeClock
-from swarm.bus.messages import Estimate, Fault, Health, Keys, Select
+from swarm.bus.convert import matrix, select_msg
+from swarm.bus.messages import Estimate, Fault, Health, Keys
 from swarm.protocol import Event
 from swarmcore.measurement import synthetic_model
 from swarmcore.scenario import Scenario
@@ -28,13 +29,11 @@ def alive(role: str, sat: int | None = None, up: bool = True) -> Event:
 
 
 def est(i: int, k: int, phase: str = "posterior") -> Event:
-    q = [[0.0, 0.0, 0.0, 1.0]] * 3
-    v = [[0.0, 0.0, 0.0]] * 3
-    from swarm.bus.messages import B64Array
-
+    q = [0.0, 0.0, 0.0, 1.0] * 3
+    v = [0.0, 0.0, 0.0] * 3
     m = Estimate(run=RUN, sender=f"agent-{i}", k=k, t_s=float(k), own=i, phase=phase, q_BI=q, omega_BI_B_rad_s=v, r_H_m=v,
-                 v_H_m_s=v, bias_B_rad_s=[0.0, 0.0, 0.0], P_pose=B64Array.of(np.tile(np.eye(6), (3, 1, 1))),
-                 P_diag=B64Array.of(np.ones(36)))
+                 v_H_m_s=v, bias_B_rad_s=[0.0, 0.0, 0.0], P_pose=matrix(np.tile(np.eye(6), (3, 1, 1))),
+                 P_diag=matrix(np.ones(36)))
     return Event(K.est(i), "est", i, msg=m)
 
 
@@ -111,7 +110,7 @@ def test_scheduled_camera_fault_is_announced_and_silences_that_camera():
     faults = d.sent_on(K.fault())
     assert [(f.phase, f.action, f.target, f.camera) for f in faults] == [("command", "camera", 0, 0), ("done", "camera", 0, 0)]
     (cam,) = d.sent_on(K.cam(0))
-    assert cam.cameras_off == [0] and all(x.camera != 0 for x in cam.detections)
+    assert list(cam.cameras_off) == [0] and all(x.camera != 0 for x in cam.detections)
     assert not w.camera_ok[0, 0] and w.camera_ok[1].all()
 
 
@@ -124,16 +123,16 @@ def test_selector_choice_is_used_and_a_dead_selector_brings_the_fallback():
     for i in range(3):
         d.feed(alive("agent", i), est(i, 0, "prior"))
     assert not d.sent, "the world waits for the selector's plan of step 0"
-    sel = Select(run=RUN, sender="selector", k=0, t_s=0.0, pairs=[(0, 1), (2, 0)], strategy="greedy")
+    sel = select_msg([0, 2], [1, 0], run=RUN, sender="selector", k=0, t_s=0.0, strategy="greedy")
     d.feed(Event(K.select(), "select", None, msg=sel))
     cams = {i: d.sent_on(K.cam(i))[0] for i in range(3)}
     assert [x.target for x in cams[0].detections] == [1] and [x.target for x in cams[2].detections] == [0]
-    assert cams[1].detections == []
+    assert len(cams[1].detections) == 0
     d.take()
     d.feed(alive("selector", up=False), est(0, 0), est(1, 0), est(2, 0))
     (fb,) = d.sent_on(K.select())
     assert fb.fallback and fb.sender == "world" and fb.k == 1 and fb.strategy == sc.selection.fallback
-    assert len(fb.pairs) >= 1
+    assert len(fb.observer) >= 1
 
 
 def test_fallback_never_schedules_a_dead_observer():
@@ -148,7 +147,7 @@ def test_fallback_never_schedules_a_dead_observer():
     d.feed(alive("agent", 3, up=False))
     d.feed(*[est(i, 0) for i in range(3)])
     sels = d.sent_on(K.select())
-    assert sels[-1].k == 1 and all(o != 3 for o, _t in sels[-1].pairs)
+    assert sels[-1].k == 1 and all(o != 3 for o in sels[-1].observer)
 
 
 def test_scheduled_kill_waits_until_the_agent_is_gone():

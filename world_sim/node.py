@@ -25,7 +25,7 @@ class World(Node):
         self.sc = sc
         self.cameras = measurement_model(sc).cameras()  # rendering only when the scenario renders
         self.machine = WorldProtocol(sc, run, self.cameras, expect_recorder, expect_selector)
-        self.subscribe(self.keys.est())
+        self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())
         self.subscribe(self.keys.fault())

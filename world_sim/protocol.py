@@ -25,9 +25,17 @@ from typing import Callable
 
 import numpy as np
 
-from swarm.bus.convert import detections, full_estimate_msg, images_msg, sensors_msg
+from swarm.bus.convert import (
+    detections,
+    full_estimate_msg,
+    images_msg,
+    matrix,
+    pairs_from_select,
+    select_msg,
+    sensors_msg,
+    truth_msg,
+)
 from swarm.bus.messages import (
-    B64Array,
     CameraOutput,
     Claim,
     Clock,
@@ -35,11 +43,12 @@ from swarm.bus.messages import (
     Delivery,
     Fault,
     Keys,
+    Latency,
     LinkStats,
     MeasBatch,
     RejoinFate,
     Select,
-    Truth,
+    replace,
 )
 from swarm.protocol import Event, Send, Wait
 from swarmcore.graphs import edges, scenario_graph
@@ -180,7 +189,7 @@ class WorldProtocol:
         if f.action == "camera" and f.target is not None and f.camera is not None:
             self.camera_ok[f.target, f.camera] = f.state == "on"
             log.info("camera %d of satellite %d %s", f.camera, f.target, f.state)
-            done = f.model_copy(update={"phase": "done", "sender": "world", "k": self.k, "t_s": self.k * self.sc.dt_s})
+            done = replace(f, phase="done", sender="world", k=self.k, t_s=self.k * self.sc.dt_s)
             return [Send(self.keys.fault(), done)]
         return []
 
@@ -248,8 +257,7 @@ class WorldProtocol:
 
     def _truth_msg(self, k: int) -> Truth:
         tr = self.truth
-        return Truth(run=self.run_id, sender="world", k=k, t_s=tr.t, q_BI=tr.q_BI.tolist(), omega_BI_B_rad_s=tr.omega_BI_B.tolist(),
-                     r_H_m=tr.r_H.tolist(), v_H_m_s=tr.v_H.tolist(), gyro_bias_B_rad_s=tr.bias_B.tolist())
+        return truth_msg(self.truth, run=self.run_id, k=k)
 
     def _startup(self):
         em = self.sc.emulator
@@ -271,7 +279,7 @@ class WorldProtocol:
     def _apply_scheduled_faults(self, k: int):
         em = self.sc.emulator
         for spec in [f for f in self.sc.faults if f.at_step == k]:
-            cmd = Fault(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s, action=spec.action, target=spec.target,
+            cmd = Fault(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s, phase="command", action=spec.action, target=spec.target,
                         camera=spec.camera, state=spec.state, rate=spec.rate, detail="scheduled")
             log.info("step %d: fault %s target=%s", k, spec.action, spec.target)
             yield Send(self.keys.fault(), cmd)
@@ -312,18 +320,16 @@ class WorldProtocol:
             if self.fallback_active:
                 log.info("step %d: selector is back", k)
             self.fallback_active = False
-            pairs = np.array(sel.pairs, dtype=int).reshape(-1, 2)
-            return pairs[:, 0], pairs[:, 1]
+            return pairs_from_select(sel)
         if not self.fallback_active:
             log.warning("step %d: no selection from the selector; falling back to %s", k, self.sc.selection.fallback)
         self.fallback_active = True
         fb = self.sc.model_copy(update={"selection": self.sc.selection.model_copy(update={"strategy": self.sc.selection.fallback})})
         t0 = time.perf_counter()
         obs, tgt = select_for_scenario(fb, k, self.G, None, None, mask_dead(self.camera_ok, self.live()))
-        yield Send(self.keys.select(), Select(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s,
-                                              pairs=[(int(a), int(b)) for a, b in zip(obs, tgt, strict=True)],
-                                              strategy=self.sc.selection.fallback, fallback=True,
-                                              select_ms=(time.perf_counter() - t0) * 1e3))
+        yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s,
+                                                  strategy=self.sc.selection.fallback, fallback=True,
+                                                  select_ms=(time.perf_counter() - t0) * 1e3))
         return obs, tgt
 
     def _radio(self, k: int, t: float, live: list[int]):
@@ -396,8 +402,9 @@ class WorldProtocol:
         with self._radio_lock:
             msg = LinkStats(
                 run=self.run_id, sender="world", k=k, t_s=t, queue_bytes=lm.queue_bytes(t).tolist(),
-                latencies=[(int(a), int(b), int(s), float(x)) for a, b, s, x in lm.latencies[self._lat_sent:]],
-                **{name: B64Array.of(getattr(lm.counters, name).astype(float)) for name in LINK_COUNTERS},
+                latencies=[Latency(sender=int(a), receiver=int(b), sent_k=int(s), latency_s=float(x))
+                           for a, b, s, x in lm.latencies[self._lat_sent:]],
+                **{name: matrix(getattr(lm.counters, name).astype(float)) for name in LINK_COUNTERS},
             )
             self._lat_sent = len(lm.latencies)
         yield Send(self.keys.links(), msg)

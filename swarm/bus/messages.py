@@ -1,19 +1,36 @@
 """Every message on the bus and every key expression, in one place.
 
-Messages are JSON (readable in Foxglove and MCAP tools), validated by pydantic models:
-a malformed or unexpected payload raises :class:`MessageError` naming the problem, and
-the receiving process counts it, logs it and carries on. Small vectors are JSON lists
-(exact: Python writes the shortest repr that round-trips); large matrices travel as
-little-endian float64 in base64 (:class:`B64Array`), also exact. Every message carries
-the schema version ``v``, the run id, the sender, the step ``k`` and the simulation time
-``t_s``. Units and frames are in every field name.
+Messages are Protocol Buffers, schema version 1: ``proto/swarm/v1/*.proto`` is the single
+source of truth (one file per message family; ``proto/README.md`` gives the conventions
+and the evolution rules), and the classes here are the code generated from it
+(``swarm/v1/*_pb2.py``, made by ``scripts/gen_proto.py``). Any language with a protobuf
+code generator reads them; the recorder embeds the schemas in the MCAP file.
+
+Fields 1–5 of every message are the header: ``schema_version``, ``run``, ``sender``,
+``k`` (step), ``t_s`` (simulation time). Units and frames are in every field name. Arrays
+are packed ``repeated double`` (per-satellite rows concatenated, row-major) and
+covariances :class:`Matrix` values (``shape`` + ``data``); both are little-endian
+float64 on the wire, so values round-trip bit for bit.
+
+:func:`decode` checks what a schema cannot: the schema version, bounded payload size,
+finite numbers, unit quaternions (``|‖q‖ − 1| ≤ QUAT_TOL``), symmetric positive-definite
+covariances, array lengths that match their shapes, ids within ``MAX_SAT_ID``, allowed
+values of the string enumerations. :func:`check_key` checks a message against the key it
+came on (the satellite in the key, the sender). A failure raises :class:`MessageError`
+naming the problem; the receiving process counts it, logs it and carries on.
+
+Generated classes are built with keywords and read by attribute, as before
+(``Clock(run=..., k=3)``, ``msg.k``); :func:`replace` and :func:`as_dict` stand in for
+what pydantic gave (``model_copy(update=...)``, ``model_dump()``). Repeated fields read
+as sequences (``np.asarray(msg.q_BI)`` is a fast copy); an optional field that is unset
+reads as its zero value, ``msg.HasField(name)`` (or :func:`opt`) tells.
 
 Key space (one run id per swarm, so swarms can share a router)::
 
     swarm/<run>/clock                world → all           Clock
     swarm/<run>/sat/<i>/sensors      world → agent i       Sensors
     swarm/<run>/sat/<i>/cam          world → agent i       CameraOutput
-    swarm/<run>/sat/<i>/img          world → agent i       Images  (rendered; JSON header + raw pixels)
+    swarm/<run>/sat/<i>/img          world → agent i       Images  (rendered scenarios)
     swarm/<run>/meas/<i>             agent i → all         MeasBatch
     swarm/<run>/est/<i>              agent i → all         Estimate
     swarm/<run>/cov/<i>              agent i (queryable)   FullEstimate
@@ -31,28 +48,51 @@ Key space (one run id per swarm, so swarms can share a router)::
 
 from __future__ import annotations
 
-import base64
+import collections
+import functools
+import math
 import re
-from typing import Annotated, Literal
+import threading
+import time
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, ValidationError, field_validator, model_validator
+from google.protobuf.message import DecodeError
 
-from swarmcore.scenario import FaultAction
-
-from ..netem import NetemError, validate_field
+from swarm.v1.claim_pb2 import Claim
+from swarm.v1.clock_pb2 import Clock
+from swarm.v1.common_pb2 import Header, Matrix
+from swarm.v1.estimate_pb2 import Estimate, FullEstimate
+from swarm.v1.fault_pb2 import Fault
+from swarm.v1.health_pb2 import Health
+from swarm.v1.images_pb2 import CameraView, Images
+from swarm.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
+from swarm.v1.measurements_pb2 import MeasBatch
+from swarm.v1.recording_pb2 import Liveliness, Malformed
+from swarm.v1.selection_pb2 import Select
+from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
+from swarm.v1.truth_pb2 import Truth
 
 SCHEMA_VERSION = 1
+MAX_SAT_ID = 10_000
+QUAT_TOL = 1e-6  # |‖q‖ − 1| a unit quaternion may show (checked as |‖q‖² − 1| ≤ 2e-6; ours: ~1e-16)
+SYM_TOL = 1e-9  # |A − Aᵀ| relative to max |A| a covariance may show (round-off only)
+MiB = 1 << 20
+MAX_PAYLOAD_BYTES = {"img": 64 * MiB, "full_est": 64 * MiB}
+MAX_PAYLOAD_DEFAULT = 8 * MiB  # every other kind (an estimate of 100 satellites is ~60 KB)
 
 __all__ = [
     "SCHEMA_VERSION",
+    "MAX_SAT_ID",
+    "QUAT_TOL",
+    "MAX_PAYLOAD_BYTES",
+    "SHALLOW_KINDS",
     "MessageError",
-    "B64Array",
+    "Header",
+    "Matrix",
     "Clock",
     "Sensors",
     "Detection",
     "CameraOutput",
-    "RelMeas",
     "MeasBatch",
     "Estimate",
     "FullEstimate",
@@ -61,17 +101,32 @@ __all__ = [
     "Health",
     "Truth",
     "Claim",
+    "Images",
+    "CameraView",
     "Delivery",
     "Delivered",
+    "Latency",
     "LinkStats",
     "RejoinFate",
-    "Images",
-    "ViewMeta",
+    "Liveliness",
+    "Malformed",
     "Keys",
     "MODELS",
+    "FAULT_ACTIONS",
     "encode",
     "decode",
+    "validate",
+    "check_key",
     "parse_key",
+    "replace",
+    "as_dict",
+    "opt",
+    "pixels",
+    "batch_arrays",
+    "prepare",
+    "file_descriptor_set",
+    "codec_cpu_ms",
+    "counted",
 ]
 
 
@@ -79,349 +134,7 @@ class MessageError(ValueError):
     """A payload that is not a valid message of the expected kind."""
 
 
-Vec3 = Annotated[list[float], Field(min_length=3, max_length=3)]
-Vec4 = Annotated[list[float], Field(min_length=4, max_length=4)]
-SatId = Annotated[int, Field(ge=0, le=10_000)]
-
-
-class _Msg(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class B64Array(_Msg):
-    """A float64 array: little-endian bytes in base64, with its shape."""
-
-    dtype: Literal["<f8"] = "<f8"
-    shape: list[Annotated[int, Field(ge=0)]]
-    b64: str
-
-    @classmethod
-    def of(cls, a: np.ndarray) -> "B64Array":
-        a = np.ascontiguousarray(a, dtype="<f8")
-        return cls(shape=list(a.shape), b64=base64.b64encode(a.tobytes()).decode("ascii"))
-
-    def array(self) -> np.ndarray:
-        try:
-            raw = base64.b64decode(self.b64, validate=True)
-        except ValueError as exc:
-            raise MessageError(f"array payload is not base64: {exc}") from None
-        count = int(np.prod(self.shape)) if self.shape else 1
-        if len(raw) != 8 * count:
-            raise MessageError(f"array of shape {self.shape} needs {8 * count} bytes, got {len(raw)}")
-        return np.frombuffer(raw, dtype="<f8").reshape(self.shape).copy()
-
-
-class _Header(_Msg):
-    v: Literal[1] = SCHEMA_VERSION
-    run: str = Field(min_length=1, max_length=64)
-    sender: str = Field(min_length=1, max_length=64)
-    k: int = Field(ge=0, description="step index")
-    t_s: float = Field(description="simulation time (s)")
-
-
-class Clock(_Header):
-    """World → all: step k begins; who is alive; the run's mode."""
-
-    kind: Literal["clock"] = "clock"
-    live_agents: list[SatId]
-    mode: Literal["lockstep", "free"] = "lockstep"
-    done: bool = False
-
-
-class Sensors(_Header):
-    """World → agent i: its own gyro (mean rate over k−1→k), star tracker and GPS at t_k."""
-
-    kind: Literal["sensors"] = "sensors"
-    sat: SatId
-    gyro_rate_B_rad_s: Vec3 | None = None
-    q_BI_star: Vec4 | None = None
-    r_H_gps_m: Vec3 | None = None
-    sigma_star_rad: float = Field(gt=0)
-    sigma_gps_m: float = Field(gt=0)
-
-
-class Detection(_Msg):
-    """One camera output: a (synthetic or image-derived) relative pose of ``target``."""
-
-    target: SatId
-    camera: int = Field(ge=0, le=5)
-    q_BjBi: Vec4
-    r_ij_Bi_m: Vec3
-
-
-class CameraOutput(_Header):
-    """World → agent i: what its cameras produced at step k (possibly nothing)."""
-
-    kind: Literal["cam"] = "cam"
-    sat: SatId
-    detections: list[Detection] = []
-    cameras_off: list[Annotated[int, Field(ge=0, le=5)]] = []
-
-
-class RelMeas(_Msg):
-    """A relative pose measurement with its covariance R_Bi (6×6 row-major, [att rad, pos m]).
-
-    ``camera``: 0–5 the body-fixed face cameras; 6 + j the tracking stereo pair aimed at j."""
-
-    observer: SatId
-    target: SatId
-    camera: int = Field(ge=0, le=6 + 10_000)
-    q_BjBi: Vec4
-    r_ij_Bi_m: Vec3
-    R_Bi: Annotated[list[float], Field(min_length=36, max_length=36)]
-
-
-class MeasBatch(_Header):
-    """Agent i → all: every relative measurement it took at step k (an empty batch too)."""
-
-    kind: Literal["meas"] = "meas"
-    observer: SatId
-    meas: list[RelMeas] = []
-
-    @field_validator("meas")
-    @classmethod
-    def _same_observer(cls, v, info):
-        obs = info.data.get("observer")
-        for m in v:
-            if m.observer != obs:
-                raise ValueError(f"measurement by {m.observer} in the batch of observer {obs}")
-            if m.target == m.observer:
-                raise ValueError(f"satellite {m.observer} cannot measure itself")
-        return v
-
-
-class Estimate(_Header):
-    """Agent i → all: its posterior (or initial prior) of the whole swarm at step k.
-
-    Carries each satellite's pose covariance block ``P_pose`` (n, 6, 6) over
-    ``[a, Δr]`` and the full diagonal; the full covariance is served on ``cov/<i>``.
-    """
-
-    kind: Literal["est"] = "est"
-    own: SatId
-    phase: Literal["prior", "posterior"] = "posterior"
-    q_BI: list[Vec4]
-    omega_BI_B_rad_s: list[Vec3]
-    r_H_m: list[Vec3]
-    v_H_m_s: list[Vec3]
-    bias_B_rad_s: Vec3
-    P_pose: B64Array
-    P_diag: B64Array
-    gate_accepted: int = 0
-    gate_rejected: int = 0
-    nis: float = 0.0
-    nis_dof: int = 0
-    iterations: int = 1
-    step_ms: float = 0.0
-    batches_used: list[SatId] = []
-    batches_missing: list[SatId] = []
-    batches_late: int = 0
-    late_used: int = Field(0, ge=0, description="late measurements inserted at their own step (replay)")
-    late_dropped: int = Field(0, ge=0, description="late measurements dropped (older than the history, or late: drop)")
-    replayed_steps: int = Field(0, ge=0, description="filter steps re-run for late measurements")
-
-
-class FullEstimate(_Header):
-    """A complete filter state with the full 12n×12n covariance (prior, restart, selector)."""
-
-    kind: Literal["full_est"] = "full_est"
-    own: SatId
-    q_BI: list[Vec4]
-    omega_BI_B_rad_s: list[Vec3]
-    r_H_m: list[Vec3]
-    v_H_m_s: list[Vec3]
-    bias_B_rad_s: Vec3
-    P: B64Array
-
-
-class Select(_Header):
-    """Selector (or the world's fallback) → all: the pairs to measure at step k."""
-
-    kind: Literal["select"] = "select"
-    pairs: list[tuple[SatId, SatId]]
-    strategy: str
-    ref_agent: SatId | None = None
-    fallback: bool = False
-    select_ms: float = 0.0
-
-
-class Fault(_Header):
-    """A fault: a command (from the CLI or the scenario) and its outcome (from the executor)."""
-
-    kind: Literal["fault"] = "fault"
-    action: FaultAction
-    phase: Literal["command", "done", "failed"] = "command"
-    target: SatId | None = None
-    camera: int | None = Field(None, ge=0, le=5)
-    state: Literal["on", "off"] | None = None
-    rate: float | None = Field(None, ge=0.0, le=1.0)
-    netem: str | None = Field(
-        None, max_length=200, description="netem: the tc netem arguments applied to the target's container "
-        "('delay 200ms 50ms loss 10% rate 1mbit', canonical form) or 'clear'"
-    )
-    detail: str = ""
-
-    @field_validator("netem")
-    @classmethod
-    def _netem_args(cls, v):
-        if v is None:
-            return v
-        try:
-            return validate_field(v)
-        except NetemError as exc:
-            raise ValueError(str(exc)) from None
-
-    @model_validator(mode="after")
-    def _netem_needs_args(self):
-        if self.action == "netem" and self.netem is None:
-            raise ValueError("action netem needs netem (tc netem arguments or 'clear')")
-        return self
-
-
-class Health(_Header):
-    """Agent i → all: camera health and what it has had to cope with."""
-
-    kind: Literal["health"] = "health"
-    sat: SatId
-    camera_ok: Annotated[list[bool], Field(min_length=6, max_length=6)]
-    malformed: int = 0
-    batches_missing: int = 0
-    batches_late: int = 0
-    drop_rate: float = 0.0
-    host: str = Field("", max_length=253, description="the agent's host name (its container id under Docker)")
-
-
-class Delivered(_Msg):
-    """One batch the radio delivered: when it arrived (simulated time) and the batch itself."""
-
-    arrival_t_s: float
-    batch: MeasBatch
-
-
-class Delivery(_Header):
-    """World (the radio channel) → agent i: the peer batches that reached it by step k
-    (``links.enabled``); ``batch.k < k`` marks a late one."""
-
-    kind: Literal["rx"] = "rx"
-    sat: SatId
-    items: list[Delivered] = []
-
-
-class LinkStats(_Header):
-    """World → recorder: the link counters (cumulative, per directed link, n × n, row =
-    sender) after step k, each transmitter's queue, and this step's delivered latencies."""
-
-    kind: Literal["links"] = "links"
-    sent: B64Array
-    delivered: B64Array
-    delivered_late: B64Array
-    lost: B64Array
-    dropped_queue: B64Array
-    unreachable: B64Array
-    bytes_delivered: B64Array
-    queue_bytes: list[Annotated[int, Field(ge=0)]]
-    latencies: list[tuple[SatId, SatId, Annotated[int, Field(ge=0)], float]] = Field(
-        default_factory=list, description="(sender, receiver, sent step, latency s) of each delivery of this step"
-    )
-
-
-class RejoinFate(_Header):
-    """World (the radio) → a restarting agent: what the link does to the full estimate it
-    fetches from ``peer`` (``links.enabled``): it arrives at ``arrival_t_s`` (simulated
-    time), or it is ``lost``, ``dropped`` at the peer's queue, or the link is
-    ``unreachable``. The transfer takes the peer's transmitter like any message."""
-
-    kind: Literal["rejoin"] = "rejoin"
-    sat: SatId
-    peer: SatId
-    bytes: int = Field(ge=0)
-    fate: Literal["delivered", "lost", "dropped", "unreachable"]
-    arrival_t_s: float | None = None
-
-
-class Claim(_Header):
-    """World → an agent started with ``--id auto``: the satellite it is to fly, and whether
-    the run is already under way (then it initialises from a live peer)."""
-
-    kind: Literal["claim"] = "claim"
-    sat: SatId
-    token: str = Field(min_length=1, max_length=128)
-    running: bool = False
-
-
-class Truth(_Header):
-    """World → recorder only: the true state at step k."""
-
-    kind: Literal["truth"] = "truth"
-    q_BI: list[Vec4]
-    omega_BI_B_rad_s: list[Vec3]
-    r_H_m: list[Vec3]
-    v_H_m_s: list[Vec3]
-    gyro_bias_B_rad_s: list[Vec3]
-
-
-class ViewMeta(_Msg):
-    """One camera's view inside :class:`Images`: where the camera is and how it projects."""
-
-    camera: int = Field(ge=0, description="0–5 face cameras; 6 + j the stereo pair tracking j")
-    T_CB: Annotated[list[float], Field(min_length=9, max_length=9)] = Field(description="body → camera (OpenCV axes), row-major")
-    r_C_B_m: Vec3 = Field(description="(left) camera centre in the body frame")
-    width_px: int = Field(ge=1, le=16384)
-    height_px: int = Field(ge=1, le=16384)
-    fx_px: float = Field(gt=0)
-    fy_px: float = Field(gt=0)
-    cx_px: float
-    cy_px: float
-    target: int = Field(-1, ge=-1, description="stereo: the tracked satellite; −1 for face cameras")
-    baseline_m: float = Field(0.0, ge=0.0)
-    n_images: int = Field(1, ge=1, le=2, description="1 (face camera) or 2 (stereo left, right)")
-
-
-class Images(_Header):
-    """World → agent i: the images its scheduled cameras saw at step k (possibly none).
-
-    On the wire: this JSON header, one newline, then the raw 8-bit grey pixels of every
-    view's images in order (``height_px × width_px`` bytes each): images are too large for
-    JSON and base64 and need no conversion. :func:`decode` checks the byte count.
-    ``targets``: the satellites this observer is scheduled to measure."""
-
-    kind: Literal["img"] = "img"
-    sat: SatId
-    targets: list[SatId] = []
-    views: list[ViewMeta] = []
-    _pixels: list = PrivateAttr(default_factory=list)
-
-    def pixel_shapes(self) -> list[tuple[int, int]]:
-        """(height, width) of every image the views announce, in wire order."""
-        return [(v.height_px, v.width_px) for v in self.views for _ in range(v.n_images)]
-
-    def with_pixels(self, pixels: list) -> "Images":
-        want = self.pixel_shapes()
-        got = [tuple(np.shape(p)) for p in pixels]
-        if got != want:
-            raise MessageError(f"images: pixel arrays of shapes {got} do not match the views' {want}")
-        self._pixels = [np.ascontiguousarray(p, dtype=np.uint8) for p in pixels]
-        return self
-
-    @property
-    def pixels(self) -> list:
-        """Every view's images, flattened in view order (uint8 arrays, height × width)."""
-        return self._pixels
-
-    def __eq__(self, other) -> bool:
-        if not isinstance(other, Images):
-            return NotImplemented
-        return self.header_json() == other.header_json() and len(self.pixels) == len(other.pixels) and all(
-            np.array_equal(a, b) for a, b in zip(self.pixels, other.pixels)
-        )
-
-    __hash__ = None
-
-    def header_json(self) -> bytes:
-        return self.model_dump_json().encode("utf-8")
-
-
-MODELS: dict[str, type[_Header]] = {
+MODELS: dict[str, type] = {
     "clock": Clock,
     "sensors": Sensors,
     "cam": CameraOutput,
@@ -439,44 +152,632 @@ MODELS: dict[str, type[_Header]] = {
     "rejoin": RejoinFate,
 }
 
-
-def encode(msg: _Header) -> bytes:
-    if isinstance(msg, Images):
-        return msg.header_json() + b"\n" + b"".join(p.tobytes() for p in msg.pixels)
-    return msg.model_dump_json().encode("utf-8")
+FAULT_ACTIONS = ("kill-agent", "restart-agent", "stop-agent", "camera", "kill-selector", "restart-selector", "drop", "partition", "heal", "netem")
+_FAULT_NEEDS_TARGET = ("kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal", "netem")
 
 
-def decode(kind: str, payload: bytes | bytearray | memoryview):
-    """Parse and validate a payload of the given kind; :class:`MessageError` on any defect."""
-    model = MODELS.get(kind)
-    if model is None:
+# -- CPU time spent on messages ---------------------------------------------------------
+# Building, encoding, decoding, validating and converting messages, per process: what
+# `swarm bench run` sets against the filter's own CPU time. Thread CPU time, counted once
+# for nested calls (a conversion that encodes), from any thread (queryables reply on
+# Zenoh's threads).
+class _Tally(threading.local):
+    """Per thread: whether a counted call is under way, and the nanoseconds counted
+    (each thread adds to its own cell; :func:`codec_cpu_ms` sums them: no lock per call)."""
+
+    def __init__(self):
+        self.busy = False
+        self.cell = [0]
+        with _cells_lock:
+            _cells.append(self.cell)
+
+
+_cells: list[list[int]] = []
+_cells_lock = threading.Lock()
+_tally = _Tally()
+
+
+def counted(fn):
+    """Add the thread CPU time of ``fn`` to the process's message-handling total."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        t = _tally
+        if t.busy:
+            return fn(*args, **kwargs)
+        t.busy = True
+        t0 = time.thread_time_ns()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            t.cell[0] += time.thread_time_ns() - t0
+            t.busy = False
+
+    return wrapper
+
+
+def codec_cpu_ms(reset: bool = True) -> float:
+    """CPU time (ms) this process spent on messages since the last reset."""
+    with _cells_lock:
+        ns = 0
+        for c in _cells:
+            v = c[0]
+            ns += v
+            if reset:
+                c[0] -= v  # a concurrent add on another thread is kept, not lost
+    return ns / 1e6
+
+
+# -- encoding and decoding -------------------------------------------------------------
+@counted
+def encode(msg) -> bytes:
+    """The wire bytes of a message; stamps the schema version when the builder left it out."""
+    if not msg.schema_version:
+        msg.schema_version = SCHEMA_VERSION
+    return msg.SerializeToString()
+
+
+@counted
+def decode(kind: str, payload: bytes | bytearray | memoryview, shallow: bool = False, n_sats: int | None = None):
+    """Parse and validate a payload of the given kind; :class:`MessageError` on any defect.
+
+    ``shallow``: for a receiver that reads only the header and the scalars of an estimate
+    (who, which step, prior or posterior), check only those (:data:`SHALLOW_KINDS`); its
+    arrays are then not to be read. Everything else is always checked in full."""
+    cls = MODELS.get(kind)
+    if cls is None:
         raise MessageError(f"unknown message kind {kind!r}")
-    payload = bytes(payload)
-    body = None
-    if model is Images:
-        payload, nl, body = payload.partition(b"\n")
-        if not nl:
-            raise MessageError("invalid img message: no newline between the JSON header and the pixels")
+    limit = MAX_PAYLOAD_BYTES.get(kind, MAX_PAYLOAD_DEFAULT)
+    if len(payload) > limit:
+        raise MessageError(f"invalid {kind} message: {len(payload)} bytes, more than the {limit} a {kind} message may have")
+    msg = cls()
     try:
-        msg = model.model_validate_json(payload)
-    except ValidationError as exc:
-        first = exc.errors()[0]
-        loc = ".".join(str(p) for p in first["loc"]) or "(payload)"
-        raise MessageError(f"invalid {kind} message: {loc}: {first['msg']} ({exc.error_count()} error(s))") from None
-    if body is not None:
-        shapes = msg.pixel_shapes()
-        need = sum(h * w for h, w in shapes)
-        if len(body) != need:
-            raise MessageError(f"invalid img message: {len(shapes)} image(s) need {need} pixel bytes, got {len(body)}")
-        pix, off = [], 0
-        for h, w in shapes:
-            # A copy, not a view into the payload: writeable and aligned like any new array.
-            pix.append(np.frombuffer(body, dtype=np.uint8, count=h * w, offset=off).reshape(h, w).copy())
-            off += h * w
-        msg.with_pixels(pix)
+        msg.ParseFromString(bytes(payload))
+    except DecodeError as exc:
+        raise MessageError(f"invalid {kind} message: not a {cls.DESCRIPTOR.full_name} ({exc})") from None
+    validate(msg, kind, shallow, n_sats)
     return msg
 
 
+def validate(msg, kind: str | None = None, shallow: bool = False, n_sats: int | None = None) -> None:
+    """Check what the schema cannot (see the module doc); :class:`MessageError` names the field.
+    ``n_sats``: the swarm's size, which every satellite id must be below (else ``MAX_SAT_ID``)."""
+    kind = kind or _KIND_OF[type(msg)]
+    top = MAX_SAT_ID if n_sats is None else n_sats - 1
+    try:
+        _header(msg)
+        ((shallow and _SHALLOW.get(kind)) or _VALIDATORS[kind])(msg, top)
+    except MessageError as exc:
+        raise MessageError(f"invalid {kind} message: {exc}") from None
+
+
+def _header(m) -> None:
+    if m.schema_version != SCHEMA_VERSION:
+        if m.schema_version == 0:
+            raise MessageError("schema_version: missing (not a swarm.v1 message)")
+        raise MessageError(f"schema_version: unknown version {m.schema_version} (this receiver reads {SCHEMA_VERSION})")
+    if not _run_ok(m.run):
+        raise MessageError(f"run: {m.run[:80]!r} is not a run id (1-64 letters, digits, '_', '-', '.')")
+    if not 1 <= len(m.sender) <= 64:
+        raise MessageError(f"sender: {len(m.sender)} characters (1-64 allowed)")
+    if not math.isfinite(m.t_s):
+        raise MessageError(f"t_s: {m.t_s} is not finite")
+
+
+@functools.lru_cache(maxsize=256)
+def _run_ok(run: str) -> bool:
+    return _RUN_RE.fullmatch(run) is not None
+
+
+# -- field checks (vectorised: an agent at n = 40 validates ~80 messages a step) ----------
+def _id(top: int, name: str, v: int) -> None:
+    if v > top:
+        raise MessageError(f"{name}: satellite id {v} out of range (0-{top})")
+
+
+def _ids(top: int, name: str, vals) -> None:
+    big = max(vals, default=0)  # a short list of ints: Python's max beats a numpy round trip
+    if big > top:
+        raise MessageError(f"{name}: satellite id {big} out of range (0-{top})")
+
+
+def _finite(name: str, a: np.ndarray) -> np.ndarray:
+    if not np.isfinite(a).all():
+        raise MessageError(f"{name}: not finite (NaN or infinity)")
+    return a
+
+
+def _rows(name: str, vals, width: int, rows: int | None = None) -> np.ndarray:
+    """A packed array of ``rows`` × ``width`` numbers (any whole number of rows if ``rows`` is None)."""
+    size = len(vals)
+    if size % width or (rows is not None and size != rows * width):
+        want = f"{rows} × {width}" if rows is not None else f"a multiple of {width}"
+        raise MessageError(f"{name}: {size} numbers, expected {want}")
+    return _finite(name, np.asarray(vals, dtype=float).reshape(-1, width))
+
+
+def _optional_vec(name: str, vals, width: int) -> np.ndarray | None:
+    if len(vals) == 0:
+        return None
+    return _rows(name, vals, width, 1)[0]
+
+
+def _unit(name: str, q: np.ndarray) -> None:
+    """|‖q‖² − 1| ≤ 2·QUAT_TOL, i.e. ‖q‖ within QUAT_TOL of 1 (to first order)."""
+    if len(q):
+        err = float(np.abs(np.einsum("ij,ij->i", q, q) - 1.0).max())
+        if not err <= 2 * QUAT_TOL:
+            raise MessageError(f"{name}: not a unit quaternion (|‖q‖² − 1| = {err:.3g} > {2 * QUAT_TOL:g})")
+
+
+def _matrix(name: str, m: Matrix, shape: tuple[int, ...]) -> np.ndarray:
+    if tuple(m.shape) != shape:
+        raise MessageError(f"{name}: shape {list(m.shape)}, expected {list(shape)}")
+    need = math.prod(shape)
+    if len(m.data) != need:
+        raise MessageError(f"{name}: shape {list(shape)} needs {need} numbers, got {len(m.data)}")
+    return _finite(name, np.asarray(m.data, dtype=float).reshape(shape))
+
+
+def _spd(name: str, A: np.ndarray) -> None:
+    """Symmetric (to round-off: SYM_TOL of the matrix's largest entry) and positive-definite
+    (Cholesky succeeds), each of a stack of square matrices with finite entries."""
+    if len(A) == 0:
+        return
+    scale = np.abs(A).max(axis=(1, 2))
+    asym = np.abs(A - A.transpose(0, 2, 1)).max(axis=(1, 2))
+    if not (asym <= SYM_TOL * scale).all():
+        raise MessageError(f"{name}: not symmetric")
+    try:
+        np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        raise MessageError(f"{name}: not positive-definite") from None
+
+
+def _choice(name: str, v: str, allowed) -> None:
+    if v not in allowed:
+        raise MessageError(f"{name}: {v[:40]!r} is not one of {list(allowed)}")
+
+
+def _nonneg(name: str, v: float) -> None:
+    if not (math.isfinite(v) and v >= 0):
+        raise MessageError(f"{name}: {v} is not a finite number ≥ 0")
+
+
+def _clock(m: Clock, top: int) -> None:
+    _ids(top, "live_agents", m.live_agents)
+    _choice("mode", m.mode, ("lockstep", "free"))
+
+
+def _sensors(m: Sensors, top: int) -> None:
+    _id(top, "sat", m.sat)
+    _optional_vec("gyro_rate_B_rad_s", m.gyro_rate_B_rad_s, 3)
+    q = _optional_vec("q_BI_star", m.q_BI_star, 4)
+    if q is not None:
+        _unit("q_BI_star", q[None])
+    _optional_vec("r_H_gps_m", m.r_H_gps_m, 3)
+    for f in ("sigma_star_rad", "sigma_gps_m"):
+        v = getattr(m, f)
+        if not (np.isfinite(v) and v > 0):
+            raise MessageError(f"{f}: {v} is not a finite number > 0")
+
+
+def _cam(m: CameraOutput, top: int) -> None:
+    _id(top, "sat", m.sat)
+    q, r = [], []
+    for j, d in enumerate(m.detections):  # the scalars one by one, the numbers all at once
+        _id(top, f"detections.{j}.target", d.target)
+        if d.target == m.sat:
+            raise MessageError(f"detections.{j}.target: satellite {m.sat} cannot see itself")
+        if d.camera > 5:
+            raise MessageError(f"detections.{j}.camera: {d.camera} is not a face camera (0-5)")
+        if len(d.q_BjBi) != 4 or len(d.r_ij_Bi_m) != 3:
+            raise MessageError(f"detections.{j}: {len(d.q_BjBi)} numbers in q_BjBi (4), {len(d.r_ij_Bi_m)} in r_ij_Bi_m (3)")
+        q.extend(d.q_BjBi)
+        r.extend(d.r_ij_Bi_m)
+    _unit("detections.q_BjBi", _rows("detections.q_BjBi", q, 4))
+    _rows("detections.r_ij_Bi_m", r, 3)
+    c = np.asarray(m.cameras_off, dtype=np.int64)
+    if c.size and c.max() > 5:
+        raise MessageError(f"cameras_off: {int(c.max())} is not a face camera (0-5)")
+
+
+def _meas(m: MeasBatch, top: int) -> None:
+    _id(top, "observer", m.observer)
+    tgt = list(m.target)
+    n = len(tgt)
+    _ids(top, "target", tgt)
+    if m.observer in tgt:
+        raise MessageError(f"target: satellite {m.observer} cannot measure itself")
+    if len(m.camera) != n:
+        raise MessageError(f"camera: {len(m.camera)} values for {n} measurements")
+    if max(m.camera, default=0) > 6 + MAX_SAT_ID:
+        raise MessageError(f"camera: {max(m.camera)} out of range")
+    for name, vals, width in (("q_BjBi", m.q_BjBi, 4), ("r_ij_Bi_m", m.r_ij_Bi_m, 3)):
+        if len(vals) != width * n:
+            raise MessageError(f"{name}: {len(vals)} numbers, expected {n} × {width}")
+    if tuple(m.R_Bi.shape) != (n, 6, 6):
+        raise MessageError(f"R_Bi: shape {list(m.R_Bi.shape)}, expected {[n, 6, 6]}")
+    if len(m.R_Bi.data) != 36 * n:
+        raise MessageError(f"R_Bi: shape {[n, 6, 6]} needs {36 * n} numbers, got {len(m.R_Bi.data)}")
+    q = np.asarray(m.q_BjBi, dtype=float).reshape(n, 4)
+    r = np.asarray(m.r_ij_Bi_m, dtype=float).reshape(n, 3)
+    R = np.asarray(m.R_Bi.data, dtype=float).reshape(n, 6, 6)
+    fc = _fastcheck()
+    code = fc.check_batch(q, r, R, 2 * QUAT_TOL, SYM_TOL)
+    if code:
+        raise MessageError(fc.REASONS[code])
+    # The receiver's next step is converting these very arrays: keep them for it.
+    _MEMO.put(m, (np.array(tgt, dtype=int), q, r, R))
+
+
+@functools.cache
+def _fastcheck():
+    """:mod:`.fastcheck` (numba), loaded when first needed, not at import."""
+    from . import fastcheck
+
+    return fastcheck
+
+
+def prepare(kind: str) -> None:
+    """Load now what decoding ``kind`` will need (measurement batches: the compiled
+    checks, about a second with numba's import), so the first message is not late."""
+    if kind == "meas":
+        _fastcheck().warm_up()
+
+
+class _Memo:
+    """Arrays a validation computed, kept for the conversion that follows (at n = 40 an
+    agent would otherwise convert every batch's columns twice a step). Keyed by the
+    message's id with the message itself held, so an id cannot be reused while it is here;
+    bounded, oldest first out."""
+
+    def __init__(self, size: int = 2048):
+        self._d: collections.OrderedDict[int, tuple] = collections.OrderedDict()
+        self._size = size
+        self._lock = threading.Lock()
+
+    def put(self, msg, value) -> None:
+        with self._lock:
+            self._d[id(msg)] = (msg, value)
+            if len(self._d) > self._size:
+                self._d.popitem(last=False)
+
+    def take(self, msg):
+        """The value kept for this very message (and forget it), or None."""
+        with self._lock:
+            hit = self._d.pop(id(msg), None)
+        return hit[1] if hit is not None and hit[0] is msg else None
+
+
+_MEMO = _Memo()
+
+
+def batch_arrays(m: MeasBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(target (m,), q_BjBi (m, 4), r_ij_Bi_m (m, 3), R_Bi (m, 6, 6)) of a decoded batch."""
+    got = _MEMO.take(m)
+    if got is not None:
+        return got
+    n = len(m.target)
+    return (
+        np.asarray(m.target, dtype=int),
+        np.asarray(m.q_BjBi, dtype=float).reshape(n, 4),
+        np.asarray(m.r_ij_Bi_m, dtype=float).reshape(n, 3),
+        np.asarray(m.R_Bi.data, dtype=float).reshape(n, 6, 6),
+    )
+
+
+def _state(m, bias: str = "bias_B_rad_s") -> int:
+    """The per-satellite arrays of an estimate or truth message; returns n."""
+    q = _rows("q_BI", m.q_BI, 4)
+    n = q.shape[0]
+    if n == 0:
+        raise MessageError("q_BI: no satellites")
+    _unit("q_BI", q)
+    for f in ("omega_BI_B_rad_s", "r_H_m", "v_H_m_s"):
+        _rows(f, getattr(m, f), 3, n)
+    _rows(bias, getattr(m, bias), 3, n if bias == "gyro_bias_B_rad_s" else 1)
+    return n
+
+
+def _est(m: Estimate, top: int) -> None:
+    _id(top, "own", m.own)
+    _choice("phase", m.phase, ("prior", "posterior"))
+    n = _state(m)
+    if m.own >= n:
+        raise MessageError(f"own: satellite {m.own} in an estimate of {n}")
+    _spd("P_pose", _matrix("P_pose", m.P_pose, (n, 6, 6)))
+    d = _matrix("P_diag", m.P_diag, (12 * n,))
+    if (d <= 0).any():
+        raise MessageError("P_diag: a variance ≤ 0")
+    for f in ("nis", "step_ms", "step_cpu_ms", "codec_cpu_ms"):
+        _nonneg(f, getattr(m, f))
+    _ids(top, "batches_used", m.batches_used)
+    _ids(top, "batches_missing", m.batches_missing)
+
+
+def _est_shallow(m: Estimate, top: int) -> None:
+    _id(top, "own", m.own)
+    _choice("phase", m.phase, ("prior", "posterior"))
+    n, rest = divmod(len(m.q_BI), 4)
+    if n == 0 or rest:
+        raise MessageError(f"q_BI: {len(m.q_BI)} numbers, expected a positive multiple of 4")
+    if m.own >= n:
+        raise MessageError(f"own: satellite {m.own} in an estimate of {n}")
+
+
+def _full_est(m: FullEstimate, top: int) -> None:
+    _id(top, "own", m.own)
+    n = _state(m)
+    if m.own >= n:
+        raise MessageError(f"own: satellite {m.own} in an estimate of {n}")
+    _spd("P", _matrix("P", m.P, (12 * n, 12 * n))[None])
+
+
+def _select(m: Select, top: int) -> None:
+    _ids(top, "observer", m.observer)
+    _ids(top, "target", m.target)
+    if len(m.observer) != len(m.target):
+        raise MessageError(f"observer/target: {len(m.observer)} observers for {len(m.target)} targets")
+    if any(a == b for a, b in zip(m.observer, m.target)):
+        raise MessageError("target: a satellite cannot measure itself")
+    if not 1 <= len(m.strategy) <= 64:
+        raise MessageError(f"strategy: {len(m.strategy)} characters (1-64 allowed)")
+    if m.HasField("ref_agent"):
+        _id(top, "ref_agent", m.ref_agent)
+    _nonneg("select_ms", m.select_ms)
+
+
+def _fault(m: Fault, top: int) -> None:
+    _choice("action", m.action, FAULT_ACTIONS)
+    _choice("phase", m.phase, ("command", "done", "failed"))
+    if m.HasField("target"):
+        _id(top, "target", m.target)
+    elif m.action in _FAULT_NEEDS_TARGET:
+        raise MessageError(f"target: {m.action} needs a target satellite")
+    if m.HasField("camera") and m.camera > 5:
+        raise MessageError(f"camera: {m.camera} is not a face camera (0-5)")
+    if m.HasField("state"):
+        _choice("state", m.state, ("on", "off"))
+    if m.action == "camera" and not (m.HasField("camera") and m.HasField("state")):
+        raise MessageError("camera: a camera fault needs camera and state")
+    if m.HasField("rate") and not 0.0 <= m.rate <= 1.0:
+        raise MessageError(f"rate: {m.rate} is not in [0, 1]")
+    if m.action == "drop" and not m.HasField("rate"):
+        raise MessageError("rate: a drop fault needs a rate")
+    if m.HasField("netem") and not 1 <= len(m.netem) <= 200:
+        raise MessageError(f"netem: {len(m.netem)} characters (1-200 allowed)")
+    if m.action == "netem" and not m.HasField("netem"):
+        raise MessageError("netem: action netem needs netem (tc netem arguments or 'clear')")
+    if m.HasField("netem"):
+        from ..netem import NetemError, validate_field
+
+        try:
+            canonical = validate_field(m.netem)
+        except NetemError as exc:
+            raise MessageError(f"netem: {exc}") from None
+        if canonical != m.netem:
+            raise MessageError(f"netem: {m.netem!r} is not in canonical form ({canonical!r})")
+    if len(m.detail) > 1000:
+        raise MessageError(f"detail: {len(m.detail)} characters (at most 1000)")
+
+
+def _health(m: Health, top: int) -> None:
+    _id(top, "sat", m.sat)
+    if len(m.camera_ok) != 6:
+        raise MessageError(f"camera_ok: {len(m.camera_ok)} values, expected 6")
+    if not 0.0 <= m.drop_rate <= 1.0:
+        raise MessageError(f"drop_rate: {m.drop_rate} is not in [0, 1]")
+    if len(m.host) > 253:
+        raise MessageError(f"host: {len(m.host)} characters (at most 253)")
+
+
+def _claim(m: Claim, top: int) -> None:
+    _id(top, "sat", m.sat)
+    if not 1 <= len(m.token) <= 128:
+        raise MessageError(f"token: {len(m.token)} characters (1-128 allowed)")
+
+
+def _truth(m: Truth, top: int) -> None:
+    _state(m, "gyro_bias_B_rad_s")
+
+
+def _img(m: Images, top: int) -> None:
+    _id(top, "sat", m.sat)
+    _ids(top, "targets", m.targets)
+    for j, v in enumerate(m.views):
+        p = f"views.{j}"
+        if v.camera > 6 + MAX_SAT_ID:
+            raise MessageError(f"{p}.camera: {v.camera} out of range")
+        T = _rows(f"{p}.T_CB", v.T_CB, 3, 3)
+        if np.abs(T @ T.T - np.eye(3)).max() > 1e-6:
+            raise MessageError(f"{p}.T_CB: not a rotation matrix")
+        _rows(f"{p}.r_C_B_m", v.r_C_B_m, 3, 1)
+        for f in ("width_px", "height_px"):
+            if not 1 <= getattr(v, f) <= 16384:
+                raise MessageError(f"{p}.{f}: {getattr(v, f)} is not in 1-16384")
+        for f in ("fx_px", "fy_px"):
+            if not (np.isfinite(getattr(v, f)) and getattr(v, f) > 0):
+                raise MessageError(f"{p}.{f}: {getattr(v, f)} is not a finite number > 0")
+        _finite(f"{p}.cx_px/cy_px", np.array([v.cx_px, v.cy_px]))
+        if v.target < -1:
+            raise MessageError(f"{p}.target: {v.target} (−1 or a satellite id)")
+        _nonneg(f"{p}.baseline_m", v.baseline_m)
+        if len(v.images_mono8) not in (1, 2):
+            raise MessageError(f"{p}.images_mono8: {len(v.images_mono8)} images (1 for a face camera, 2 for a stereo pair)")
+        need = v.width_px * v.height_px
+        for i, im in enumerate(v.images_mono8):
+            if len(im) != need:
+                raise MessageError(f"{p}.images_mono8.{i}: {v.height_px}×{v.width_px} image needs {need} bytes, got {len(im)}")
+
+
+def _rx(m: Delivery, top: int) -> None:
+    _id(top, "sat", m.sat)
+    for j, it in enumerate(m.items):
+        if not math.isfinite(it.arrival_t_s):
+            raise MessageError(f"items.{j}.arrival_t_s: not finite")
+        b = it.batch
+        try:
+            _header(b)
+            _meas(b, top)
+        except MessageError as exc:
+            raise MessageError(f"items.{j}.batch: {exc}") from None
+        if b.observer == m.sat:
+            raise MessageError(f"items.{j}.batch: satellite {m.sat}'s own batch delivered to it")
+
+
+_LINK_COUNTERS = ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable", "bytes_delivered")
+
+
+def _links(m: LinkStats, top: int) -> None:
+    n = len(m.queue_bytes)
+    if n == 0:
+        raise MessageError("queue_bytes: no transmitters")
+    _id(top, "queue_bytes (swarm size - 1)", n - 1)
+    for f in _LINK_COUNTERS:
+        a = _matrix(f, getattr(m, f), (n, n))
+        if (a < 0).any():
+            raise MessageError(f"{f}: a negative count")
+    for j, lat in enumerate(m.latencies):
+        _id(top, f"latencies.{j}.sender", lat.sender)
+        _id(top, f"latencies.{j}.receiver", lat.receiver)
+        if not (math.isfinite(lat.latency_s) and lat.latency_s >= 0):
+            raise MessageError(f"latencies.{j}.latency_s: {lat.latency_s} is not a finite number ≥ 0")
+
+
+def _rejoin(m: RejoinFate, top: int) -> None:
+    _id(top, "sat", m.sat)
+    _id(top, "peer", m.peer)
+    _choice("fate", m.fate, ("delivered", "lost", "dropped", "unreachable"))
+    if m.HasField("arrival_t_s") and not math.isfinite(m.arrival_t_s):
+        raise MessageError("arrival_t_s: not finite")
+    if m.fate == "delivered" and not m.HasField("arrival_t_s"):
+        raise MessageError("arrival_t_s: a delivered transfer needs its arrival time")
+
+
+_VALIDATORS = {
+    "clock": _clock,
+    "sensors": _sensors,
+    "cam": _cam,
+    "meas": _meas,
+    "est": _est,
+    "full_est": _full_est,
+    "select": _select,
+    "fault": _fault,
+    "health": _health,
+    "truth": _truth,
+    "claim": _claim,
+    "img": _img,
+    "rx": _rx,
+    "links": _links,
+    "rejoin": _rejoin,
+}
+_SHALLOW = {"est": _est_shallow}
+SHALLOW_KINDS = tuple(_SHALLOW)
+_KIND_OF = {cls: kind for kind, cls in MODELS.items()}
+
+
+# -- the message against its key ----------------------------------------------------------
+_WORLD_KEYS = ("clock", "sensors", "cam", "img", "truth", "claim", "rx", "links", "rejoin")
+_OWNER_FIELD = {"sensors": "sat", "cam": "sat", "img": "sat", "health": "sat", "meas": "observer", "est": "own", "full_est": "own", "rx": "sat", "rejoin": "sat"}
+
+
+def check_key(key: str, kind: str, sat: int | None, msg) -> None:
+    """The message agrees with the key it came on: the satellite the key names is the one
+    the message is about, and the sender is the role that publishes on that key."""
+    field = _OWNER_FIELD.get(kind)
+    if sat is not None and field is not None and getattr(msg, field) != sat:
+        raise MessageError(f"key says satellite {sat}, message {field} says {getattr(msg, field)}")
+    if kind in _WORLD_KEYS or (kind == "full_est" and "/init/" in key):
+        want = ("world",)
+    elif kind in ("meas", "est", "health", "full_est"):
+        want = (f"agent-{sat}",)
+    elif kind == "select":
+        want = ("selector", "world")
+    else:  # fault: commands from the CLI, the world's schedule, outcomes from any role
+        if msg.sender in ("world", "selector", "supervisor", "cli") or re.fullmatch(r"agent-\d+", msg.sender):
+            return
+        want = ("world", "selector", "supervisor", "cli", "agent-<i>")
+    if msg.sender not in want:
+        raise MessageError(f"sender {msg.sender[:64]!r} may not publish on {key} (expected {' or '.join(want)})")
+
+
+# -- helpers in place of pydantic's -------------------------------------------------------
+def replace(msg, **changes):
+    """A copy of ``msg`` with some fields changed (``None`` clears an optional field)."""
+    out = type(msg)()
+    out.CopyFrom(msg)
+    fields = out.DESCRIPTOR.fields_by_name
+    for name, v in changes.items():
+        f = fields.get(name)
+        if f is None:
+            raise AttributeError(f"{out.DESCRIPTOR.full_name} has no field {name!r}")
+        if v is None:
+            out.ClearField(name)
+        elif f.is_repeated:
+            out.ClearField(name)
+            getattr(out, name).extend(v)
+        elif f.message_type is not None:
+            getattr(out, name).CopyFrom(v)
+        else:
+            setattr(out, name, v)
+    return out
+
+
+def opt(msg, name: str):
+    """An optional field's value, or None when it is unset."""
+    return getattr(msg, name) if msg.HasField(name) else None
+
+
+def as_dict(msg, exclude=()) -> dict:
+    """Plain Python values of every field (unset optional fields as None), for JSON."""
+    out = {}
+    for f in msg.DESCRIPTOR.fields:
+        if f.name in exclude:
+            continue
+        v = getattr(msg, f.name)
+        if f.is_repeated:
+            v = [as_dict(x) for x in v] if f.message_type is not None else list(v)
+        elif f.message_type is not None:
+            v = as_dict(v) if msg.HasField(f.name) else None
+        elif f.has_presence and not msg.HasField(f.name):
+            v = None
+        out[f.name] = v
+    return out
+
+
+def file_descriptor_set(message_class) -> bytes:
+    """The serialized FileDescriptorSet of a protobuf message class and everything it
+    imports: the schema data of an MCAP channel with encoding "protobuf"."""
+    from google.protobuf import descriptor_pb2
+
+    fds = descriptor_pb2.FileDescriptorSet()
+    seen: set[str] = set()
+
+    def add(fd):
+        if fd.name in seen:
+            return
+        seen.add(fd.name)
+        for dep in fd.dependencies:
+            add(dep)
+        proto = descriptor_pb2.FileDescriptorProto()
+        fd.CopyToProto(proto)
+        fds.file.append(proto)
+
+    add(message_class.DESCRIPTOR.file)
+    return fds.SerializeToString()
+
+
+def pixels(msg: Images) -> list[np.ndarray]:
+    """Every view's images in view order, as writeable uint8 arrays (height × width)."""
+    return [
+        np.frombuffer(im, dtype=np.uint8).reshape(v.height_px, v.width_px).copy()
+        for v in msg.views
+        for im in v.images_mono8
+    ]
+
+
+# -- keys ----------------------------------------------------------------------------------
 _RUN_RE = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 
 
@@ -484,7 +785,7 @@ class Keys:
     """Key expressions of one run."""
 
     def __init__(self, run: str):
-        if not _RUN_RE.match(run):
+        if not _RUN_RE.fullmatch(run):
             raise ValueError(f"run id {run!r}: use 1-64 letters, digits, '_', '-' or '.'")
         self.run = run
         self.root = f"swarm/{run}"
@@ -552,15 +853,21 @@ _KEY_RE = re.compile(
     r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)|(?P<links>links)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
     r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin)/(?P<id>\d+)(?:/\d+/\d+)?"
+    r"|claim/(?P<token>[^/]+)"
     r"|alive/(?P<role>[^/]+)/(?P<ident>[^/]+))$"
 )
 
 
 def parse_key(key: str) -> tuple[str, str, int | None]:
     """``(run, kind, satellite id or None)`` of a key; :class:`MessageError` if unknown."""
-    m = _KEY_RE.match(str(key))
+    return _parse_key(str(key))
+
+
+@functools.lru_cache(maxsize=4096)  # a run's ~5n keys recur every step
+def _parse_key(key: str) -> tuple[str, str, int | None]:
+    m = _KEY_RE.match(key)
     if not m:
-        raise MessageError(f"unexpected key {key!r}")
+        raise MessageError(f"unexpected key {str(key)[:200]!r}")
     run = m["run"]
     for k in ("clock", "select", "fault", "truth", "links"):
         if m[k]:
@@ -570,5 +877,7 @@ def parse_key(key: str) -> tuple[str, str, int | None]:
     if m["idkind"]:
         kind = {"cov": "full_est", "init": "full_est"}.get(m["idkind"], m["idkind"])
         return run, kind, int(m["id"])
+    if m["token"]:
+        return run, "claim", None
     ident = m["ident"]
     return run, "alive", int(ident) if ident.isdigit() else None

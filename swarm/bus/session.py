@@ -16,12 +16,13 @@ import queue
 import threading
 import time
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import zenoh
 
 log = logging.getLogger("swarm.bus")
 
-__all__ = ["BusConfig", "add_bus_args", "bus_config_from_args", "open_session", "Inbox", "Sample"]
+__all__ = ["BusConfig", "add_bus_args", "bus_config_from_args", "open_session", "Inbox", "Sample", "shared_memory_enabled", "apply_shared_memory"]
 
 
 @dataclass
@@ -49,6 +50,7 @@ class BusConfig:
         # message's one-way bus latency (containers share the host's clock; across hosts
         # it includes their clock offset).
         cfg.insert_json5("timestamping/enabled", "true")
+        apply_shared_memory(cfg)
         return cfg
 
     def as_args(self) -> list[str]:
@@ -63,6 +65,21 @@ class BusConfig:
         if self.multicast_scouting:
             out.append("--multicast-scouting")
         return out
+
+
+def shared_memory_enabled() -> bool:
+    """Zenoh's shared-memory transport, off unless ``SWARM_ZENOH_SHM=1``.
+
+    Zenoh (1.6+) moves payloads of 3 KB and more through shared memory by default. For a
+    swarm of clients behind a router on one host it costs more than it saves: measured at
+    n = 40 (``swarm run``, loopback), an agent's Zenoh receive thread took 16.7 ms of CPU a
+    step with it and 3.3 ms without, and a step 2.2 s of wall time against 1.3 s. Across
+    containers it falls back to copies anyway."""
+    return os.environ.get("SWARM_ZENOH_SHM", "0") == "1"
+
+
+def apply_shared_memory(cfg: zenoh.Config) -> None:
+    cfg.insert_json5("transport/shared_memory/enabled", json.dumps(shared_memory_enabled()))
 
 
 def add_bus_args(p: argparse.ArgumentParser) -> None:
@@ -84,8 +101,7 @@ def open_session(cfg: BusConfig) -> zenoh.Session:
     return zenoh.open(cfg.zenoh_config())
 
 
-@dataclass(frozen=True)
-class Sample:
+class Sample(NamedTuple):
     key: str
     payload: bytes
     kind: str  # "put" or "delete"
@@ -96,35 +112,46 @@ class Sample:
 class Inbox:
     """Zenoh callbacks push here (they must never block); one worker thread pulls.
 
-    Keeping every subscriber's callback trivial means no Zenoh call and no heavy work
-    happens on Zenoh's threads, and the role's state is touched by one thread only.
+    Callbacks make no Zenoh call and touch no role state: the role's state is touched by
+    the one thread that pulls. With ``decode`` (a pure function of the sample: parse and
+    validate, or None to drop it), the callback decodes before queueing: the payload is
+    still in the cache it just arrived in, and decoding overlaps the role's own work
+    (measured at n = 40, decoding on the pulling thread cost about twice the CPU, the
+    data having gone cold in the queue).
     """
 
-    def __init__(self, maxsize: int = 100_000):
-        self._q: queue.Queue = queue.Queue(maxsize=maxsize)
+    def __init__(self, maxsize: int = 100_000, decode=None):
+        # SimpleQueue (in C, unbounded) with the bound kept here: a third of the cost of
+        # queue.Queue's locks and conditions, paid twice for each of the ~120 samples an
+        # agent handles a step at n = 40.
+        self._q: queue.SimpleQueue = queue.SimpleQueue()
+        self._maxsize = maxsize
+        self._decode = decode
         self.dropped = 0
         self._lock = threading.Lock()
 
     def callback(self, sample) -> None:
-        try:
-            now = time.time_ns()
-            kind = "delete" if sample.kind == zenoh.SampleKind.DELETE else "put"
-            ts = sample.timestamp
-            pub = ts.get_time_as_ntp64().as_nanos() if ts is not None else None
-            self._q.put_nowait(Sample(str(sample.key_expr), bytes(sample.payload.to_bytes()), kind, pub, now))
-        except queue.Full:
+        if self._q.qsize() >= self._maxsize:
             with self._lock:
                 self.dropped += 1
+            return
+        now = time.time_ns()
+        kind = "delete" if sample.kind == zenoh.SampleKind.DELETE else "put"
+        ts = sample.timestamp
+        pub = ts.get_time_as_ntp64().as_nanos() if ts is not None else None
+        item = Sample(str(sample.key_expr), bytes(sample.payload.to_bytes()), kind, pub, now)
+        if self._decode is not None:
+            item = self._decode(item)
+            if item is None:
+                return
+        self._q.put(item)
 
     def put_event(self, item) -> None:
         """A local event (not from the bus) for the same worker thread."""
-        try:
-            self._q.put_nowait(item)
-        except queue.Full:
-            with self._lock:
-                self.dropped += 1
+        self._q.put(item)
 
     def get(self, timeout: float | None):
+        """The next item (a Sample, or what ``decode`` made of it), or None after ``timeout``."""
         try:
             return self._q.get(timeout=timeout) if timeout is None or timeout > 0 else self._q.get_nowait()
         except queue.Empty:

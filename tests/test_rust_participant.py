@@ -1,0 +1,92 @@
+"""A participant that is not Python: the Rust program of participants/rust-watch, built
+from the same .proto files with prost and the `zenoh` crate, joins a real swarm on
+loopback as a Zenoh client and prints every agent's estimate of one satellite. What it
+prints must equal, bit for bit, what the recording holds; what is forged it must drop.
+"""
+
+import json
+import shutil
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from swarm.bus import messages as M
+from swarm.bus.session import BusConfig
+
+from swarm_harness import run_swarm, scenario
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+ROOT = Path(__file__).resolve().parent.parent
+CRATE = ROOT / "participants" / "rust-watch"
+
+
+@pytest.fixture(scope="module")
+def watcher() -> Path:
+    """Build the participant (cargo; a cold build of the zenoh crate takes minutes)."""
+    cargo = shutil.which("cargo") or str(Path.home() / ".cargo" / "bin" / "cargo")
+    assert Path(cargo).exists(), "cargo not found: install the Rust toolchain (rustup) to build participants/rust-watch"
+    assert shutil.which("protoc"), "protoc not found: install Debian's protobuf-compiler (scripts/apt-packages-dev.txt)"
+    t0 = time.monotonic()
+    p = subprocess.run([cargo, "build", "--locked"], cwd=CRATE, capture_output=True, text=True, timeout=3600)
+    assert p.returncode == 0, p.stderr[-4000:]
+    print(f"cargo build: {time.monotonic() - t0:.0f} s")
+    exe = CRATE / "target" / "debug" / "swarm-watch"
+    assert exe.is_file()
+    return exe
+
+
+def test_rust_participant_prints_every_agents_estimate_as_recorded(watcher, tmp_path):
+    sat = 2
+    sc = scenario(n_sats=4, duration_s=20, emulator={"lockstep_max_realtime_factor": 4.0})
+    state = {}
+    finished = threading.Event()
+
+    def watch(sw):
+        try:
+            _watch(sw)
+        finally:
+            finished.set()
+
+    def _watch(sw):
+        p = subprocess.Popen(
+            [str(watcher), "--connect", sw.endpoint, "--run", sw.run, "--sat", str(sat), "--json", "--timeout-s", "300"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        )
+        state["proc"] = p
+        ready = p.stderr.readline()
+        assert "READY" in ready, ready
+        # Forged estimates: another agent's name on agent 0's key, and bytes that are no Estimate.
+        good = M.Estimate(run=sw.run, sender="agent-1", own=0, phase="posterior", q_BI=[0, 0, 0, 1.0] * 4,
+                          omega_BI_B_rad_s=[0.0] * 12, r_H_m=[0.0] * 12, v_H_m_s=[0.0] * 12, bias_B_rad_s=[0.0] * 3)
+        with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
+            s.put(M.Keys(sw.run).est(0), M.encode(good))
+            s.put(M.Keys(sw.run).est(0), b"\xff\x00 not protobuf")
+        out, err = p.communicate(timeout=600)
+        state["out"], state["err"] = out, ready + err
+
+    rec, summary, codes, sw = run_swarm(sc, tmp_path / "run", during=watch)
+    assert finished.wait(60) and "out" in state, "the participant did not finish"
+    assert codes["world"] == 0
+    p = state["proc"]
+    assert p.returncode == 0, state["err"]
+    rows = [json.loads(line) for line in state["out"].splitlines() if line.strip()]
+    seen = {(r["k"], r["agent"]) for r in rows}
+    recorded = {(k, f) for k, f in zip(*np.nonzero(rec.alive))}
+    assert seen <= recorded
+    assert len(seen) >= 0.9 * len(recorded), f"the participant saw {len(seen)} of {len(recorded)} estimates"
+    assert {a for _k, a in seen} == set(range(sc.n_sats))
+    for r in rows:
+        k, i = r["k"], r["agent"]
+        assert r["sat"] == sat
+        assert r["q_BI"] == rec.est_q[k, i, sat].tolist()
+        assert r["r_H_m"] == rec.est_r[k, i, sat].tolist()
+        assert r["P_pose_diag"] == np.diag(rec.P_pose[k, i, sat]).tolist()
+        assert r["t_s"] == rec.t[k]
+    assert "2 malformed messages dropped" in state["err"], state["err"]
+    assert "the run is done" in state["err"]
