@@ -19,21 +19,19 @@ def measurement_model(sc: Scenario) -> MeasurementModel:
     return swarmvision.measurement_model(sc)
 
 
-def batch_wire_size(run: str):
+def batch_wire_size(run: str = "sim"):
     """``wire_size(observer, k, t, rel, cameras)``: the bytes of an observer's measurement
-    batch as its agent publishes it on the bus (what the link model carries)."""
-    from .bus.convert import batch_msg
-    from .bus.messages import encode
+    batch on the radio (:func:`swarm.bus.convert.radio_bytes`: as its agent publishes it,
+    less the run id; so ``run`` does not change it)."""
+    from .bus.convert import batch_msg, radio_bytes
 
     def size(observer: int, k: int, t: float, rel, cameras) -> int:
-        return len(encode(batch_msg(rel, cameras, run=run, sender=f"agent-{observer}", k=k, t_s=t, observer=observer)))
+        return radio_bytes(batch_msg(rel, cameras, run=run, sender=f"agent-{observer}", k=k, t_s=t, observer=observer))
 
     return size
 
 
-#: The run id the in-process simulator sizes its batches with. The link model counts a
-#: batch's bytes as encoded on the bus, so a distributed run gives the same numbers as
-#: ``swarm sim`` when it runs under the same id (``swarm run --run-id``).
+#: The run id of the in-process simulator's batches (their radio size does not depend on it).
 SIM_RUN_ID = "sim"
 
 

@@ -116,7 +116,7 @@ class Recorder:
             self.w.add(self._channel(f"{self.keys.root}/_malformed", "malformed"), body, now)
 
     def _derive_scene(self) -> None:
-        """The Foxglove 3-D channels (truth, estimates, measurement lines), from the recorded
+        """The Foxglove 3-D channels (truth, estimates, measurement lines, links), from the recorded
         messages once the run is over. Derived live, they cost the recorder more CPU than
         recording itself (at n = 40: 40 scenes of 40 satellites a step) on the cores the
         agents were waiting for; a recorder killed mid-run leaves the bus channels only."""
@@ -129,7 +129,7 @@ class Recorder:
                 run, kind, _sat = parse_key(topic)
             except MessageError:
                 continue
-            if run == self.run and kind in ("truth", "est", "meas"):
+            if run == self.run and kind in ("truth", "est", "meas", "links"):
                 self.foxglove.on_message(kind, MODELS[kind].FromString(data), log_ns)  # recorded: already checked
                 count += 1
                 if count % 2000 == 0:

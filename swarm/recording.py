@@ -105,7 +105,7 @@ class Recording:
     def link_counters(self) -> LinkCounters:
         """The cumulative per-link counters of the last step recorded."""
         m = self.links
-        return LinkCounters(**{name: np.rint(getattr(m, name).array()).astype(int) for name in LinkCounters.__dataclass_fields__})
+        return LinkCounters(**{name: np.rint(array(getattr(m, name))).astype(int) for name in LinkCounters.__dataclass_fields__})
 
 
 @dataclass
@@ -173,7 +173,7 @@ def _shape(path) -> tuple[int, int]:
     return n, K
 
 
-_USED = ("truth", "est", "select", "meas", "fault")
+_USED = ("truth", "est", "select", "meas", "fault", "links", "rejoin")
 
 
 def load_recording(path: str | Path, n: int | None = None, K: int | None = None) -> Recording:
@@ -247,12 +247,12 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             rec.replayed[k, f] = m.replayed_steps
         elif kind == "rejoin":
             rec.rejoins.append({"k": m.k, "sat": m.sat, "peer": m.peer, "bytes": m.bytes, "fate": m.fate,
-                                "arrival_t_s": m.arrival_t_s})
+                                "arrival_t_s": m.arrival_t_s if m.HasField("arrival_t_s") else None})
         elif kind == "links":
             if rec.links is None or m.k >= rec.links.k:
                 rec.links = m
-            rec.link_latencies.extend(tuple(x) for x in m.latencies)
-            tot = [int(np.rint(getattr(m, name).array()).sum()) for name in
+            rec.link_latencies.extend((x.sender, x.receiver, x.sent_k, x.latency_s) for x in m.latencies)
+            tot = [int(np.rint(array(getattr(m, name))).sum()) for name in
                    ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")]
             rec.link_series.append((m.k, tot, list(m.queue_bytes)))
         elif kind == "select":

@@ -85,6 +85,7 @@ def test_links_channel_shows_each_directed_link_in_the_state_of_its_step(tmp_pat
     """/foxglove/links: one SceneUpdate per step; each directed link with traffic is the half
     segment from the sender's true position to the midpoint, coloured and labelled by the
     state the recorded LinkStats counters give for that step."""
+    from swarm.bus.convert import array
     from swarm.bus.messages import decode
     from swarm.foxglove import LINK_STATES, link_states
     from swarm.mcaplog import iter_messages
@@ -94,8 +95,8 @@ def test_links_channel_shows_each_directed_link_in_the_state_of_its_step(tmp_pat
         "enabled": True,
         "latency": {"fixed_s": 2.0, "speed_of_light": False, "jitter": {"distribution": "uniform", "scale_s": 0.5}},
         "loss": {"model": "gilbert_elliott", "rate": 0.3, "mean_burst": 3},
-        "rate_Bps": 1500.0,
-        "queue_bytes": 2500,  # about three batches: some copies are dropped at the queue
+        "rate_Bps": 1000.0,
+        "queue_bytes": 2000,  # about three batches: some copies are dropped at the queue
         "overrides": [{"from": 2, "to": 0, "dead": True}],  # unreachable
     }
     sc = scenario(n_sats=3, duration_s=12, links=links)
@@ -108,7 +109,7 @@ def test_links_channel_shows_each_directed_link_in_the_state_of_its_step(tmp_pat
     for topic, _schema, data, _lt, _pt in iter_messages(tmp_path / "run" / "run.mcap"):
         if not topic.startswith("/") and topic.endswith("/links"):
             m = decode("links", data)
-            counters[m.k] = {c: np.rint(getattr(m, c).array()).astype(int) for c in
+            counters[m.k] = {c: np.rint(array(getattr(m, c))).astype(int) for c in
                              ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")}
     assert sorted(counters) == list(range(sc.steps))
     expected = {k: link_states(counters.get(k - 1), counters[k]) for k in counters}

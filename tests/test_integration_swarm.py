@@ -75,7 +75,7 @@ def _check_complete_recording(path, sc):
         _run, kind, ident = parse_key(topic)
         for schema, data, latency_ns in chans[topic]:
             m = decode(kind, data)
-            assert schema == f"swarm.{type(m).__name__}", (topic, schema)
+            assert schema == f"swarm.v1.{type(m).__name__}", (topic, schema)
             # Publish time: the publisher's Zenoh timestamp, strictly before the recorder got it.
             assert m.run == run and latency_ns > 0, (topic, m.k, latency_ns)
             if ident is not None:
@@ -92,7 +92,9 @@ def _check_complete_recording(path, sc):
     clocks = [(k, m.done, tuple(m.live_agents)) for k, m in steps[f"{root}/clock"]]
     assert sorted(clocks) == [(k, False, tuple(range(n))) for k in every_step] + [(K - 1, True, tuple(range(n)))]
     # Every role came up (liveliness), and the recorder derived the Foxglove 3-D channels.
-    up = {(r["role"], r["id"]) for r in (json.loads(d) for _s, d, _p in chans[f"{root}/alive"]) if r["alive"]}
+    from swarm.bus.messages import Liveliness
+
+    up = {(r.role, r.id) for r in (Liveliness.FromString(d) for _s, d, _p in chans[f"{root}/alive"]) if r.alive}
     assert {("world", "0"), ("recorder", "0"), *(("agent", str(i)) for i in range(n))} <= up, up
     fox = {t: len(v) for t, v in chans.items() if not t.startswith("swarm/")}
     assert fox.pop("/foxglove/tf") == fox.pop("/foxglove/truth") == K

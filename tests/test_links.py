@@ -189,12 +189,14 @@ def test_ideal_links_through_the_radio_equal_no_links_bit_for_bit():
     assert on["links"]["totals"]["delivered_late"] == 0 and on["late"]["used"] == 0
 
 
-def test_wire_size_is_the_encoded_batch():
+def test_radio_size_is_the_encoded_batch_less_the_run_id():
     from swarm.bus.convert import batch_msg
     from swarm.bus.messages import encode
     from swarmcore.mekf import RelativeMeasurements
 
     rel = RelativeMeasurements(np.array([1]), np.array([2]), np.array([[0, 0, 0, 1.0]]), np.array([[1.0, 2, 3]]),
                                np.eye(6)[None])
+    on_bus = len(encode(batch_msg(rel, np.array([3]), run="r1", sender="agent-1", k=4, t_s=4.0, observer=1)))
     size = batch_wire_size("r1")(1, 4, 4.0, rel, np.array([3]))
-    assert size == len(encode(batch_msg(rel, np.array([3]), run="r1", sender="agent-1", k=4, t_s=4.0, observer=1)))
+    assert size == on_bus - len(b"r1") - 2  # field tag and length of the run id
+    assert batch_wire_size("a-much-longer-run-id-0042")(1, 4, 4.0, rel, np.array([3])) == size

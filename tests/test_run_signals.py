@@ -23,7 +23,7 @@ import yaml
 import zenoh
 from mcap.reader import make_reader
 
-from swarm.bus.messages import Keys
+from swarm.bus.messages import Clock, Keys
 from swarm.bus.session import BusConfig
 
 pytestmark = pytest.mark.integration
@@ -77,7 +77,7 @@ def _wait_for_step(endpoint: str, run: str, k: int, timeout: float) -> None:
     reached = threading.Event()
 
     def on_clock(sample):
-        if json.loads(bytes(sample.payload.to_bytes()))["k"] >= k:
+        if Clock.FromString(bytes(sample.payload.to_bytes())).k >= k:
             reached.set()
 
     with zenoh.open(BusConfig(mode="client", connect=[endpoint]).zenoh_config()) as s:
@@ -137,7 +137,7 @@ def _check_closed_and_marked(out, sig: signal.Signals) -> None:
     with open(out / "run.mcap", "rb") as f:
         reader = make_reader(f)
         assert reader.get_summary() is not None, "run.mcap has no summary section: it was not closed"
-        clock_k = [json.loads(m.data)["k"] for _s, ch, m in reader.iter_messages() if ch.topic.endswith("/clock")]
+        clock_k = [Clock.FromString(m.data).k for _s, ch, m in reader.iter_messages() if ch.topic.endswith("/clock")]
     assert clock_k and max(clock_k) >= intr["last_step"] >= K_SIGNAL
 
 

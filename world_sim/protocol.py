@@ -31,6 +31,7 @@ from swarm.bus.convert import (
     images_msg,
     matrix,
     pairs_from_select,
+    radio_bytes,
     select_msg,
     sensors_msg,
     truth_msg,
@@ -171,7 +172,7 @@ class WorldProtocol:
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
         elif ev.kind == "meas":
             if self.links is not None:
-                self.batches.setdefault(ev.msg.k, {})[ev.msg.observer] = (ev.msg, ev.size)
+                self.batches.setdefault(ev.msg.k, {})[ev.msg.observer] = (ev.msg, radio_bytes(ev.msg))
                 self._new_batch = True
         elif ev.kind == "select":
             if ev.msg.sender != "world":

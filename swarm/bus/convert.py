@@ -26,7 +26,9 @@ from .messages import (
     Truth,
     batch_arrays,
     counted,
+    encode,
     pixels,
+    replace,
 )
 
 __all__ = [
@@ -40,6 +42,7 @@ __all__ = [
     "absolute_from_sensors",
     "gyro_from_sensors",
     "batch_msg",
+    "radio_bytes",
     "relative_from_batches",
     "detections",
     "detections_from_msg",
@@ -230,6 +233,14 @@ def batch_msg(rel: RelativeMeasurements, cameras: np.ndarray, *, run: str, sende
         r_ij_Bi_m=_l(rel.r_ij_Bi),
         R_Bi=Matrix(shape=[len(rel), 6, 6], data=_l(rel.R_Bi)),
     )
+
+
+def radio_bytes(msg: MeasBatch) -> int:
+    """The bytes a measurement batch takes on the radio (the link model's size): the
+    message as encoded on the bus, less the run id, which the bus key carries and a
+    satellite's radio frame would not. The same number in every run of a scenario
+    (``swarm sim``, ``swarm run``, compose), whatever the run is called."""
+    return len(encode(replace(msg, run="")))
 
 
 @counted

@@ -58,6 +58,8 @@ import time
 import numpy as np
 from google.protobuf.message import DecodeError
 
+from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
+
 from swarm.v1.claim_pb2 import Claim
 from swarm.v1.clock_pb2 import Clock
 from swarm.v1.common_pb2 import Header, Matrix
@@ -152,8 +154,8 @@ MODELS: dict[str, type] = {
     "rejoin": RejoinFate,
 }
 
-FAULT_ACTIONS = ("kill-agent", "restart-agent", "stop-agent", "camera", "kill-selector", "restart-selector", "drop", "partition", "heal", "netem")
-_FAULT_NEEDS_TARGET = ("kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal", "netem")
+# Fault actions are declared once, with the scenario's FaultSpec (swarmcore/scenario.py).
+_FAULT_NEEDS_TARGET = TARGETED_FAULTS
 
 
 # -- CPU time spent on messages ---------------------------------------------------------
