@@ -256,8 +256,7 @@ class WorldProtocol:
         if rem > 0:
             yield Wait(lambda: False, rem)
 
-    def _truth_msg(self, k: int) -> Truth:
-        tr = self.truth
+    def _truth_msg(self, k: int):
         return truth_msg(self.truth, run=self.run_id, k=k)
 
     def _startup(self):
