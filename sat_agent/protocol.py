@@ -162,7 +162,7 @@ class AgentProtocol:
             self.drop_rate = float(f.rate or 0.0)
             self.log.info("dropping %.0f%% of outgoing messages", 100 * self.drop_rate)
             k = -1 if self.est is None else self.est.step
-            return [Send(self.keys.fault(), replace(f, phase="done", sender=self.name, k=max(k, 0)))]
+            return [Send(self.keys.fault_report(self.name), replace(f, phase="done", sender=self.name, k=max(k, 0)))]
         return []
 
     # -- start ------------------------------------------------------------------

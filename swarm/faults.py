@@ -246,7 +246,7 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
         raise RuntimeError(f"cannot reach the swarm's bus at {endpoint}: {exc}") from None
     keys = Keys(run)
     try:
-        node.subscribe(keys.fault())
+        node.subscribe(keys.faults())
         node.subscribe(keys.clock())
         node.subscribe(keys.health())
         k, t = 0, 0.0
@@ -265,9 +265,9 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
             try:
                 detail = _compose_action(node, cmd, project, network)
             except RuntimeError as exc:
-                node.put(keys.fault(), replace(cmd, phase="failed", sender="cli", detail=str(exc)[:200]))
+                node.put(keys.fault_report("cli"), replace(cmd, phase="failed", sender="cli", detail=str(exc)[:200]))
                 raise
-            node.put(keys.fault(), replace(cmd, phase="done", sender="cli", detail=detail))
+            node.put(keys.fault_report("cli"), replace(cmd, phase="done", sender="cli", detail=detail))
             return f"{cmd.action} {cmd.target if cmd.HasField('target') else ''}: done ({detail})"
         if not compose and cmd.action in NETWORK_FAULTS:
             raise ValueError(f"{cmd.action} needs --compose (local processes share one network)")

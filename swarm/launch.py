@@ -143,7 +143,7 @@ class LocalSwarm:
             raise RuntimeError(f"the Zenoh router did not start (see {self.out / 'logs' / 'router.log'})")
         self.bus = BusConfig(mode="client", connect=[self.endpoint])
         self.node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
-        self.node.subscribe(self.keys.fault())
+        self.node.subscribe(self.keys.faults())  # commands to carry out, and every report
         self.node.subscribe(self.keys.clock())
         self.node.watch_liveliness()
         self._spawn(
@@ -207,7 +207,7 @@ class LocalSwarm:
         # yet: report at that step, not at the last clock seen here.
         k = max(self.k, f.k)
         done = replace(f, phase=phase, sender="supervisor", k=k, t_s=k * self.sc.dt_s, detail=detail)
-        self.node.put(self.keys.fault(), done)
+        self.node.put(self.keys.fault_report("supervisor"), done)
 
     def _handle(self, ev) -> None:
         if ev.kind == "clock":

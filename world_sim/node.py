@@ -28,7 +28,7 @@ class World(Node):
         self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())
-        self.subscribe(self.keys.fault())
+        self.subscribe(self.keys.faults())  # commands, and what others carried out
         if sc.links.enabled:
             self.subscribe(self.keys.meas())  # the radio channel carries the agents' batches
         self.watch_liveliness()

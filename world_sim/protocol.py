@@ -191,7 +191,7 @@ class WorldProtocol:
             self.camera_ok[f.target, f.camera] = f.state == "on"
             log.info("camera %d of satellite %d %s", f.camera, f.target, f.state)
             done = replace(f, phase="done", sender="world", k=self.k, t_s=self.k * self.sc.dt_s)
-            return [Send(self.keys.fault(), done)]
+            return [Send(self.keys.fault_report("world"), done)]
         return []
 
     def live(self) -> list[int]:
