@@ -312,9 +312,12 @@ def fault_target(
     run_id: Optional[str] = typer.Option(None, "--run", help="run id (default with --compose: $SWARM_RUN or 'compose')"),
     project: Optional[str] = typer.Option(None, "--project", help="compose project name (default: any)"),
     network: Optional[str] = typer.Option(None, "--network", help="compose bus network for partition/heal (default: *_bus)"),
+    credential: Optional[str] = typer.Option(None, "--credential", help="the fault CLI's credential (default: the run's keys with "
+                                             "--run-dir, else $SWARM_KEYS/cli.json, SWARM_KEYS defaulting to ./keys)"),
 ):
     """Where the swarm is."""
-    ctx.obj = dict(run_dir=run_dir, compose=compose, connect=connect, run_id=run_id, project=project, network=network)
+    ctx.obj = dict(run_dir=run_dir, compose=compose, connect=connect, run_id=run_id, project=project, network=network,
+                   credential=credential)
 
 
 def _send_fault(ctx: typer.Context, **fields):

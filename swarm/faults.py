@@ -33,18 +33,22 @@ __all__ = ["send_fault", "compose_containers", "netem_state", "netem_helper_name
 
 
 
-def _target(run_dir, connect, run_id, compose) -> tuple[str, str, int]:
+def _target(run_dir, connect, run_id, compose) -> tuple[str, str, int, str | None]:
+    """(endpoint, run id, swarm size, the fault CLI's credential file or None)."""
     if run_dir is not None:
         info_file = Path(run_dir) / "run.json"
         if not info_file.is_file():
             raise FileNotFoundError(f"{info_file}: not found (is `swarm run --out {run_dir}` running?)")
         info = json.loads(info_file.read_text())
-        return info["endpoint"], info["run"], int(info["n_sats"])
+        keys = info.get("keys")
+        return info["endpoint"], info["run"], int(info["n_sats"]), str(Path(keys) / "cli.json") if keys else None
+    cred = str(Path(os.environ.get("SWARM_KEYS", "keys")) / "cli.json")
+    cred = cred if Path(cred).is_file() else None
     if compose:
         port = os.environ.get("SWARM_BUS_PORT", "7447")
-        return connect or f"tcp/127.0.0.1:{port}", run_id or os.environ.get("SWARM_RUN", "compose"), 10_000
+        return connect or f"tcp/127.0.0.1:{port}", run_id or os.environ.get("SWARM_RUN", "compose"), 10_000, cred
     if connect and run_id:
-        return connect, run_id, 10_000
+        return connect, run_id, 10_000, cred
     raise ValueError("give --run-dir, or --connect and --run, or --compose")
 
 
@@ -236,12 +240,16 @@ def _bus_network(project: str | None) -> str:
     return cands[0]
 
 
-def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0, **fields) -> str:
-    endpoint, run, n = _target(run_dir, connect, run_id, compose)
+def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0,
+               credential: str | None = None, **fields) -> str:
+    """Send one fault command as the ``cli`` identity (``credential``, or the run's or
+    ``$SWARM_KEYS``' cli.json) and wait for whoever carries it out to report."""
+    endpoint, run, n, cred = _target(run_dir, connect, run_id, compose)
+    cred = credential or cred
     if not compose and fields.get("action") in NETWORK_FAULTS:
         raise ValueError(f"{fields['action']} needs --compose (local processes share one network)")
     try:
-        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000))
+        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000, credential_file=cred))
     except zenoh.ZError as exc:
         raise RuntimeError(f"cannot reach the swarm's bus at {endpoint}: {exc}") from None
     keys = Keys(run)

@@ -21,6 +21,12 @@ Ownership: whatever ends the supervisor ends its processes within seconds.
 - Every child runs in its own session (its own process group): a Ctrl-C typed in the
   terminal reaches only the supervisor, which stops the roles in the order above rather
   than all at once; and a fault (``kill-agent 2``) signals one process, its target.
+
+Security (``emulator.security``, on by default): the run's credentials are made afresh in
+``OUT/keys`` (owner-only; :mod:`swarm.security`), every process connects with its own
+(agent i as ``agent-<i>``), the router enforces the run's access rules, and ``swarm fault
+--run-dir OUT`` uses ``keys/cli.json``. The keys are deleted when the run ends. Off, the
+bus is open to anyone on this machine, and the supervisor and the router say so loudly.
 """
 
 from __future__ import annotations
@@ -88,6 +94,7 @@ class LocalSwarm:
         self.bus = None
         self.node: Node | None = None
         self.faults: list[dict] = []
+        self.keys_dir: Path | None = None  # the run's credentials (emulator.security)
         self.k = 0
         self._lock = threading.Lock()
         self.interrupted: signal.Signals | None = None  # the signal that interrupted the run
@@ -114,14 +121,20 @@ class LocalSwarm:
             self.procs[name] = p
         return p
 
-    def _role_args(self) -> list[str]:
-        return ["--scenario", str(self.scenario_file), "--run", self.run, *self.bus.as_args()]
+    def bus_as(self, identity: str) -> BusConfig:
+        """The bus configuration of a process connecting as ``identity`` (its credential
+        file when security is on)."""
+        cred = str(self.keys_dir / f"{identity}.json") if self.keys_dir is not None else None
+        return BusConfig(mode="client", connect=[self.endpoint], credential_file=cred)
+
+    def _role_args(self, identity: str) -> list[str]:
+        return ["--scenario", str(self.scenario_file), "--run", self.run, *self.bus_as(identity).as_args()]
 
     def spawn_agent(self, i: int, restart: bool = False) -> None:
-        self._spawn(f"agent-{i}", ["sat_agent", "--id", str(i), *(["--restart"] if restart else []), *self._role_args()])
+        self._spawn(f"agent-{i}", ["sat_agent", "--id", str(i), *(["--restart"] if restart else []), *self._role_args(f"agent-{i}")])
 
     def spawn_selector(self) -> None:
-        self._spawn("selector", ["selector", *self._role_args()])
+        self._spawn("selector", ["selector", *self._role_args("selector")])
 
     def start(self) -> None:
         """Start every process. Raises :class:`Interrupted` if a signal (see
@@ -134,14 +147,23 @@ class LocalSwarm:
         warm = subprocess.Popen([self.python, "-c", _WARM], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         port = free_port()
         self.endpoint = f"tcp/127.0.0.1:{port}"
+        secure: list[str] = []
+        if self.sc.emulator.security:
+            from .security import make_keys
+
+            self.keys_dir = make_keys(self.out / "keys", self.sc.n_sats)
+            secure = ["--keys", str(self.keys_dir), "--run", self.run, "--scenario", str(self.scenario_file)]
+        else:
+            self.say("[bold red]SECURITY OFF[/bold red] (emulator.security: off): no credentials, no access rules; "
+                     "any process on this machine can publish anything on this run's bus, fault commands included")
         with open(self.out / "logs" / "router.log", "wb") as logf:
-            router = self._popen("router", ["swarm.router", "--listen", self.endpoint], stdout=subprocess.PIPE, stderr=logf)
+            router = self._popen("router", ["swarm.router", "--listen", self.endpoint, *secure], stdout=subprocess.PIPE, stderr=logf)
         self.procs["router"] = router
         line = _readline(router.stdout, timeout=30.0, cancelled=lambda: self.interrupted is not None)
         self._check_interrupted()
         if not line or b"READY" not in line:
             raise RuntimeError(f"the Zenoh router did not start (see {self.out / 'logs' / 'router.log'})")
-        self.bus = BusConfig(mode="client", connect=[self.endpoint])
+        self.bus = self.bus_as("supervisor")
         self.node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
         self.node.subscribe(self.keys.faults())  # commands to carry out, and every report
         self.node.subscribe(self.keys.clock())
@@ -158,7 +180,7 @@ class LocalSwarm:
                 str(self.scenario_file),
                 "--flush-every-s",
                 str(self.sc.emulator.flush_every_s),
-                *self.bus.as_args(),
+                *self.bus_as("recorder").as_args(),
             ],
         )
         self._wait_alive("recorder", 60.0)
@@ -170,7 +192,7 @@ class LocalSwarm:
             self.spawn_agent(i)
         if self.sc.selection.strategy != "none":
             self.spawn_selector()
-        self._spawn("world", ["world_sim", *self._role_args()])
+        self._spawn("world", ["world_sim", *self._role_args("world")])
         self._write_run_json()
         self._check_interrupted()
 
@@ -183,6 +205,8 @@ class LocalSwarm:
             "pids": {k: p.pid for k, p in self.procs.items()},
             "scenario": str(self.scenario_file),
             "recording": str(self.out / "run.mcap"),
+            "security": "on" if self.keys_dir is not None else "off",
+            "keys": str(self.keys_dir) if self.keys_dir is not None else None,
         }
         (self.out / "run.json").write_text(json.dumps(info, indent=2) + "\n")
 
@@ -328,6 +352,11 @@ class LocalSwarm:
             self.node.close()
             self.node = None
         self._terminate(["router"], _INTERRUPT_GRACE_S)
+        if self.keys_dir is not None:
+            # A run's credentials live as long as the run.
+            import shutil
+
+            shutil.rmtree(self.keys_dir, ignore_errors=True)
         if self._lifeline is not None:
             for fd in self._lifeline:
                 os.close(fd)
