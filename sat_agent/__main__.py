@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 from swarm.node import bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
@@ -19,8 +20,16 @@ def main(argv=None) -> int:
     restart = a.restart
     if a.id == "auto":
         setup_logging("agent-?", a.verbose)
-        sat, running = claim_id(sc, a.run, bus)
+        sat, running, password = claim_id(sc, a.run, bus)
         restart = restart or running
+        if password:
+            # Reconnect as agent-<sat>: the claimant's credential may do nothing but claim.
+            from swarm.security import Credential
+
+            base = bus.identity()
+            bus = dataclasses.replace(bus, credential_file=None,
+                                      credential=base.with_identity(f"agent-{sat}", password) if base is not None
+                                      else Credential(f"agent-{sat}", password))
     else:
         try:
             sat = int(a.id)

@@ -423,6 +423,40 @@ def fault_netem(
 
 
 @app.command()
+def keys(
+    out: Path = typer.Option(Path("keys"), "--out", "-o", help="keys directory to make (owner-only; keep it out of version control)"),
+    n_sats: int = typer.Option(100, "--n-sats", min=1, max=10_000, help="make agent credentials agent-0 .. agent-(N-1)"),
+    tls: Optional[List[str]] = typer.Option(None, "--tls", help="also a CA and a router certificate for this host name or "
+                                            "address (repeatable: every name agents use to reach the router)"),
+    rules: Optional[str] = typer.Option(None, "--rules", metavar="RUN", help="print the router's access rules for run RUN "
+                                        "(of --n-sats satellites) as JSON, and make nothing"),
+    force: bool = typer.Option(False, "--force", help="replace the credentials of an existing keys directory"),
+):
+    """Credentials for a swarm on several hosts or under compose: one per identity (world,
+    selector, recorder, cli, supervisor, observer, claimant, agent-0..N-1), the router's
+    password dictionary and, with --tls, certificates. `swarm run` makes its own per run.
+
+    docker compose reads ./keys (SWARM_KEYS moves it): `swarm keys --tls router --tls
+    127.0.0.1` once, then `docker compose up`."""
+    from .security import acl_config, make_keys
+
+    if rules is not None:
+        typer.echo(json.dumps(acl_config(rules, n_sats), indent=1))
+        return
+    if (out / "passwords").exists() and not force:
+        console.print(f"[red]error:[/red] {out} already holds keys (--force replaces them; running swarms keep the old ones)",
+                      highlight=False)
+        raise typer.Exit(2)
+    try:
+        make_keys(out, n_sats, tls_hosts=list(tls or []))
+    except RuntimeError as exc:
+        console.print(f"[red]error:[/red] {exc}", highlight=False)
+        raise typer.Exit(2)
+    console.print(f"wrote {out}: credentials of {n_sats} agents and the other roles"
+                  + (f", a CA and a router certificate for {', '.join(tls)}" if tls else ""), highlight=False)
+
+
+@app.command()
 def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), out: Optional[Path] = typer.Option(None, "--out")):
     """Salvage every complete message of a damaged recording into a clean MCAP."""
     from .mcaplog import recover as _recover

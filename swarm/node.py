@@ -15,7 +15,7 @@ import zenoh
 
 from swarmcore.scenario import Scenario
 
-from .bus.messages import Keys, MessageError, check_key, counted, decode, encode, parse_key, prepare
+from .bus.messages import KeyMismatch, Keys, MessageError, check_key, counted, decode, encode, parse_key, prepare
 from .bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
 from .protocol import Event, Query, Send, Wait
 
@@ -39,6 +39,7 @@ class Node:
         self._handles: list = []
         self._shallow: set[str] = set()  # key prefixes decoded shallowly
         self.malformed = 0
+        self.key_mismatch = 0  # of the malformed: a message on a key its sender may not use
         self._malformed_logged = 0
         self._malformed_lock = threading.Lock()
         self.stop = threading.Event()
@@ -132,6 +133,8 @@ class Node:
         """Count and log a dropped message (from any thread: subscribers decode on theirs)."""
         with self._malformed_lock:
             self.malformed += 1
+            if isinstance(err, KeyMismatch):
+                self.key_mismatch += 1
             count = self.malformed
             # Log the first few in full, then one line in a hundred: a flood must not become a log flood.
             log = self._malformed_logged < 20 or count % 100 == 0

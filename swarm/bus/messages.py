@@ -594,6 +594,8 @@ def _claim(m: Claim, top: int) -> None:
     _id(top, "sat", m.sat)
     if not 1 <= len(m.token) <= 128:
         raise MessageError(f"token: {len(m.token)} characters (1-128 allowed)")
+    if len(m.password) > 128:
+        raise MessageError(f"password: {len(m.password)} characters (at most 128)")
 
 
 def _truth(m: Truth, top: int) -> None:
