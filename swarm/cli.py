@@ -426,8 +426,10 @@ def fault_netem(
 def keys(
     out: Path = typer.Option(Path("keys"), "--out", "-o", help="keys directory to make (owner-only; keep it out of version control)"),
     n_sats: int = typer.Option(100, "--n-sats", min=1, max=10_000, help="make agent credentials agent-0 .. agent-(N-1)"),
-    tls: Optional[List[str]] = typer.Option(None, "--tls", help="also a CA and a router certificate for this host name or "
-                                            "address (repeatable: every name agents use to reach the router)"),
+    tls: Optional[List[str]] = typer.Option(None, "--tls", help="host name or address agents use to reach the router: the "
+                                            "router's certificate is valid for these (repeatable; default: router, localhost, "
+                                            "127.0.0.1, what compose and compose.remote.yaml use)"),
+    no_tls: bool = typer.Option(False, "--no-tls", help="no CA and router certificate (one host, no compose)"),
     rules: Optional[str] = typer.Option(None, "--rules", metavar="RUN", help="print the router's access rules for run RUN "
                                         "(of --n-sats satellites) as JSON, and make nothing"),
     force: bool = typer.Option(False, "--force", help="replace the credentials of an existing keys directory"),
@@ -447,8 +449,9 @@ def keys(
         console.print(f"[red]error:[/red] {out} already holds keys (--force replaces them; running swarms keep the old ones)",
                       highlight=False)
         raise typer.Exit(2)
+    tls = [] if no_tls else list(tls or ["router", "localhost", "127.0.0.1"])
     try:
-        make_keys(out, n_sats, tls_hosts=list(tls or []))
+        make_keys(out, n_sats, tls_hosts=tls)
     except RuntimeError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
         raise typer.Exit(2)
