@@ -56,7 +56,7 @@ import threading
 import time
 
 import numpy as np
-from google.protobuf.message import DecodeError
+from google.protobuf.message import DecodeError, Message
 
 from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
 
@@ -136,7 +136,7 @@ class MessageError(ValueError):
     """A payload that is not a valid message of the expected kind."""
 
 
-MODELS: dict[str, type] = {
+MODELS: dict[str, type[Message]] = {
     "clock": Clock,
     "sensors": Sensors,
     "cam": CameraOutput,
@@ -690,6 +690,7 @@ def check_key(key: str, kind: str, sat: int | None, msg) -> None:
     field = _OWNER_FIELD.get(kind)
     if sat is not None and field is not None and getattr(msg, field) != sat:
         raise MessageError(f"key says satellite {sat}, message {field} says {getattr(msg, field)}")
+    want: tuple[str, ...]
     if kind in _WORLD_KEYS or (kind == "full_est" and "/init/" in key):
         want = ("world",)
     elif kind in ("meas", "est", "health", "full_est"):
