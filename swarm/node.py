@@ -44,7 +44,7 @@ class Node:
         self._malformed_lock = threading.Lock()
         self.stop = threading.Event()
         self.session = open_session(bus)
-        self.token = None
+        self.token: zenoh.LivelinessToken | None = None
         if announce:
             self.announce()
 

@@ -62,7 +62,7 @@ import time
 from typing import NamedTuple
 
 import numpy as np
-from google.protobuf.message import DecodeError
+from google.protobuf.message import DecodeError, Message
 
 from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
 
@@ -152,7 +152,7 @@ class KeyMismatch(MessageError):
     messages, whatever the router let through."""
 
 
-MODELS: dict[str, type] = {
+MODELS: dict[str, type[Message]] = {
     "clock": Clock,
     "sensors": Sensors,
     "cam": CameraOutput,
@@ -712,8 +712,9 @@ def check_key(key: str, kind: str, sat: int | None, msg) -> None:
     field = _OWNER_FIELD.get(kind)
     if sat is not None and field is not None and getattr(msg, field) != sat:
         raise KeyMismatch(f"key says satellite {sat}, message {field} says {getattr(msg, field)}")
+    want: tuple[str, ...]
     if kind in _WORLD_KEYS or (kind == "full_est" and "/init/" in key):
-        want: tuple[str, ...] = ("world",)
+        want = ("world",)
     elif kind in ("meas", "est", "health", "full_est"):
         want = (f"agent-{sat}",)
     elif kind == "select":
