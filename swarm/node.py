@@ -44,6 +44,8 @@ class Node:
         self._malformed_lock = threading.Lock()
         self.stop = threading.Event()
         self.session = open_session(bus)
+        cred = bus.identity()
+        self.log.info("on the bus at %s as %s", bus.connect or bus.listen, cred.user if cred is not None else "(no credential)")
         self.token: zenoh.LivelinessToken | None = None
         if announce:
             self.announce()
