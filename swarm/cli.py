@@ -526,6 +526,7 @@ def bench_bus_cmd(
     out: Path = typer.Option(Path("bench-bus.json"), "--out", "-o", help="JSON file to write"),
     samples: int = typer.Option(400, help="round trips of each measurement batch"),
     batch_sats: str = typer.Option("10,40", "--batch-sats", help="swarm sizes whose measurement batch to send"),
+    security: str = typer.Option("on,off", "--security", help="bus security settings to measure, side by side (on, off)"),
 ):
     """Bus latency p50/p99 of measurement batches and of a 1 MB payload (loopback, via a router),
     and the CPU cost of encoding and decoding a batch."""
@@ -534,9 +535,18 @@ def bench_bus_cmd(
     from .outputs import write_json
 
     sizes = [int(x) for x in batch_sats.split(",") if x.strip()]
-    rows = bench_latency(samples=samples, log=lambda s: console.print(s, highlight=False), batch_sizes=sizes)
+    rows = bench_latency(samples=samples, log=lambda s: console.print(s, highlight=False), batch_sizes=sizes,
+                         security=_security_modes(security))
     write_json(out, {"machine": machine_info(), "rows": rows})
     console.print(f"wrote {out}")
+
+
+def _security_modes(text: str) -> tuple[bool, ...]:
+    modes = [m.strip() for m in text.split(",") if m.strip()]
+    if not modes or any(m not in ("on", "off") for m in modes):
+        console.print(f"[red]error:[/red] --security {text!r}: a comma-separated list of on and off", highlight=False)
+        raise typer.Exit(2)
+    return tuple(m == "on" for m in modes)
 
 
 @bench_app.command("run")
@@ -544,6 +554,7 @@ def bench_run_cmd(
     sats: str = typer.Option("5,10", help="comma-separated swarm sizes"),
     duration: float = typer.Option(60.0, help="simulated seconds per run"),
     out: Path = typer.Option(Path("bench-run.json"), "--out", "-o", help="JSON file to write"),
+    security: str = typer.Option("on,off", "--security", help="bus security settings to measure, side by side (on, off)"),
 ):
     """Real-time factor of `swarm run` in lockstep (synthetic measurements, complete graph)."""
     from .bench import machine_info
@@ -551,7 +562,8 @@ def bench_run_cmd(
     from .outputs import write_json
 
     sizes = [int(s) for s in sats.split(",") if s.strip()]
-    rows = bench_realtime(sizes, duration, log=lambda s: console.print(s, highlight=False), workdir=out.parent / (out.stem + "-runs"))
+    rows = bench_realtime(sizes, duration, log=lambda s: console.print(s, highlight=False), workdir=out.parent / (out.stem + "-runs"),
+                          security=_security_modes(security))
     write_json(out, {"machine": machine_info(), "rows": rows})
     console.print(f"wrote {out}")
 
