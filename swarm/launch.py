@@ -23,9 +23,10 @@ Ownership: whatever ends the supervisor ends its processes within seconds.
   than all at once; and a fault (``kill-agent 2``) signals one process, its target.
 
 Security (``emulator.security``, on by default): the run's credentials are made afresh in
-``OUT/keys`` (owner-only; :mod:`swarm.security`), every process connects with its own
+a private temporary directory named in ``run.json`` (owner-only; :mod:`swarm.security`),
+every process connects with its own
 (agent i as ``agent-<i>``), the router enforces the run's access rules, and ``swarm fault
---run-dir OUT`` uses ``keys/cli.json``. The keys are deleted when the run ends. Off, the
+--run-dir OUT`` uses its ``cli.json``. The keys are deleted when the run ends. Off, the
 bus is open to anyone on this machine, and the supervisor and the router say so loudly.
 """
 
@@ -38,6 +39,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -151,7 +153,9 @@ class LocalSwarm:
         if self.sc.emulator.security:
             from .security import make_keys
 
-            self.keys_dir = make_keys(self.out / "keys", self.sc.n_sats)
+            # A private temporary directory (0700), never the run folder (which may be in a
+            # repository); run.json says where, for `swarm fault --run-dir` and tools.
+            self.keys_dir = make_keys(tempfile.mkdtemp(prefix=f"swarm-keys-{self.run}-"), self.sc.n_sats)
             secure = ["--keys", str(self.keys_dir), "--run", self.run, "--scenario", str(self.scenario_file)]
         else:
             self.say("[bold red]SECURITY OFF[/bold red] (emulator.security: off): no credentials, no access rules; "

@@ -123,4 +123,4 @@ def test_forgeries_against_a_running_swarm_change_nothing(tmp_path):
     for name, code in codes.items():
         assert code in (0, None), f"{name} exited with {code}"
     assert codes["world"] == 0 and rec.alive.all(), "an agent died"
-    assert not (tmp_path / "run" / "keys").exists(), "the run's keys outlived it"
+    assert sw.keys_dir is not None and not sw.keys_dir.exists(), "the run's keys outlived it"

@@ -8,7 +8,8 @@
 //!
 //! With security on (the default), the router admits only sessions with a credential: give
 //! the `observer` one (read-only: clock, estimates, health; a `swarm keys` directory, or
-//! `<run>/keys/observer.json` of a local `swarm run`), a JSON object {"user", "password"}.
+//! `observer.json` in the `keys` directory that a local `swarm run` names in its run.json),
+//! a JSON object {"user", "password"}.
 //!
 //! Each estimate is checked as the schema's README asks of every receiver (schema version,
 //! run, sender against the key, finite numbers, unit quaternions, array lengths against
