@@ -124,3 +124,32 @@ def test_forgeries_against_a_running_swarm_change_nothing(tmp_path):
         assert code in (0, None), f"{name} exited with {code}"
     assert codes["world"] == 0 and rec.alive.all(), "an agent died"
     assert sw.keys_dir is not None and not sw.keys_dir.exists(), "the run's keys outlived it"
+
+
+def test_tls_endpoint_checks_the_router_against_the_keys_ca(tmp_path):
+    """`swarm keys --tls`: the router's certificate, checked by every credential's CA; a
+    client that does not trust that CA is refused."""
+    import json
+
+    keys = make_keys(tmp_path / "keys", 2, tls_hosts=["router", "127.0.0.1"])
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    p = subprocess.Popen([sys.executable, "-m", "swarm.router", "--listen", endpoint, "--keys", str(keys), "--run", RUN,
+                          "--n-sats", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    try:
+        assert b"READY" in p.stdout.readline(), p.stderr.read()
+        k = M.Keys(RUN)
+        with _open(endpoint, str(keys / "observer.json")) as obs, _open(endpoint, str(keys / "world.json")) as world:
+            clocks = Witness(obs, k.clock())
+            for _ in range(100):
+                world.put(k.clock(), b"tick")
+                if clocks.wait_for(lambda key, p: True, 0.1):
+                    break
+            assert clocks.got
+        # The observer's password without the CA: the router's certificate is not trusted.
+        bare = tmp_path / "no-ca.json"
+        bare.write_text(json.dumps({k2: v for k2, v in json.loads((keys / "observer.json").read_text()).items() if k2 != "ca"}))
+        with pytest.raises(zenoh.ZError):
+            _open(endpoint, str(bare), timeout_ms=2000)
+    finally:
+        p.terminate()
+        p.wait(10)
