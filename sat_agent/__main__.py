@@ -16,13 +16,13 @@ def main(argv=None) -> int:
     sc = load_role_scenario(a.scenario, a.sets)
     from .node import Agent, claim_id
 
-    bus = bus_config_from_args(a)
+    bus = bus_config_from_args(a, sc)
     restart = a.restart
     if a.id == "auto":
         setup_logging("agent-?", a.verbose)
         sat, running, password = claim_id(sc, a.run, bus)
         restart = restart or running
-        if password:
+        if password and sc.emulator.security:
             # Reconnect as agent-<sat>: the claimant's credential may do nothing but claim.
             from swarm.security import Credential
 

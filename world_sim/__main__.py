@@ -19,11 +19,11 @@ def main(argv=None) -> int:
     from .node import World
 
     passwords = None
-    if a.agent_passwords:
+    if a.agent_passwords and sc.emulator.security:
         from swarm.security import load_agent_passwords
 
         passwords = load_agent_passwords(a.agent_passwords)
-    w = World(sc, a.run, bus_config_from_args(a), expect_recorder=not a.no_recorder, agent_passwords=passwords)
+    w = World(sc, a.run, bus_config_from_args(a, sc), expect_recorder=not a.no_recorder, agent_passwords=passwords)
     install_term_handler(w.stop)
     try:
         w.run_steps()

@@ -110,10 +110,18 @@ def add_bus_args(p: argparse.ArgumentParser) -> None:
                    help="this process's credential on the bus (a <identity>.json of `swarm keys`; env SWARM_CREDENTIAL)")
 
 
-def bus_config_from_args(a: argparse.Namespace) -> BusConfig:
+def bus_config_from_args(a: argparse.Namespace, sc=None) -> BusConfig:
+    """The bus flags as a configuration. ``sc``: the role's scenario; with
+    ``emulator.security: off`` the credential is left out (a router without a password
+    dictionary refuses a session that offers one), loudly."""
     connect = a.connect if a.connect is not None else [e for e in os.environ.get("SWARM_ZENOH_CONNECT", "").split(",") if e]
+    cred = a.credential
+    if sc is not None and not sc.emulator.security:
+        log.warning("SECURITY OFF (emulator.security: off): connecting without a credential%s",
+                    f" (ignoring {cred})" if cred else "")
+        cred = None
     return BusConfig(mode=a.mode, connect=connect, listen=a.listen or [], config_file=a.config, multicast_scouting=a.multicast_scouting,
-                     credential_file=a.credential)
+                     credential_file=cred)
 
 
 def open_session(cfg: BusConfig) -> zenoh.Session:
