@@ -153,3 +153,29 @@ def test_tls_endpoint_checks_the_router_against_the_keys_ca(tmp_path):
     finally:
         p.terminate()
         p.wait(10)
+
+
+def test_swarm_keys_makes_owner_only_credentials_and_prints_rules(tmp_path):
+    import json
+    import stat
+
+    from typer.testing import CliRunner
+
+    from swarm.cli import app
+
+    cli = CliRunner()
+    out = tmp_path / "keys"
+    run = ["keys", "--out", str(out), "--n-sats", "3", "--no-tls"]
+    p = cli.invoke(app, run)
+    assert p.exit_code == 0, p.output
+    names = {f.name for f in out.iterdir()}
+    assert {"passwords", "router.json", "agents.json", "claimant.json", "agent-2.json"} <= names and "agent-3.json" not in names
+    assert all(stat.S_IMODE(f.stat().st_mode) == 0o600 for f in out.iterdir()) and stat.S_IMODE(out.stat().st_mode) == 0o700
+    users = [line.split(":")[0] for line in (out / "passwords").read_text().splitlines()]
+    assert len(set(users)) == len(users) == 10
+    cred = json.loads((out / "agent-2.json").read_text())
+    assert cred["user"] == "agent-2" and json.loads((out / "agents.json").read_text())["2"] == cred["password"]
+    again = cli.invoke(app, run)
+    assert again.exit_code == 2 and "already holds keys" in again.output
+    rules = cli.invoke(app, ["keys", "--rules", "r1", "--n-sats", "2"])
+    assert json.loads(rules.stdout) == acl_config("r1", 2)
