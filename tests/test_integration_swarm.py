@@ -381,8 +381,10 @@ def test_bench_bus_prints_and_writes_json(tmp_path):
     p = subprocess.run([sys.executable, "-m", "swarm.cli", "bench", "bus", "--samples", "30", "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     rows = json.loads(out.read_text())["rows"]
-    assert [r["bytes"] > 1_000_000 for r in rows] == [False, False, True]
-    assert [r.get("n") for r in rows] == [10, 40, None]
+    # Security on (authenticated clients, the router's access rules), then off, side by side.
+    assert [r["security"] for r in rows] == ["on"] * 3 + ["off"] * 3
+    assert [r["bytes"] > 1_000_000 for r in rows] == [False, False, True] * 2
+    assert [r.get("n") for r in rows] == [10, 40, None] * 2
     for r in rows:
         assert 0 < r["one_way"]["p50_ms"] <= r["one_way"]["p99_ms"]
     for r in rows[:2]:
