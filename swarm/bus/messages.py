@@ -826,10 +826,10 @@ class Keys:
     def clock(self) -> str:
         return f"{self.root}/clock"
 
-    def sensors(self, i: int) -> str:
+    def sensors(self, i: int | str) -> str:
         return f"{self.root}/sat/{i}/sensors"
 
-    def cam(self, i: int) -> str:
+    def cam(self, i: int | str) -> str:
         return f"{self.root}/sat/{i}/cam"
 
     def img(self, i: int | str) -> str:
@@ -874,7 +874,7 @@ class Keys:
     def links(self) -> str:
         return f"{self.root}/links"
 
-    def rejoin(self, i: int | str = "*", peer: int | str | None = None, size: int | None = None) -> str:
+    def rejoin(self, i: int | str = "*", peer: int | str | None = None, size: int | str | None = None) -> str:
         """``rejoin/<i>``: the fates the world gives agent i's rejoin transfers (recorded);
         ``rejoin/<i>/<peer>/<bytes>``: agent i's question about one (a query)."""
         tail = "" if peer is None else f"/{peer}/{size}"
