@@ -15,7 +15,6 @@ echoes on ``meas/1``), so the router checks exactly the rules a run's batches me
 from __future__ import annotations
 
 import json
-import statistics
 import subprocess
 import sys
 import tempfile

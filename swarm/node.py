@@ -4,6 +4,7 @@ with malformed-message accounting, and the command-line scaffolding of a role's 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import logging
 import signal
@@ -75,10 +76,8 @@ class Node:
 
     def _undeclare_all(self) -> None:
         for h in self._handles:
-            try:
+            with contextlib.suppress(Exception):
                 h.undeclare()
-            except Exception:
-                pass
         self._handles.clear()
         try:
             if self.token is not None:
@@ -256,10 +255,8 @@ class Node:
                 return False
             return True
         finally:
-            try:
+            with contextlib.suppress(Exception):
                 sub.undeclare()
-            except Exception:
-                pass
 
     def close(self) -> None:
         self._undeclare_all()

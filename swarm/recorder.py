@@ -25,12 +25,25 @@ python -m swarm.recorder --run RUN --out FILE.mcap [--flush-every-s 1] [bus flag
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import threading
 import time
 
-from .bus.messages import MODELS, Keys, Liveliness, Malformed, MessageError, check_key, decode, file_descriptor_set, parse_key, prepare, replace
+from .bus.messages import (
+    MODELS,
+    Keys,
+    Liveliness,
+    Malformed,
+    MessageError,
+    check_key,
+    decode,
+    file_descriptor_set,
+    parse_key,
+    prepare,
+    replace,
+)
 from .bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
 from .mcaplog import CheckpointWriter
 
@@ -170,14 +183,10 @@ class Recorder:
 
     def close(self) -> None:
         for h in self._subs:
-            try:
+            with contextlib.suppress(Exception):
                 h.undeclare()
-            except Exception:
-                pass
-        try:
+        with contextlib.suppress(Exception):
             self.token.undeclare()
-        except Exception:
-            pass
         self.session.close()
         if self.foxglove is not None:
             self._derive_scene()

@@ -13,8 +13,8 @@ import numpy as np
 
 from swarmcore.links import LinkCounters
 from swarmcore.metrics import pose_errors, pose_nees, summarize
-from swarmcore.sim import late_summary, link_summary
 from swarmcore.scenario import Scenario
+from swarmcore.sim import late_summary, link_summary
 
 from .bus.convert import array, pairs_from_select
 from .bus.messages import Liveliness, MessageError, as_dict, decode, parse_key
@@ -55,7 +55,7 @@ class Recording:
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
     rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
     dropped: dict = field(default_factory=dict)  # agent -> (malformed, of which key mismatch): its last health report's counts
-    bus: "BusTimes | None" = None  # every bus message's sender, kind, step, publish and receive time
+    bus: BusTimes | None = None  # every bus message's sender, kind, step, publish and receive time
 
     def bus_latency_ms(self, published_from_ns: int | None = None, published_to_ns: int | None = None) -> dict:
         """Per sender (``agent-3``, ``world``, ...): the one-way bus latency of its messages

@@ -64,8 +64,6 @@ from typing import NamedTuple
 import numpy as np
 from google.protobuf.message import DecodeError, Message
 
-from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
-
 from swarm.v1.claim_pb2 import Claim
 from swarm.v1.clock_pb2 import Clock
 from swarm.v1.common_pb2 import Header, Matrix
@@ -79,6 +77,7 @@ from swarm.v1.recording_pb2 import Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
 from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
 from swarm.v1.truth_pb2 import Truth
+from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
 
 SCHEMA_VERSION = 1
 MAX_SAT_ID = 10_000
