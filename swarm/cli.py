@@ -219,11 +219,14 @@ def run(
     seed: Optional[int] = typer.Option(None, help="override the scenario seed"),
     sets: Optional[List[str]] = SetOpt,
     timeout: Optional[float] = typer.Option(None, help="stop the run after this many wall seconds"),
+    routers: int = typer.Option(1, "--routers", min=1, max=2, help="Zenoh routers: 2 = two meshed routers, every role given both endpoints (fails over)"),
 ):
     """Run the swarm as real processes on a local Zenoh bus (router, recorder, world,
     selector, one agent per satellite) and compute summary.json from the recording.
 
-    While it runs, `swarm fault --run-dir OUT ...` injects faults.
+    While it runs, `swarm fault --run-dir OUT ...` injects faults. Exit status: 0, the
+    world's status, 128 + signal when interrupted, 3 when the bus was lost (no router
+    within emulator.bus_lost_after_s), 4 when the world died.
     """
     from .launch import Interrupted, LocalSwarm
     from .outputs import write_json
@@ -231,7 +234,7 @@ def run(
 
     sc = _load(scenario, sets, seed)
     try:
-        swarm = LocalSwarm(sc, out, log=lambda s: console.print(s))
+        swarm = LocalSwarm(sc, out, log=lambda s: console.print(s), routers=routers)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
         raise typer.Exit(2)
@@ -250,16 +253,30 @@ def run(
         finally:
             swarm.stop()
     sig = swarm.interrupted if code is None else None
-    if sig is None:
+    broken = swarm.broken if sig is None else None
+    if sig is None and broken is None:
         summary = load_recording(out / "run.mcap", sc.n_sats, sc.steps).summary(sc)
     else:
         summary = _interrupted_summary(out / "run.mcap", sc)
-        summary["interrupted"] = {"reason": sig.name, "signal": int(sig), "last_step": summary["steps"] - 1, "steps_planned": sc.steps}
+        last = _last_step(summary)
+        if sig is not None:
+            summary["interrupted"] = {"reason": sig.name, "signal": int(sig), "last_step": last, "steps_planned": sc.steps}
+        else:
+            summary["interrupted"] = {"reason": broken, "world_exit_code": code, "last_step": last, "steps_planned": sc.steps}
+    # Router faults the bus could not carry (no router left to carry the report).
+    known = {(f.get("action"), f.get("target"), f.get("phase")) for f in summary.get("faults", [])}
+    for f in swarm.router_faults:
+        if (f["action"], f["target"], f["phase"]) not in known:
+            summary.setdefault("faults", []).append({k: v for k, v in f.items() if k != "t_down_unix_s"})
     summary["run"] = swarm.run
     summary["world_exit_code"] = code
     write_json(out / "summary.json", summary)
     if summary["steps"]:
         console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
+    if summary.get("bus_gaps"):
+        for g in summary["bus_gaps"]:
+            console.print(f"bus gap: {g['duration_s']:.2f} s with no router (after step {g['last_step_before']}, "
+                          f"resumed at step {g['first_step_after']})", highlight=False)
         if (lt := _links_table(summary)) is not None:
             console.print(lt)
     if summary.get("faults"):
@@ -279,8 +296,19 @@ def run(
             highlight=False,
         )
         raise typer.Exit(128 + int(sig))
+    if broken is not None:
+        console.print(f"[bold red]BROKEN RUN[/bold red] at step {summary['interrupted']['last_step']} of {sc.steps - 1}: {broken}; "
+                      "every process stopped, the recording closed; summary.json says \"interrupted\"", highlight=False)
+        from .protocol import EXIT_BUS_LOST, EXIT_WORLD_LOST
+
+        raise typer.Exit(EXIT_BUS_LOST if code == EXIT_BUS_LOST else EXIT_WORLD_LOST)
     if code != 0:
         raise typer.Exit(code)
+
+
+def _last_step(summary: dict) -> int:
+    """The last step the recording holds an estimate of (or its last truth step)."""
+    return int(summary.get("last_estimated_step", summary["steps"] - 1))
 
 
 def _interrupted_summary(path: Path, sc) -> dict:

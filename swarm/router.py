@@ -18,6 +18,8 @@ import zenoh
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="Zenoh router for a swarm")
     p.add_argument("--listen", action="append", default=None, help="endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p.add_argument("--connect", action="append", default=None,
+                   help="another router's endpoint to mesh with (repeatable): clients given both endpoints fail over")
     p.add_argument("--config", default=None, help="a Zenoh JSON5 configuration file")
     p.add_argument("--exit-when-done", metavar="RUN", default=None, help="exit once run RUN's world reports its last step (and the recorder has left)")
     a = p.parse_args(argv)
@@ -25,6 +27,11 @@ def main(argv=None) -> int:
     cfg = zenoh.Config.from_file(a.config) if a.config else zenoh.Config()
     cfg.insert_json5("mode", json.dumps("router"))
     cfg.insert_json5("listen/endpoints", json.dumps(a.listen or ["tcp/0.0.0.0:7447"]))
+    if a.connect:
+        cfg.insert_json5("connect/endpoints", json.dumps(a.connect))
+        # Keep trying: the other router may start later, or come back after a fault.
+        cfg.insert_json5("connect/timeout_ms", "-1")
+        cfg.insert_json5("connect/retry", json.dumps({"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     from .bus.session import apply_shared_memory
 

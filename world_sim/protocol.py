@@ -51,11 +51,11 @@ from swarm.bus.messages import (
     Select,
     replace,
 )
-from swarm.protocol import Event, Send, Wait
+from swarm.protocol import Event, Outbox, Send, Wait
 from swarmcore.graphs import edges, scenario_graph
 from swarmcore.links import LinkCounters, LinkModel
 from swarmcore.measurement import CameraModel
-from swarmcore.scenario import AGENT_PROCESS_FAULTS, Scenario
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
 from swarmcore.selection import mask_dead, select_for_scenario
 from swarmcore.sim import link_body_radius
 from swarmcore.world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
@@ -106,6 +106,10 @@ class WorldProtocol:
         self._claims: dict[str, int] = {}
         self._claimed_at: dict[int, float] = {}
         self.progress: Callable[[int, int], None] | None = None
+        # The step's messages, sent again when the bus comes back (faults are not: a
+        # command executed twice would be two faults).
+        self.outbox = Outbox(skip_keys=("/fault",))
+        self._aired: set[tuple[int, int]] = set()  # (step, observer) of batches already on the radio
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -151,6 +155,11 @@ class WorldProtocol:
 
     # -- events -------------------------------------------------------------------
     def handle(self, ev: Event) -> list[Send]:
+        if ev.kind in ("bus", "resync"):
+            again = self.outbox.again(ev)
+            if again:
+                log.info("step %d: the bus is back (%s); sending the step's %d messages again", self.k, ev.kind, len(again))
+            return again
         if ev.kind == "alive":
             if ev.role == "agent" and ev.sat is not None:
                 if ev.alive:
@@ -171,7 +180,7 @@ class WorldProtocol:
             # when its estimate was lost (the drop fault).
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
         elif ev.kind == "meas":
-            if self.links is not None:
+            if self.links is not None and (ev.msg.k, ev.msg.observer) not in self._aired:  # not a copy sent again
                 self.batches.setdefault(ev.msg.k, {})[ev.msg.observer] = (ev.msg, radio_bytes(ev.msg))
                 self._new_batch = True
         elif ev.kind == "select":
@@ -199,6 +208,9 @@ class WorldProtocol:
 
     # -- the run ---------------------------------------------------------------------
     def run(self):
+        return self.outbox.wrap(self._run())
+
+    def _run(self):
         sc, em = self.sc, self.sc.emulator
         yield from self._startup()
         self.started = True
@@ -206,6 +218,7 @@ class WorldProtocol:
         gyro = None
         for k in range(sc.steps):
             self.k = k
+            self.outbox.clear()
             yield from self._apply_scheduled_faults(k)
             if k > 0:
                 self.truth, gyro = step_truth(self.wp, self.truth)
@@ -303,6 +316,10 @@ class WorldProtocol:
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
                 yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
+            elif spec.action in ROUTER_FAULTS:
+                # The bus goes down under us (this wait, like every wait, pauses while it is
+                # down); a restart is over once its executor says so.
+                yield Wait(lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done), em.startup_timeout_s)
             elif spec.action == "drop":
                 yield Wait(lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done)
                            or t not in self.alive_agents, em.step_timeout_s)
@@ -354,6 +371,8 @@ class WorldProtocol:
         for s in sorted(x for x in self.batches if x <= k):
             for i, (msg, size) in sorted(self.batches.pop(s).items()):
                 lm.send(i, live, msg, size, t, key=msg.k)
+                self._aired.add((s, i))
+        self._aired = {(s, i) for s, i in self._aired if s >= k - 50}
         return lm.due(t)
 
     def _radio_free(self, k: int, live: list[int], t_wall0: float, deadline: float):
@@ -378,6 +397,7 @@ class WorldProtocol:
                 for s in sorted(self.batches):
                     for i, (msg, size) in sorted(self.batches.pop(s).items()):
                         lm.send(i, [j for j in live if j in self.alive_agents], msg, size, max(now_s, msg.t_s), key=msg.k)
+                        self._aired.add((s, i))
                 self._new_batch = False
                 arrived = lm.due(now_s)
             for d in arrived:

@@ -69,7 +69,7 @@ from swarm.v1.health_pb2 import Health
 from swarm.v1.images_pb2 import CameraView, Images
 from swarm.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
 from swarm.v1.measurements_pb2 import MeasBatch
-from swarm.v1.recording_pb2 import Liveliness, Malformed
+from swarm.v1.recording_pb2 import BusGap, Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
 from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
 from swarm.v1.truth_pb2 import Truth
@@ -111,6 +111,7 @@ __all__ = [
     "LinkStats",
     "RejoinFate",
     "Liveliness",
+    "BusGap",
     "Malformed",
     "Keys",
     "MODELS",
@@ -547,6 +548,8 @@ def _fault(m: Fault, top: int) -> None:
         raise MessageError(f"rate: {m.rate} is not in [0, 1]")
     if m.action == "drop" and not m.HasField("rate"):
         raise MessageError("rate: a drop fault needs a rate")
+    if m.HasField("down_s") and not 0.0 <= m.down_s <= 3600.0:
+        raise MessageError(f"down_s: {m.down_s} is not in [0, 3600] s")
     if m.HasField("netem") and not 1 <= len(m.netem) <= 200:
         raise MessageError(f"netem: {len(m.netem)} characters (1-200 allowed)")
     if m.action == "netem" and not m.HasField("netem"):
