@@ -400,6 +400,24 @@ def fault_restart_selector(ctx: typer.Context):
     _send_fault(ctx, action="restart-selector")
 
 
+@fault_app.command("kill-router")
+def fault_kill_router(ctx: typer.Context, router: int = typer.Argument(0, help="the router's index (0; 0 or 1 with --routers 2)")):
+    """SIGKILL a Zenoh router (`docker kill` under compose). With one router the bus is gone:
+    the run pauses, and ends broken after emulator.bus_lost_after_s; with two, clients fail over."""
+    _send_fault(ctx, action="kill-router", target=router)
+
+
+@fault_app.command("restart-router")
+def fault_restart_router(
+    ctx: typer.Context,
+    router: int = typer.Argument(0, help="the router's index (0; 0 or 1 with --routers 2)"),
+    down_s: float = typer.Option(0.0, "--down-s", min=0.0, max=3600.0, help="wall seconds the router stays down"),
+):
+    """Kill a Zenoh router and start a new one on the same endpoint (`docker restart`
+    under compose); every role reconnects and the run goes on where it was."""
+    _send_fault(ctx, action="restart-router", target=router, down_s=down_s)
+
+
 @fault_app.command("drop")
 def fault_drop(ctx: typer.Context, sat: int, rate: float = typer.Option(..., "--rate", min=0.0, max=1.0, help="fraction of SAT's outgoing messages lost")):
     """Lose a fraction of satellite SAT's outgoing measurement batches and estimates."""

@@ -94,6 +94,7 @@ class LocalSwarm:
         self.router_names = ["router" if i == 0 else f"router-{i}" for i in range(routers)]
         self.broken: str | None = None  # why the run could not go on (bus lost, world gone)
         self.router_faults: list[dict] = []  # router faults executed here (the bus may not have carried the report)
+        self._router_report: tuple[Fault, float] | None = None  # the latest router fault's report, repeated until
         self.bus = None
         self.node: Node | None = None
         self.faults: list[dict] = []
@@ -223,14 +224,19 @@ class LocalSwarm:
             raise RuntimeError(f"{role} did not come up within {timeout:.0f} s (see {self.out / 'logs'})")
 
     # -- faults ------------------------------------------------------------------------
-    def _report(self, f: Fault, phase: str, detail: str) -> None:
+    def _report(self, f: Fault, phase: str, detail: str) -> Fault:
         # A scheduled command is stamped with the step it opens, whose clock has not come
         # yet: report at that step, not at the last clock seen here.
         k = max(self.k, f.k)
         done = replace(f, phase=phase, sender="supervisor", k=k, t_s=k * self.sc.dt_s, detail=detail)
         self.node.put(self.keys.fault(), done)
+        return done
 
     def _handle(self, ev) -> None:
+        if ev.kind == "resync" and self._router_report is not None and time.monotonic() < self._router_report[1]:
+            # A session reconnecting after the report went out may have missed it: again (the
+            # same bytes; a recording reads it once).
+            self.node.put(self.keys.fault(), self._router_report[0])
         if ev.kind == "clock":
             self.k = ev.msg.k
         elif ev.kind == "fault" and ev.msg.phase == "command":
@@ -302,10 +308,17 @@ class LocalSwarm:
         if not was_running and f.action == "kill-router":
             self._report(f, "failed", detail)
             return
-        # Report once this node is connected again (at once when another router is up).
-        self.node.wait_for(lambda: self.node.bus_up and bool(self.node._routers), 5.0 if f.action == "kill-router" else 30.0,
-                           lambda ev: None if ev.kind != "clock" else setattr(self, "k", ev.msg.k))
-        self._report(f, "done", detail)
+        # Report once this node is connected again (at once when another router is up)
+        # and every liveliness token that went with the router is back: a report put
+        # before the others have reconnected would reach nobody.
+        def on_event(ev) -> None:
+            if ev.kind == "clock":
+                self.k = ev.msg.k
+
+        n = self.node
+        n.wait_for(lambda: n.bus_up and bool(n._routers), 5.0 if f.action == "kill-router" else 30.0, on_event)
+        n.wait_for(lambda: not n._held, self.sc.emulator.bus_grace_s, on_event, wake=lambda: time.monotonic() + 0.1)
+        self._router_report = (self._report(f, "done", detail), time.monotonic() + self.sc.emulator.bus_grace_s)
 
     # -- signals -------------------------------------------------------------------------
     @contextlib.contextmanager

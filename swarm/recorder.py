@@ -191,12 +191,16 @@ class Recorder:
 
         self.w.flush()
         t0, count = time.monotonic(), 0
+        seen: set[tuple[str, int, int]] = set()  # a message sent again after a bus gap: drawn once
         for topic, _schema, data, log_ns, _pub in iter_messages(self.w.path):
             try:
                 run, kind, _sat = parse_key(topic)
             except MessageError:
                 continue
             if run == self.run and kind in ("truth", "est", "meas", "links"):
+                if (ident := (topic, len(data), hash(data))) in seen:
+                    continue
+                seen.add(ident)
                 self.foxglove.on_message(kind, MODELS[kind].FromString(data), log_ns)  # recorded: already checked
                 count += 1
                 if count % 2000 == 0:

@@ -231,14 +231,13 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             m = decode(kind, data)
         except MessageError:
             continue
-        if kind != "fault":
-            # A message sent again after a bus gap is the same bytes: read it once.
-            ident = (topic, m.k, len(data), hash(data))
-            if ident in seen:
-                counts[kind] -= 1
-                rec.resent += 1
-                continue
-            seen.add(ident)
+        # A message sent again after a bus gap is the same bytes: read it once.
+        ident = (topic, m.k, len(data), hash(data))
+        if ident in seen:
+            counts[kind] -= 1
+            rec.resent += 1
+            continue
+        seen.add(ident)
         bus_rows.append((m.sender, kind, m.k, pub_ns, log_ns))
         k = m.k
         if not 0 <= k < K:

@@ -293,7 +293,7 @@ class WorldProtocol:
         em = self.sc.emulator
         for spec in [f for f in self.sc.faults if f.at_step == k]:
             cmd = Fault(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s, phase="command", action=spec.action, target=spec.target,
-                        camera=spec.camera, state=spec.state, rate=spec.rate, detail="scheduled")
+                        camera=spec.camera, state=spec.state, rate=spec.rate, down_s=spec.down_s, detail="scheduled")
             log.info("step %d: fault %s target=%s", k, spec.action, spec.target)
             yield Send(self.keys.fault(), cmd)
             t = spec.target
