@@ -275,8 +275,11 @@ def run(
         console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
     if summary.get("bus_gaps"):
         for g in summary["bus_gaps"]:
-            console.print(f"bus gap: {g['duration_s']:.2f} s with no router (after step {g['last_step_before']}, "
-                          f"resumed at step {g['first_step_after']})", highlight=False)
+            if g["duration_s"] is None:
+                console.print(f"bus gap: no router reachable after step {g['last_step_before']}; it never came back", highlight=False)
+            else:
+                console.print(f"bus gap: {g['duration_s']:.2f} s with no router (after step {g['last_step_before']}, "
+                              f"resumed at step {g['first_step_after']})", highlight=False)
         if (lt := _links_table(summary)) is not None:
             console.print(lt)
     if summary.get("faults"):

@@ -28,6 +28,7 @@ from .bus.messages import SCHEMA_VERSION, Fault, Keys, MessageError, opt, replac
 from .bus.session import BusConfig
 from .netem import CLEAR, NO_QDISC, UNKNOWN_QDISC, netemd_args, show_script, tc_script
 from .node import Node
+from .protocol import BusLost
 
 __all__ = ["send_fault", "compose_containers", "netem_state", "netem_helper_name"]
 
@@ -290,8 +291,13 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
             raise ValueError(f"{cmd.action} needs --compose (local processes share one network)")
         node.put(keys.fault(), cmd)
         deadline = time.monotonic() + timeout
+        node.bus_lost_after_s = 10.0  # a router killed for good takes the report's way with it
         while time.monotonic() < deadline:
-            ev = node.next_event(deadline - time.monotonic())
+            try:
+                ev = node.next_event(deadline - time.monotonic())
+            except BusLost:
+                return f"{cmd.action}: sent at step {k}; no router reachable since (the bus is gone: the run stops " \
+                       "after emulator.bus_lost_after_s)"
             if ev is None:
                 break
             if ev.kind == "fault" and ev.msg.phase in ("done", "failed") and ev.msg.action == cmd.action and opt(ev.msg, "target") == opt(cmd, "target"):
