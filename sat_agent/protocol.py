@@ -125,7 +125,7 @@ class AgentProtocol:
                     self.world_seen = True
                 elif self.world_seen and not self.done:
                     raise WorldLost(f"{self.name}: the world is gone before the end of the run (last step {self.last_step})")
-            elif ev.sat is not None and ev.sat != self.i:
+            elif ev.role in (None, "agent") and ev.sat is not None and ev.sat != self.i:
                 (self.peers_alive.add if ev.alive else self.peers_alive.discard)(ev.sat)
         elif ev.kind == "clock":
             if ev.msg.done:

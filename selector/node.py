@@ -19,6 +19,7 @@ class Selector(Node):
             self.subscribe(key)
         self.watch_liveliness(self.keys.alive("agent"))
         self.watch_liveliness(self.keys.alive("world"))  # gone before the end: the run is broken
+        self.watch_liveliness(self.keys.alive("recorder"))  # back after a bus gap: it is sent the selection again
         self.set_bus_limits(sc.emulator)
         self.announce()
 

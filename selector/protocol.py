@@ -59,7 +59,7 @@ class SelectorProtocol:
                 self.world_seen = True
             elif self.world_seen and not self.done:
                 raise WorldLost("selector: the world is gone before the end of the run")
-        elif ev.kind == "alive" and ev.sat is not None:
+        elif ev.kind == "alive" and ev.role in (None, "agent") and ev.sat is not None:
             (self.alive.add if ev.alive else self.alive.discard)(ev.sat)
         elif ev.kind == "est":
             m = ev.msg

@@ -111,7 +111,7 @@ class Node:
         if ev.kind == "alive":
             if not ev.alive:
                 self._held[ev.key] = (ev, None if self.bus_down_since is not None else now + self.hold_s)
-                return None
+                return Event(ev.key, "held", ev.sat, role=ev.role)  # gone, or only out of reach: not known yet
             if self._held.pop(ev.key, None) is not None:
                 self._epoch += 1
                 return Event(ev.key, "resync", ev.sat, role=ev.role)  # never gone, as far as anyone need know

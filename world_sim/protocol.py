@@ -110,6 +110,7 @@ class WorldProtocol:
         # command executed twice would be two faults).
         self.outbox = Outbox(skip_keys=("/fault",))
         self._aired: set[tuple[int, int]] = set()  # (step, observer) of batches already on the radio
+        self.limbo: set[str] = set()  # liveliness tokens gone, not yet known whether for good (a bus gap)
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -155,6 +156,11 @@ class WorldProtocol:
 
     # -- events -------------------------------------------------------------------
     def handle(self, ev: Event) -> list[Send]:
+        if ev.kind == "held":
+            self.limbo.add(ev.key)
+            return []
+        if ev.kind in ("resync", "alive"):
+            self.limbo.discard(ev.key)
         if ev.kind in ("bus", "resync"):
             again = self.outbox.again(ev)
             if again:
@@ -242,8 +248,9 @@ class WorldProtocol:
             if self.links is not None and em.time_mode == "lockstep":
                 yield from self._radio(k, t, live)
             if em.time_mode == "lockstep":
-                ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live),
-                                em.step_timeout_s)
+                # Not on while some role is only out of reach (the recorder would miss the step).
+                ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live)
+                                and not self.limbo, em.step_timeout_s)
                 if not ok:
                     missing = [i for i in live if i not in self.est_seen.get(k, set())]
                     log.warning("step %d: no estimate from %s within %.1f s", k, missing, em.step_timeout_s)
