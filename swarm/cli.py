@@ -96,7 +96,16 @@ def _force_progress() -> bool:
     return os.environ.get("SWARM_PROGRESS", "") == "1"
 
 
+def number(x, spec: str = ".3g") -> str:
+    """A value for a table: "no data" rather than nan (:func:`swarm.outputs.number`)."""
+    from .outputs import number as fmt
+
+    return fmt(x, spec)
+
+
 def _summary_table(summary: dict, title: str) -> Table:
+    from .outputs import NO_DATA, no_data_reason
+
     t = Table(title=title)
     t.add_column("error (time RMS)")
     t.add_column("self att [rad]", justify="right")
@@ -105,13 +114,10 @@ def _summary_table(summary: dict, title: str) -> Table:
     t.add_column("others pos [m]", justify="right")
     for key, label in (("rms", "full run"), ("rms_second_half", "second half")):
         r = summary[key]
-        t.add_row(
-            label,
-            f"{r['self']['att_rad']:.3g}",
-            f"{r['self']['pos_m']:.3g}",
-            f"{r['others']['att_rad']:.3g}",
-            f"{r['others']['pos_m']:.3g}",
-        )
+        t.add_row(label, *(number(r[w][u]) for w in ("self", "others") for u in ("att_rad", "pos_m")))
+    if any(number(summary[key][w][u]) == NO_DATA for key in ("rms", "rms_second_half") for w in ("self", "others")
+           for u in ("att_rad", "pos_m")):
+        t.caption = f"{NO_DATA}: {no_data_reason(summary)}"
     return t
 
 
@@ -160,7 +166,7 @@ def sim(
     if (lt := _links_table(summary)) is not None:
         console.print(lt)
     console.print(
-        f"NEES mean {summary['nees']['mean']:.2f} (dof 6) · gate accepted {summary['gate']['accepted']}, "
+        f"NEES mean {number(summary['nees']['mean'], '.2f')} (dof 6) · gate accepted {summary['gate']['accepted']}, "
         f"rejected {summary['gate']['rejected']} · filter step median "
         f"{summary['timing']['filter_step_ms_median']:.3f} ms · wrote {out}"
     )
@@ -206,7 +212,7 @@ def mc(
         "rms_second_half.others.pos_m",
         "nees.mean",
     ):
-        t.add_row(key, f"{st[key]['mean']:.4g} ± {st[key]['std']:.2g}")
+        t.add_row(key, f"{number(st[key]['mean'], '.4g')} ± {number(st[key]['std'], '.2g')}")
     console.print(t)
     console.print(f"wrote {out / 'mc.json'}")
     _report_failed([(str(f["seed"]), f["error"]) for f in res["failed"]], "runs", out, "seed")
@@ -636,7 +642,7 @@ def compare(
     for s in names:
         sm = res["summary"][s]
         ratios = [f"{sm[k]['vs_random']['ratio_of_means']:.3f}" if "vs_random" in sm[k] else "—" for k in ("att_full", "pos_full")]
-        t.add_row(s, *[f"{sm[k]['mean']:.3g}" for k, _ in METRICS], *ratios, f"{sm['select_ms_median']:.2f}")
+        t.add_row(s, *[number(sm[k]["mean"]) for k, _ in METRICS], *ratios, number(sm["select_ms_median"], ".2f"))
     console.print(t)
     console.print(f"wrote {out / 'compare.md'}, {out / 'compare.json'} and {len(names)} heat maps")
     _report_failed(failed, "runs", out, "run")
@@ -720,7 +726,7 @@ def links_study(
         p, st = c["params"], c["stats"]
         t.add_row(f"{p['latency_s']:g}", f"{p['loss']:.0%}", p["late"], p["arm"] + ("" if p["budget"] is None else f" m={p['budget']}"),
                   "—" if p["rate_Bps"] is None else f"{p['rate_Bps']:.0f}",
-                  *[f"{st[k]['mean']:.3g}" for k, _ in METRICS[:2] + METRICS[4:6]], f"{st['links']['delivered_fraction']:.1%}")
+                  *[number(st[k]["mean"]) for k, _ in METRICS[:2] + METRICS[4:6]], f"{st['links']['delivered_fraction']:.1%}")
     console.print(t)
     console.print(f"{len(doc['cells'])} cells × {runs} seeds in {doc['wall_s']:.0f} s · wrote {out / 'links_study.md'}, "
                   f"{out / 'links_study.json'} and the plots")
