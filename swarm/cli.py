@@ -273,7 +273,7 @@ def run(
     known = {(f.get("action"), f.get("target"), f.get("phase")) for f in summary.get("faults", [])}
     for f in swarm.router_faults:
         if (f["action"], f["target"], f["phase"]) not in known:
-            summary.setdefault("faults", []).append({k: v for k, v in f.items() if k != "t_down_unix_s"})
+            summary.setdefault("faults", []).append({k: v for k, v in f.items() if not k.endswith("_unix_s")})
     summary["run"] = swarm.run
     summary["world_exit_code"] = code
     write_json(out / "summary.json", summary)
@@ -551,6 +551,31 @@ def bench_bus_cmd(
     sizes = [int(x) for x in batch_sats.split(",") if x.strip()]
     rows = bench_latency(samples=samples, log=lambda s: console.print(s, highlight=False), batch_sizes=sizes)
     write_json(out, {"machine": machine_info(), "rows": rows})
+    console.print(f"wrote {out}")
+
+
+@bench_app.command("router")
+def bench_router_cmd(
+    runs: int = typer.Option(5, help="runs of each case (restart, failover)"),
+    down_s: float = typer.Option(1.0, "--down-s", help="restart case: how long the router stays down (s)"),
+    out: Path = typer.Option(Path("runs/bench/router.json"), "--out", "-o", help="JSON file to write"),
+):
+    """How long each role takes to notice a lost router and to be back on the bus (median
+    over runs): one router SIGKILLed and restarted, and two meshed routers with one killed."""
+    from .bench import machine_info
+    from .bench_router import bench_router
+    from .outputs import write_json
+
+    doc = bench_router(runs=runs, down_s=down_s, workdir=out.parent / (out.stem + "-runs"), log=lambda s: console.print(s, highlight=False))
+    write_json(out, {"machine": machine_info(), **doc})
+    for case, m in doc["medians"].items():
+        t = Table(title=f"{case}: median over {m['runs']} runs (all completed: {m['all_completed']}); "
+                        f"run resumed {m['resumed_median_ms']} ms after the router was back")
+        for col in ("role", "notice [ms]", "back on the bus [ms]", "samples"):
+            t.add_column(col, justify="right")
+        for role, v in sorted(m["roles"].items()):
+            t.add_row(role, str(v.get("notice_median_ms", "—")), str(v.get("back_median_ms", "—")), str(v["n"]))
+        console.print(t)
     console.print(f"wrote {out}")
 
 

@@ -300,11 +300,13 @@ class LocalSwarm:
             if down_s > 0:
                 time.sleep(down_s)  # the fault itself: the router stays down this long (wall time)
             self._start_router(i, timeout=30.0)
+            t_up = time.time()
             self._write_run_json()
             detail = (f"SIGKILL pid {p.pid}, " if was_running else "") + (
                 f"new router pid {self.procs[name].pid} on {self.endpoints[i]} after {time.time() - t_down:.2f} s")
         self.router_faults.append({"k": max(self.k, f.k), "action": f.action, "target": i, "phase": "done", "sender": "supervisor",
-                                   "detail": detail, "t_down_unix_s": t_down})
+                                   "detail": detail, "t_down_unix_s": t_down,
+                                   **({"t_up_unix_s": t_up} if f.action == "restart-router" else {})})
         if not was_running and f.action == "kill-router":
             self._report(f, "failed", detail)
             return
