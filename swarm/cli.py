@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 from rich.console import Console
@@ -43,12 +42,12 @@ ClusterOpt = typer.Option(
 ResumeOpt = typer.Option(False, "--resume", help="keep the finished runs in OUT/results.jsonl and run only the others")
 
 
-def _load(path: Optional[Path], sets, seed=None):
+def _load(path: Path | None, sets, seed=None):
     try:
         return load_scenario(path, sets or (), seed)
     except ScenarioError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
 
 
 def _progress() -> Progress:
@@ -72,7 +71,7 @@ def _study(fn, *args, **kw):
         return fn(*args, **kw)
     except ClusterError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
 
 
 def _report_failed(rows: list[tuple[str, str]], what: str, out: Path, header: str) -> None:
@@ -145,8 +144,8 @@ def _links_table(summary: dict) -> Table | None:
 def sim(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
     out: Path = typer.Option(..., "--out", "-o", help="run folder to write"),
-    seed: Optional[int] = typer.Option(None, help="override the scenario seed"),
-    sets: Optional[List[str]] = SetOpt,
+    seed: int | None = typer.Option(None, help="override the scenario seed"),
+    sets: list[str] | None = SetOpt,
     arrays: bool = typer.Option(True, help="write truth.npz and estimates.npz"),
 ):
     """Run every satellite's filter in this process (fast, no bus).
@@ -154,7 +153,6 @@ def sim(
     Writes OUT/summary.json, OUT/truth.npz, OUT/estimates.npz and OUT/scenario.yaml.
     """
     from .models import simulate_scenario
-
     from .outputs import write_run
 
     sc = _load(scenario, sets, seed)
@@ -178,10 +176,10 @@ def mc(
     runs: int = typer.Option(..., "--runs", "-r", min=1, help="number of runs (run i has seed S + i)"),
     out: Path = typer.Option(..., "--out", "-o", help="folder for run_XXXX/ and mc.json"),
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
-    seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
-    sets: Optional[List[str]] = SetOpt,
+    seed: int | None = typer.Option(None, help="base seed S (default: the scenario's)"),
+    sets: list[str] | None = SetOpt,
     arrays: bool = typer.Option(False, help="also write each run's npz arrays"),
-    cluster: Optional[str] = ClusterOpt,
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Monte Carlo: R runs in parallel processes (or on a Dask cluster); writes each run's
@@ -222,9 +220,9 @@ def mc(
 def run(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
     out: Path = typer.Option(..., "--out", "-o", help="run folder: run.mcap, summary.json, logs/"),
-    seed: Optional[int] = typer.Option(None, help="override the scenario seed"),
-    sets: Optional[List[str]] = SetOpt,
-    timeout: Optional[float] = typer.Option(None, help="stop the run after this many wall seconds"),
+    seed: int | None = typer.Option(None, help="override the scenario seed"),
+    sets: list[str] | None = SetOpt,
+    timeout: float | None = typer.Option(None, help="stop the run after this many wall seconds"),
     routers: int = typer.Option(1, "--routers", min=1, max=2, help="Zenoh routers: 2 = two meshed routers, every role given both endpoints (fails over)"),
 ):
     """Run the swarm as real processes on a local Zenoh bus (router, recorder, world,
@@ -243,7 +241,7 @@ def run(
         swarm = LocalSwarm(sc, out, log=lambda s: console.print(s), routers=routers)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     code: int | None = 1
     # SIGINT (Ctrl-C), SIGTERM and SIGHUP interrupt the run: every process is stopped, the
     # recording closed, and the summary of the steps recorded so far marked as interrupted.
@@ -343,12 +341,12 @@ app.add_typer(fault_app, name="fault")
 @fault_app.callback()
 def fault_target(
     ctx: typer.Context,
-    run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run folder of `swarm run` (has run.json)"),
+    run_dir: Path | None = typer.Option(None, "--run-dir", help="the run folder of `swarm run` (has run.json)"),
     compose: bool = typer.Option(False, "--compose", help="the swarm of `docker compose up` (docker CLI for process and network faults)"),
-    connect: Optional[str] = typer.Option(None, "--connect", help="bus endpoint (default with --compose: tcp/127.0.0.1:$SWARM_BUS_PORT or 7447)"),
-    run_id: Optional[str] = typer.Option(None, "--run", help="run id (default with --compose: $SWARM_RUN or 'compose')"),
-    project: Optional[str] = typer.Option(None, "--project", help="compose project name (default: any)"),
-    network: Optional[str] = typer.Option(None, "--network", help="compose bus network for partition/heal (default: *_bus)"),
+    connect: str | None = typer.Option(None, "--connect", help="bus endpoint (default with --compose: tcp/127.0.0.1:$SWARM_BUS_PORT or 7447)"),
+    run_id: str | None = typer.Option(None, "--run", help="run id (default with --compose: $SWARM_RUN or 'compose')"),
+    project: str | None = typer.Option(None, "--project", help="compose project name (default: any)"),
+    network: str | None = typer.Option(None, "--network", help="compose bus network for partition/heal (default: *_bus)"),
 ):
     """Where the swarm is."""
     ctx.obj = dict(run_dir=run_dir, compose=compose, connect=connect, run_id=run_id, project=project, network=network)
@@ -361,7 +359,7 @@ def _send_fault(ctx: typer.Context, **fields):
         result = send_fault(**ctx.obj, **fields)
     except (RuntimeError, ValueError, FileNotFoundError) as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     typer.echo(result)
 
 
@@ -449,11 +447,11 @@ def fault_heal(ctx: typer.Context, sat: int):
 def fault_netem(
     ctx: typer.Context,
     sat: int,
-    clear: Optional[str] = typer.Argument(None, metavar="[clear]", help="'clear' removes the impairment"),
-    delay: Optional[str] = typer.Option(None, "--delay", help="one-way delay added to what SAT sends, e.g. 200ms (s, ms, us)"),
-    jitter: Optional[str] = typer.Option(None, "--jitter", help="± spread around the delay (uniform), e.g. 50ms"),
-    loss: Optional[str] = typer.Option(None, "--loss", help="packets lost, e.g. 10%"),
-    rate: Optional[str] = typer.Option(None, "--rate", help="egress rate cap, e.g. 1mbit (bit, kbit, mbit, gbit; bps = bytes/s)"),
+    clear: str | None = typer.Argument(None, metavar="[clear]", help="'clear' removes the impairment"),
+    delay: str | None = typer.Option(None, "--delay", help="one-way delay added to what SAT sends, e.g. 200ms (s, ms, us)"),
+    jitter: str | None = typer.Option(None, "--jitter", help="± spread around the delay (uniform), e.g. 50ms"),
+    loss: str | None = typer.Option(None, "--loss", help="packets lost, e.g. 10%"),
+    rate: str | None = typer.Option(None, "--rate", help="egress rate cap, e.g. 1mbit (bit, kbit, mbit, gbit; bps = bytes/s)"),
 ):
     """Impair satellite SAT's network with Linux traffic control (compose only): `netem 3
     --delay 200ms --jitter 50ms --loss 10% --rate 1mbit`, or `netem 3 clear`."""
@@ -470,12 +468,12 @@ def fault_netem(
             args = Netem.from_cli(delay, jitter, loss, rate).args()
     except NetemError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     _send_fault(ctx, action="netem", target=sat, netem=args)
 
 
 @app.command()
-def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), out: Optional[Path] = typer.Option(None, "--out")):
+def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), out: Path | None = typer.Option(None, "--out")):
     """Salvage every complete message of a damaged recording into a clean MCAP."""
     from .mcaplog import recover as _recover
 
@@ -486,7 +484,7 @@ def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), o
 @app.command()
 def report(
     run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison / links-study folder"),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="folder for the figures and report.html (default: RUN/report)"),
+    out: Path | None = typer.Option(None, "--out", "-o", help="folder for the figures and report.html (default: RUN/report)"),
 ):
     """Figures and one self-contained HTML page: errors against ±3σ per filter, NEES with
     its χ² band, gate rejections, the measurement schedule, faults on every time axis; with
@@ -497,7 +495,7 @@ def report(
         page = make_report(run, out)
     except (FileNotFoundError, ValueError) as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     console.print(f"wrote {page} ({len(list(page.parent.glob('*.png')))} figures)")
 
 
@@ -506,7 +504,7 @@ def bench_filter_cmd(
     sats: str = typer.Option("3,6,12,25,50,100", help="comma-separated swarm sizes"),
     graph: str = typer.Option("complete", help="complete, star, chain or duplex_chain"),
     out: Path = typer.Option(Path("bench-filter.json"), "--out", "-o", help="JSON file to write"),
-    steps: Optional[int] = typer.Option(None, help="timed steps per size (default: by size)"),
+    steps: int | None = typer.Option(None, help="timed steps per size (default: by size)"),
     stacked_max_n: int = typer.Option(25, help="largest n for the stacked reference"),
 ):
     """Median ms per filter step (predict + update, one filter), fast form vs stacked reference."""
@@ -599,7 +597,7 @@ def bench_run_cmd(
 @bench_app.command("cluster")
 def bench_cluster_cmd(
     scenario: Path = typer.Option(Path("scenarios/demo.yaml"), help="scenario of the Monte Carlo runs"),
-    sets: Optional[List[str]] = SetOpt,
+    sets: list[str] | None = SetOpt,
     runs: int = typer.Option(40, min=2, help="runs per study"),
     workers: int = typer.Option(2, min=1, help="local pool processes = Dask workers (one thread each)"),
     noop_tasks: int = typer.Option(200, "--noop", min=10, help="no-op tasks for the scheduling overhead"),
@@ -628,9 +626,9 @@ def compare(
         "complete,random,random_tree,greedy,swarm_greedy,fast_swarm_greedy,logdet_greedy", help="comma-separated selection strategies"
     ),
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
-    seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
-    sets: Optional[List[str]] = SetOpt,
-    cluster: Optional[str] = ClusterOpt,
+    seed: int | None = typer.Option(None, help="base seed S (default: the scenario's)"),
+    sets: list[str] | None = SetOpt,
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Paired comparison of selection strategies over the same seeds (dissertation Table 6.1, Figure 6.3).
@@ -679,15 +677,15 @@ def links_study(
     out: Path = typer.Option(..., "--out", "-o", help="folder for links_study.json, links_study.md and the plots"),
     runs: int = typer.Option(5, "--runs", "-r", min=1, help="paired seeds per cell (run i has seed S + i in every cell)"),
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
-    seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
-    sets: Optional[List[str]] = SetOpt,
+    seed: int | None = typer.Option(None, help="base seed S (default: the scenario's)"),
+    sets: list[str] | None = SetOpt,
     full: bool = typer.Option(False, "--full", help="the full sweep: every latency × every loss rate × replay/drop, and the caps"),
-    latencies: Optional[str] = typer.Option(None, help="comma-separated latencies (s) instead of the sweep's"),
-    losses: Optional[str] = typer.Option(None, help="comma-separated Gilbert–Elliott loss rates (0..1) instead of the sweep's"),
-    loss_latency: Optional[float] = typer.Option(None, min=0.0, help="the latency (s) of the loss sweep (default sweep: 2)"),
-    caps: Optional[str] = typer.Option(None, help="comma-separated fractions of the complete graph's need ('' for none)"),
-    late: Optional[str] = typer.Option(None, help="comma-separated filter.late modes (replay,drop)"),
-    cluster: Optional[str] = ClusterOpt,
+    latencies: str | None = typer.Option(None, help="comma-separated latencies (s) instead of the sweep's"),
+    losses: str | None = typer.Option(None, help="comma-separated Gilbert–Elliott loss rates (0..1) instead of the sweep's"),
+    loss_latency: float | None = typer.Option(None, min=0.0, help="the latency (s) of the loss sweep (default sweep: 2)"),
+    caps: str | None = typer.Option(None, help="comma-separated fractions of the complete graph's need ('' for none)"),
+    late: str | None = typer.Option(None, help="comma-separated filter.late modes (replay,drop)"),
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Sweep the network: latency, bursty loss and a data-rate cap below what the complete
@@ -765,10 +763,10 @@ def bench_selection_cmd(
     strategies: str = typer.Option(
         "complete,random,random_tree,greedy,swarm_greedy,fast_swarm_greedy,logdet_greedy", help="comma-separated selection strategies"
     ),
-    scenario: Optional[Path] = typer.Option(Path("scenarios/selection.yaml"), help="base scenario (n_sats is overridden; the cube grows as n^(1/3))"),
-    reps: Optional[int] = typer.Option(None, help="timed steps per case (default: 30 for n ≤ 20, else 10)"),
+    scenario: Path | None = typer.Option(Path("scenarios/selection.yaml"), help="base scenario (n_sats is overridden; the cube grows as n^(1/3))"),
+    reps: int | None = typer.Option(None, help="timed steps per case (default: 30 for n ≤ 20, else 10)"),
     out: Path = typer.Option(Path("bench-selection.json"), "--out", "-o", help="JSON file to write"),
-    sets: Optional[List[str]] = SetOpt,
+    sets: list[str] | None = SetOpt,
 ):
     """Median ms per selection step (select_for_scenario) per swarm size, budget and strategy."""
     from .bench_selection import bench_selection
@@ -790,15 +788,15 @@ def bench_selection_cmd(
 def characterize(
     pipeline: str = typer.Option(..., "--pipeline", help="mono or stereo"),
     out: Path = typer.Option(..., "--out", "-o", help="folder for the JSON table and the Figure 5.7 plots"),
-    scenario: Optional[Path] = typer.Option(None, help="take cameras, lighting and noise from this scenario's vision section"),
-    sets: Optional[List[str]] = SetOpt,
+    scenario: Path | None = typer.Option(None, help="take cameras, lighting and noise from this scenario's vision section"),
+    sets: list[str] | None = SetOpt,
     ranges: str = typer.Option("3,6,9,12,15,18,21,24,27,30,33", help="comma-separated ranges (m)"),
     orientations: int = typer.Option(6, min=1, help="target attitudes (Fibonacci sphere; the dissertation: 20)"),
     suns: int = typer.Option(6, min=1, help="Sun directions (Fibonacci sphere; the dissertation: 20)"),
     illumination: str = typer.Option("solar,global", help="solar (Sun only) and/or global (Sun + ambient)"),
     seed: int = typer.Option(0, help="seed of the Monte Carlo draws"),
     workers: int = typer.Option(1, "--workers", "-w", min=1, help="parallel worker processes (each renders on its own)"),
-    cluster: Optional[str] = ClusterOpt,
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Monte Carlo error characterisation of a pose pipeline (range × attitude × Sun).
@@ -873,8 +871,8 @@ def bench_vision_cmd(
 
 @scenario_app.command("show")
 def scenario_show(
-    scenario: Optional[Path] = typer.Argument(None, help="scenario YAML (default: all defaults)"),
-    sets: Optional[List[str]] = SetOpt,
+    scenario: Path | None = typer.Argument(None, help="scenario YAML (default: all defaults)"),
+    sets: list[str] | None = SetOpt,
 ):
     """Print the fully resolved scenario (every default filled in) as YAML."""
     import yaml

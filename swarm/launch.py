@@ -394,10 +394,8 @@ class LocalSwarm:
         if not interrupted and rec is not None and world is not None and world.poll() is not None:
             # The recorder finishes by itself after the world's last clock (once the bus
             # is quiet); give it that chance before anything is stopped.
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 rec.wait(timeout=_RECORDER_GRACE_S)
-            except subprocess.TimeoutExpired:
-                pass
         grace = _INTERRUPT_GRACE_S if interrupted else _ROLE_GRACE_S
         producers = ["world", "selector", *(n for n in self.procs if n.startswith("agent-"))]
         self._terminate(producers, grace)
@@ -448,10 +446,8 @@ def _kill_group(p: subprocess.Popen, sig: int) -> None:
     """Signal a running child's process group (each child leads its own session, so its
     group id is its pid). A child already reaped is left alone: its pid is free for reuse."""
     if p.poll() is None:
-        try:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(p.pid, sig)
-        except (ProcessLookupError, PermissionError):
-            pass
 
 
 def _readline(stream, timeout: float, cancelled=lambda: False) -> bytes | None:

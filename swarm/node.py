@@ -4,6 +4,7 @@ with malformed-message accounting, and the command-line scaffolding of a role's 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import logging
 import signal
@@ -56,7 +57,7 @@ class Node:
         self._routers_lock = threading.Lock()
         self.session = open_session(bus)
         self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
-        self.token = None
+        self.token: zenoh.LivelinessToken | None = None
         if announce:
             self.announce()
 
@@ -155,10 +156,8 @@ class Node:
 
     def _undeclare_all(self) -> None:
         for h in self._handles:
-            try:
+            with contextlib.suppress(Exception):
                 h.undeclare()
-            except Exception:
-                pass
         self._handles.clear()
         try:
             if self.token is not None:
@@ -360,10 +359,8 @@ class Node:
                 return False
             return True
         finally:
-            try:
+            with contextlib.suppress(Exception):
                 sub.undeclare()
-            except Exception:
-                pass
 
     def close(self) -> None:
         self._undeclare_all()

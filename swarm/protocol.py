@@ -16,8 +16,9 @@ as that sequence, and the generator's frame is the machine's state.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
-from typing import Any, Callable, Generator, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
 __all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock", "RunBroken", "BusLost", "WorldLost",
            "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "Outbox"]

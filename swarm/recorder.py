@@ -25,12 +25,26 @@ python -m swarm.recorder --run RUN --out FILE.mcap [--flush-every-s 1] [bus flag
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import threading
 import time
 
-from .bus.messages import MODELS, BusGap, Keys, Liveliness, Malformed, MessageError, check_key, decode, file_descriptor_set, parse_key, prepare, replace
+from .bus.messages import (
+    MODELS,
+    BusGap,
+    Keys,
+    Liveliness,
+    Malformed,
+    MessageError,
+    check_key,
+    decode,
+    file_descriptor_set,
+    parse_key,
+    prepare,
+    replace,
+)
 from .bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
 from .mcaplog import CheckpointWriter
 
@@ -254,14 +268,10 @@ class Recorder:
         if self.gaps:
             self._write_gaps(-1)
         for h in [*self._subs, self._transports]:
-            try:
+            with contextlib.suppress(Exception):
                 h.undeclare()
-            except Exception:
-                pass
-        try:
+        with contextlib.suppress(Exception):
             self.token.undeclare()
-        except Exception:
-            pass
         self.session.close()
         if self.foxglove is not None:
             self._derive_scene()

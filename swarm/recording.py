@@ -13,8 +13,8 @@ import numpy as np
 
 from swarmcore.links import LinkCounters
 from swarmcore.metrics import pose_errors, pose_nees, summarize
-from swarmcore.sim import late_summary, link_summary
 from swarmcore.scenario import Scenario
+from swarmcore.sim import late_summary, link_summary
 
 from .bus.convert import array, pairs_from_select
 from .bus.messages import BusGap, Liveliness, MessageError, as_dict, decode, parse_key
@@ -54,7 +54,7 @@ class Recording:
     link_latencies: list = field(default_factory=list)  # (sender, receiver, sent step, latency s)
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
     rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
-    bus: "BusTimes | None" = None  # every bus message's sender, kind, step, publish and receive time
+    bus: BusTimes | None = None  # every bus message's sender, kind, step, publish and receive time
     gaps: list = field(default_factory=list)  # the recorder's bus gaps (no router reachable)
     resent: int = 0  # messages recorded twice (sent again after a bus gap; read once)
 

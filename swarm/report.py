@@ -27,11 +27,11 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy.stats import chi2  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from scipy.stats import chi2
 
-from swarmcore import quat  # noqa: E402
+from swarmcore import quat
 
 from .outputs import NO_DATA, no_data_reason, number  # noqa: E402
 

@@ -63,8 +63,8 @@ def _summary(out):
 
 
 def _sim(n, sets):
-    from swarm.scenario_files import load_scenario
     from swarm.models import measurement_model
+    from swarm.scenario_files import load_scenario
     from swarmcore.sim import simulate
 
     sc = load_scenario(ROOT / "scenarios" / "demo.yaml", [f"n_sats={n}", *sets])
@@ -217,10 +217,11 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
     everyone else's stay small; the namespace is clean afterwards; and, lockstep, the
     numbers are exactly the undisturbed run's (TCP resends what netem drops; the delay only
     slows the run)."""
+    from swarm_harness import within_3sigma_fraction
+
     from swarm.faults import netem_state
     from swarm.launch import free_port
     from swarm.recording import load_recording
-    from swarm_harness import within_3sigma_fraction
     from swarmcore.scenario import Scenario
 
     port = str(free_port())

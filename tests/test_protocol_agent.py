@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from protocol_driver import Driver, FakeClock
+
 from sat_agent.protocol import AgentProtocol
 from swarm.bus.convert import batch_msg, detections, full_estimate_msg, sensors_msg
 from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Keys

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from protocol_driver import Driver, FakeClock
+
 from swarm.bus.convert import matrix, select_msg
 from swarm.bus.messages import Estimate, Fault, Health, Keys
 from swarm.protocol import Event
@@ -50,7 +50,7 @@ def started_world(sc: Scenario, **kw) -> tuple[Driver, WorldProtocol, FakeClock]
 
 def test_step_publishes_truth_clock_sensors_and_cameras_then_waits_for_every_estimate():
     sc = scenario()
-    d, w, _ = started_world(sc)
+    d, _w, _ = started_world(sc)
     keys = [s.key for s in d.take()]
     assert keys[:2] == [K.truth(), K.clock()]
     assert keys[2:5] == [K.sensors(0), K.sensors(1), K.sensors(2)]
@@ -84,7 +84,7 @@ def test_a_dead_agent_is_not_waited_for_and_gets_nothing():
 
 def test_a_silent_agent_costs_one_step_timeout_then_the_world_moves_on():
     sc = scenario(emulator={"step_timeout_s": 5.0})
-    d, _w, clock = started_world(sc)
+    d, _w, _clock = started_world(sc)
     d.take()
     d.feed(est(0, 0), est(1, 0))
     d.elapse(4.9)

@@ -113,7 +113,6 @@ def test_report_of_a_sim_run_with_links_has_the_link_section(tmp_path):
 @pytest.mark.integration
 def test_report_of_a_recording_with_links_shows_latencies_and_queues(tmp_path):
     import numpy as np
-
     from swarm_harness import run_swarm, scenario
 
     links = {"enabled": True, "latency": {"fixed_s": 1.0, "jitter": {"distribution": "uniform", "scale_s": 1.0}},

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -305,8 +305,7 @@ class WorldProtocol:
             yield Send(self.keys.fault(), cmd)
             t = spec.target
             if spec.action == "camera":
-                for s in self._on_fault(cmd):
-                    yield s
+                yield from self._on_fault(cmd)
             elif spec.action in AGENT_PROCESS_FAULTS and spec.action != "restart-agent":
                 yield Wait(lambda: t not in self.alive_agents, em.step_timeout_s)
             elif spec.action == "restart-agent":

@@ -56,9 +56,7 @@ import threading
 import time
 
 import numpy as np
-from google.protobuf.message import DecodeError
-
-from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
+from google.protobuf.message import DecodeError, Message
 
 from swarm.v1.claim_pb2 import Claim
 from swarm.v1.clock_pb2 import Clock
@@ -73,6 +71,7 @@ from swarm.v1.recording_pb2 import BusGap, Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
 from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
 from swarm.v1.truth_pb2 import Truth
+from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
 
 SCHEMA_VERSION = 1
 MAX_SAT_ID = 10_000
@@ -137,7 +136,7 @@ class MessageError(ValueError):
     """A payload that is not a valid message of the expected kind."""
 
 
-MODELS: dict[str, type] = {
+MODELS: dict[str, type[Message]] = {
     "clock": Clock,
     "sensors": Sensors,
     "cam": CameraOutput,
@@ -693,6 +692,7 @@ def check_key(key: str, kind: str, sat: int | None, msg) -> None:
     field = _OWNER_FIELD.get(kind)
     if sat is not None and field is not None and getattr(msg, field) != sat:
         raise MessageError(f"key says satellite {sat}, message {field} says {getattr(msg, field)}")
+    want: tuple[str, ...]
     if kind in _WORLD_KEYS or (kind == "full_est" and "/init/" in key):
         want = ("world",)
     elif kind in ("meas", "est", "health", "full_est"):
