@@ -55,12 +55,13 @@ def _role(name: str) -> str:
 def _one(case: str, i: int, workdir: Path, down_s: float) -> dict:
     import zenoh
 
+    from swarmcore.scenario import Scenario
+
     from .bus.messages import Clock, Keys
     from .bus.session import BusConfig
     from .faults import send_fault
     from .launch import LocalSwarm
     from .mcaplog import iter_messages
-    from swarmcore.scenario import Scenario
 
     sc = Scenario(name=f"bench-router-{case}", seed=i, n_sats=4, duration_s=20,
                   selection={"strategy": "greedy", "budget": 4}, emulator={"step_timeout_s": 20.0})

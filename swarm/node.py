@@ -364,10 +364,8 @@ class Node:
 
     def close(self) -> None:
         self._undeclare_all()
-        try:
+        with contextlib.suppress(Exception):
             self._transport_listener.undeclare()
-        except Exception:
-            pass
         self.session.close()
 
 

@@ -119,7 +119,7 @@ class Outbox:
                 self.sends.append(action)
             reply = yield action
 
-    def again(self, ev: "Event") -> list[Send]:
+    def again(self, ev: Event) -> list[Send]:
         """The sends to repeat for event ``ev`` (none unless the bus came back)."""
         if ev.kind == "resync" or (ev.kind == "bus" and ev.alive):
             return list(self.sends)

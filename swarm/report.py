@@ -33,7 +33,7 @@ from scipy.stats import chi2
 
 from swarmcore import quat
 
-from .outputs import NO_DATA, no_data_reason, number  # noqa: E402
+from .outputs import NO_DATA, no_data_reason, number
 
 __all__ = ["RunData", "LinkData", "load_run", "make_report"]
 

@@ -201,7 +201,7 @@ def test_bus_back_sends_the_step_again_and_a_held_token_holds_the_step():
     world sends its current step's messages again, the same ones; while a token is only
     held (gone, not yet known whether for good) the step does not end."""
     sc = scenario()
-    d, w, _ = started_world(sc)
+    d, _w, _ = started_world(sc)
     first = d.take()
     d.feed(Event("", "bus", None, alive=False))
     assert not d.sent, "nothing to send while the bus is down"

@@ -21,6 +21,8 @@ import psutil
 import pytest
 import yaml
 import zenoh
+from swarm_harness import scenario
+from test_run_signals import _gone, _read_json, wait_until
 
 from swarm.bus.messages import Clock, Keys
 from swarm.bus.session import BusConfig
@@ -28,9 +30,6 @@ from swarm.faults import send_fault
 from swarm.launch import LocalSwarm
 from swarm.recording import load_recording
 from swarmcore.sim import simulate
-
-from swarm_harness import scenario
-from test_run_signals import _gone, _read_json, wait_until
 
 pytestmark = pytest.mark.integration
 
