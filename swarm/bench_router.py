@@ -7,7 +7,8 @@ the fault at step 8, sent as ``swarm fault`` sends it):
 - ``restart``: one router, SIGKILLed and started again on the same endpoint after
   ``down_s`` (restart-router). *notice* = a role's "bus lost" log line − the kill;
   *back* = its "bus back" log line − the new router's "listening" log line; *resumed* =
-  the recorder's first clock of a new step − that same moment.
+  the recorder's receipt of the first clock of a step the world had not begun when the
+  router was killed − that same moment.
 - ``failover``: two meshed routers, router 0 SIGKILLed for good (kill-router). The roles
   connected to it notice and are on router 1 again; *back* counts from the kill.
 
@@ -105,15 +106,12 @@ def _one(case: str, i: int, workdir: Path, down_s: float) -> dict:
             row["notice_ms"][log.stem] = round((lost - t_kill) * 1e3, 1)
         if back is not None:
             row["back_ms"][log.stem] = round((back - t_ref) * 1e3, 1)
-    # The run resumed: the first clock of a step after the one the fault hit, as recorded.
-    last_k, resumed = None, None
-    for topic, _schema, data, log_ns, _pub in iter_messages(out / "run.mcap"):
-        if topic.endswith("/clock"):
-            k = Clock.FromString(data).k
-            if log_ns / 1e9 < t_kill:
-                last_k = k
-            elif last_k is not None and k > last_k and resumed is None:
-                resumed = log_ns / 1e9
+    # The run resumed: the recorder's first clock of a step the world had not yet published
+    # when the router was killed (publish time: the world's own Zenoh timestamp).
+    clocks = [(Clock.FromString(data).k, pub_ns / 1e9, log_ns / 1e9)
+              for topic, _schema, data, log_ns, pub_ns in iter_messages(out / "run.mcap") if topic.endswith("/clock")]
+    last_k = max((k for k, pub, _log in clocks if pub < t_kill), default=None)
+    resumed = min((log for k, _pub, log in clocks if last_k is not None and k > last_k), default=None)
     row["resumed_ms"] = None if resumed is None else round((resumed - t_ref) * 1e3, 1)
     return row
 
