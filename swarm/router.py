@@ -51,10 +51,29 @@ def main(argv=None) -> int:
     return 0
 
 
+_WORLD_GONE_S = 5.0  # the world's token gone this long (not a client failing over): the run is over
+
+
 def _watch_run(session, run: str, stop: threading.Event):
-    """Stop when the run's world has said ``done`` and no recorder is alive any more."""
-    state = {"done": False, "recorders": set()}
+    """Stop when the run's world has said ``done`` (or is gone: a broken run) and no
+    recorder is alive any more."""
+    state = {"done": False, "recorders": set(), "world": False}
     lock = threading.Lock()
+
+    def world_gone() -> None:
+        with lock:
+            if not state["world"] and not state["done"]:
+                logging.info("run %s: the world is gone", run)
+                state["done"] = True
+                check()
+
+    def on_world(sample):
+        with lock:
+            state["world"] = sample.kind == zenoh.SampleKind.PUT
+        if sample.kind != zenoh.SampleKind.PUT:
+            t = threading.Timer(_WORLD_GONE_S, world_gone)
+            t.daemon = True
+            t.start()
 
     def check():
         if state["done"] and not state["recorders"]:
@@ -86,6 +105,7 @@ def _watch_run(session, run: str, stop: threading.Event):
     return [
         session.declare_subscriber(f"swarm/{run}/clock", on_clock),
         session.liveliness().declare_subscriber(f"swarm/{run}/alive/recorder/*", on_alive, history=True),
+        session.liveliness().declare_subscriber(f"swarm/{run}/alive/world/*", on_world, history=True),
     ]
 
 
