@@ -95,7 +95,16 @@ def _force_progress() -> bool:
     return os.environ.get("SWARM_PROGRESS", "") == "1"
 
 
+def number(x, spec: str = ".3g") -> str:
+    """A value for a table: "no data" rather than nan (:func:`swarm.outputs.number`)."""
+    from .outputs import number as fmt
+
+    return fmt(x, spec)
+
+
 def _summary_table(summary: dict, title: str) -> Table:
+    from .outputs import NO_DATA, no_data_reason
+
     t = Table(title=title)
     t.add_column("error (time RMS)")
     t.add_column("self att [rad]", justify="right")
@@ -104,13 +113,10 @@ def _summary_table(summary: dict, title: str) -> Table:
     t.add_column("others pos [m]", justify="right")
     for key, label in (("rms", "full run"), ("rms_second_half", "second half")):
         r = summary[key]
-        t.add_row(
-            label,
-            f"{r['self']['att_rad']:.3g}",
-            f"{r['self']['pos_m']:.3g}",
-            f"{r['others']['att_rad']:.3g}",
-            f"{r['others']['pos_m']:.3g}",
-        )
+        t.add_row(label, *(number(r[w][u]) for w in ("self", "others") for u in ("att_rad", "pos_m")))
+    if any(number(summary[key][w][u]) == NO_DATA for key in ("rms", "rms_second_half") for w in ("self", "others")
+           for u in ("att_rad", "pos_m")):
+        t.caption = f"{NO_DATA}: {no_data_reason(summary)}"
     return t
 
 
@@ -158,7 +164,7 @@ def sim(
     if (lt := _links_table(summary)) is not None:
         console.print(lt)
     console.print(
-        f"NEES mean {summary['nees']['mean']:.2f} (dof 6) · gate accepted {summary['gate']['accepted']}, "
+        f"NEES mean {number(summary['nees']['mean'], '.2f')} (dof 6) · gate accepted {summary['gate']['accepted']}, "
         f"rejected {summary['gate']['rejected']} · filter step median "
         f"{summary['timing']['filter_step_ms_median']:.3f} ms · wrote {out}"
     )
@@ -204,7 +210,7 @@ def mc(
         "rms_second_half.others.pos_m",
         "nees.mean",
     ):
-        t.add_row(key, f"{st[key]['mean']:.4g} ± {st[key]['std']:.2g}")
+        t.add_row(key, f"{number(st[key]['mean'], '.4g')} ± {number(st[key]['std'], '.2g')}")
     console.print(t)
     console.print(f"wrote {out / 'mc.json'}")
     _report_failed([(str(f["seed"]), f["error"]) for f in res["failed"]], "runs", out, "seed")
@@ -217,11 +223,14 @@ def run(
     seed: int | None = typer.Option(None, help="override the scenario seed"),
     sets: list[str] | None = SetOpt,
     timeout: float | None = typer.Option(None, help="stop the run after this many wall seconds"),
+    routers: int = typer.Option(1, "--routers", min=1, max=2, help="Zenoh routers: 2 = two meshed routers, every role given both endpoints (fails over)"),
 ):
     """Run the swarm as real processes on a local Zenoh bus (router, recorder, world,
     selector, one agent per satellite) and compute summary.json from the recording.
 
-    While it runs, `swarm fault --run-dir OUT ...` injects faults.
+    While it runs, `swarm fault --run-dir OUT ...` injects faults. Exit status: 0, the
+    world's status, 128 + signal when interrupted, 3 when the bus was lost (no router
+    within emulator.bus_lost_after_s), 4 when the world died.
     """
     from .launch import Interrupted, LocalSwarm
     from .outputs import write_json
@@ -229,7 +238,7 @@ def run(
 
     sc = _load(scenario, sets, seed)
     try:
-        swarm = LocalSwarm(sc, out, log=lambda s: console.print(s))
+        swarm = LocalSwarm(sc, out, log=lambda s: console.print(s), routers=routers)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
         raise typer.Exit(2) from None
@@ -248,16 +257,33 @@ def run(
         finally:
             swarm.stop()
     sig = swarm.interrupted if code is None else None
-    if sig is None:
+    broken = swarm.broken if sig is None else None
+    if sig is None and broken is None:
         summary = load_recording(out / "run.mcap", sc.n_sats, sc.steps).summary(sc)
     else:
         summary = _interrupted_summary(out / "run.mcap", sc)
-        summary["interrupted"] = {"reason": sig.name, "signal": int(sig), "last_step": summary["steps"] - 1, "steps_planned": sc.steps}
+        last = _last_step(summary)
+        if sig is not None:
+            summary["interrupted"] = {"reason": sig.name, "signal": int(sig), "last_step": last, "steps_planned": sc.steps}
+        else:
+            summary["interrupted"] = {"reason": broken, "world_exit_code": code, "last_step": last, "steps_planned": sc.steps}
+    # Router faults the bus could not carry (no router left to carry the report).
+    known = {(f.get("action"), f.get("target"), f.get("phase")) for f in summary.get("faults", [])}
+    for f in swarm.router_faults:
+        if (f["action"], f["target"], f["phase"]) not in known:
+            summary.setdefault("faults", []).append({k: v for k, v in f.items() if not k.endswith("_unix_s")})
     summary["run"] = swarm.run
     summary["world_exit_code"] = code
     write_json(out / "summary.json", summary)
     if summary["steps"]:
         console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
+    if summary.get("bus_gaps"):
+        for g in summary["bus_gaps"]:
+            if g["duration_s"] is None:
+                console.print(f"bus gap: no router reachable after step {g['last_step_before']}; it never came back", highlight=False)
+            else:
+                console.print(f"bus gap: {g['duration_s']:.2f} s with no router (after step {g['last_step_before']}, "
+                              f"resumed at step {g['first_step_after']})", highlight=False)
         if (lt := _links_table(summary)) is not None:
             console.print(lt)
     if summary.get("faults"):
@@ -277,8 +303,19 @@ def run(
             highlight=False,
         )
         raise typer.Exit(128 + int(sig))
+    if broken is not None:
+        console.print(f"[bold red]BROKEN RUN[/bold red] at step {summary['interrupted']['last_step']} of {sc.steps - 1}: {broken}; "
+                      "every process stopped, the recording closed; summary.json says \"interrupted\"", highlight=False)
+        from .protocol import EXIT_BUS_LOST, EXIT_WORLD_LOST
+
+        raise typer.Exit(EXIT_BUS_LOST if code == EXIT_BUS_LOST else EXIT_WORLD_LOST)
     if code != 0:
         raise typer.Exit(code)
+
+
+def _last_step(summary: dict) -> int:
+    """The last step the recording holds an estimate of (or its last truth step)."""
+    return int(summary.get("last_estimated_step", summary["steps"] - 1))
 
 
 def _interrupted_summary(path: Path, sc) -> dict:
@@ -371,6 +408,24 @@ def fault_kill_selector(ctx: typer.Context):
 def fault_restart_selector(ctx: typer.Context):
     """Start a new selector."""
     _send_fault(ctx, action="restart-selector")
+
+
+@fault_app.command("kill-router")
+def fault_kill_router(ctx: typer.Context, router: int = typer.Argument(0, help="the router's index (0; 0 or 1 with --routers 2)")):
+    """SIGKILL a Zenoh router (`docker kill` under compose). With one router the bus is gone:
+    the run pauses, and ends broken after emulator.bus_lost_after_s; with two, clients fail over."""
+    _send_fault(ctx, action="kill-router", target=router)
+
+
+@fault_app.command("restart-router")
+def fault_restart_router(
+    ctx: typer.Context,
+    router: int = typer.Argument(0, help="the router's index (0; 0 or 1 with --routers 2)"),
+    down_s: float = typer.Option(0.0, "--down-s", min=0.0, max=3600.0, help="wall seconds the router stays down"),
+):
+    """Kill a Zenoh router and start a new one on the same endpoint (`docker restart`
+    under compose); every role reconnects and the run goes on where it was."""
+    _send_fault(ctx, action="restart-router", target=router, down_s=down_s)
 
 
 @fault_app.command("drop")
@@ -539,6 +594,31 @@ def bench_bus_cmd(
     console.print(f"wrote {out}")
 
 
+@bench_app.command("router")
+def bench_router_cmd(
+    runs: int = typer.Option(5, help="runs of each case (restart, failover)"),
+    down_s: float = typer.Option(1.0, "--down-s", help="restart case: how long the router stays down (s)"),
+    out: Path = typer.Option(Path("runs/bench/router.json"), "--out", "-o", help="JSON file to write"),
+):
+    """How long each role takes to notice a lost router and to be back on the bus (median
+    over runs): one router SIGKILLed and restarted, and two meshed routers with one killed."""
+    from .bench import machine_info
+    from .bench_router import bench_router
+    from .outputs import write_json
+
+    doc = bench_router(runs=runs, down_s=down_s, workdir=out.parent / (out.stem + "-runs"), log=lambda s: console.print(s, highlight=False))
+    write_json(out, {"machine": machine_info(), **doc})
+    for case, m in doc["medians"].items():
+        t = Table(title=f"{case}: median over {m['runs']} runs (all completed: {m['all_completed']}); "
+                        f"run resumed {m['resumed_median_ms']} ms after the router was back")
+        for col in ("role", "notice [ms]", "back on the bus [ms]", "samples"):
+            t.add_column(col, justify="right")
+        for role, v in sorted(m["roles"].items()):
+            t.add_row(role, str(v.get("notice_median_ms", "—")), str(v.get("back_median_ms", "—")), str(v["n"]))
+        console.print(t)
+    console.print(f"wrote {out}")
+
+
 def _security_modes(text: str) -> tuple[bool, ...]:
     modes = [m.strip() for m in text.split(",") if m.strip()]
     if not modes or any(m not in ("on", "off") for m in modes):
@@ -637,7 +717,7 @@ def compare(
     for s in names:
         sm = res["summary"][s]
         ratios = [f"{sm[k]['vs_random']['ratio_of_means']:.3f}" if "vs_random" in sm[k] else "—" for k in ("att_full", "pos_full")]
-        t.add_row(s, *[f"{sm[k]['mean']:.3g}" for k, _ in METRICS], *ratios, f"{sm['select_ms_median']:.2f}")
+        t.add_row(s, *[number(sm[k]["mean"]) for k, _ in METRICS], *ratios, number(sm["select_ms_median"], ".2f"))
     console.print(t)
     console.print(f"wrote {out / 'compare.md'}, {out / 'compare.json'} and {len(names)} heat maps")
     _report_failed(failed, "runs", out, "run")
@@ -721,7 +801,7 @@ def links_study(
         p, st = c["params"], c["stats"]
         t.add_row(f"{p['latency_s']:g}", f"{p['loss']:.0%}", p["late"], p["arm"] + ("" if p["budget"] is None else f" m={p['budget']}"),
                   "—" if p["rate_Bps"] is None else f"{p['rate_Bps']:.0f}",
-                  *[f"{st[k]['mean']:.3g}" for k, _ in METRICS[:2] + METRICS[4:6]], f"{st['links']['delivered_fraction']:.1%}")
+                  *[number(st[k]["mean"]) for k, _ in METRICS[:2] + METRICS[4:6]], f"{st['links']['delivered_fraction']:.1%}")
     console.print(t)
     console.print(f"{len(doc['cells'])} cells × {runs} seeds in {doc['wall_s']:.0f} s · wrote {out / 'links_study.md'}, "
                   f"{out / 'links_study.json'} and the plots")

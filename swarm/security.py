@@ -3,8 +3,9 @@
 Every process of a swarm connects to the router with its own identity: ``world``,
 ``selector``, ``recorder``, ``cli`` (``swarm fault``), ``supervisor`` (``swarm run``),
 ``observer`` (read-only tools: tests, participants of other languages), ``claimant`` (an
-agent started with ``--id auto`` before it has a satellite) and ``agent-<i>``, bound to
-satellite i. Two Zenoh features carry it, nothing hand-written on the wire:
+agent started with ``--id auto`` before it has a satellite), ``mesh`` (a router meshed
+with another: it forwards everyone's traffic, so its rules allow the run's whole key
+space) and ``agent-<i>``, bound to satellite i. Two Zenoh features carry it, nothing hand-written on the wire:
 
 - **authentication**: Zenoh's user/password authentication (``transport/auth/usrpwd``; the
   router holds a dictionary file of ``user:password`` lines). It is a challenge-response:
@@ -179,6 +180,8 @@ def apply_router_security(cfg, keys_dir: str | Path, run: str, n_sats: int, link
                          f"{' ...' if len(missing) > 5 else ''} (made for fewer satellites: `swarm keys --n-sats {n_sats}`)")
     cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(dictionary.resolve())))
     cfg.insert_json5("access_control", json.dumps(acl_config(run, n_sats, links)))
+    if (keys_dir / "mesh.json").is_file():  # what it shows a router it meshes with
+        load_credential(keys_dir / "mesh.json").apply(cfg)
     applied = []
     if "certificate" in meta:
         cfg.insert_json5("transport/link/tls/listen_certificate", json.dumps(str((keys_dir / meta["certificate"]).resolve())))

@@ -277,7 +277,7 @@ def test_replace_as_dict_and_optional_fields():
     f = M.Fault(**H, action="kill-selector", phase="command")
     assert M.opt(f, "target") is None and f.target == 0
     d = M.as_dict(M.replace(f, phase="done", detail="x"), exclude=("schema_version", "run"))
-    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None}
+    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None, "down_s": None}
     assert f.phase == "command", "replace must not touch the original"
     g = M.replace(EXAMPLES["fault"], target=None)
     assert not g.HasField("target") and EXAMPLES["fault"].target == 1

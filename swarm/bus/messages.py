@@ -73,7 +73,7 @@ from swarm.v1.health_pb2 import Health
 from swarm.v1.images_pb2 import CameraView, Images
 from swarm.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
 from swarm.v1.measurements_pb2 import MeasBatch
-from swarm.v1.recording_pb2 import Liveliness, Malformed
+from swarm.v1.recording_pb2 import BusGap, Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
 from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
 from swarm.v1.truth_pb2 import Truth
@@ -120,6 +120,7 @@ __all__ = [
     "LinkStats",
     "RejoinFate",
     "Liveliness",
+    "BusGap",
     "Malformed",
     "Keys",
     "MODELS",
@@ -562,6 +563,8 @@ def _fault(m: Fault, top: int) -> None:
         raise MessageError(f"rate: {m.rate} is not in [0, 1]")
     if m.action == "drop" and not m.HasField("rate"):
         raise MessageError("rate: a drop fault needs a rate")
+    if m.HasField("down_s") and not 0.0 <= m.down_s <= 3600.0:
+        raise MessageError(f"down_s: {m.down_s} is not in [0, 3600] s")
     if m.HasField("netem") and not 1 <= len(m.netem) <= 200:
         raise MessageError(f"netem: {len(m.netem)} characters (1-200 allowed)")
     if m.action == "netem" and not m.HasField("netem"):
@@ -926,7 +929,7 @@ def _parse_key(key: str) -> tuple[str, str, int | None]:
 
 # -- who may use which key ------------------------------------------------------------------
 #: The identities of a swarm other than the agents (``agent-<i>``, bound to satellite i).
-IDENTITIES = ("world", "selector", "recorder", "cli", "supervisor", "observer", "claimant")
+IDENTITIES = ("world", "selector", "recorder", "cli", "supervisor", "observer", "claimant", "mesh")
 
 
 class Grants(NamedTuple):
@@ -976,4 +979,7 @@ def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
                       token=(k.alive("observer"),), watch=(alive,))
     if identity == "claimant":  # an agent started with --id auto, before it has a satellite
         return Grants(query=(k.claim(),), token=(k.alive("claimant"),))
+    if identity == "mesh":  # a router meshed with this one (swarm run --routers 2): it forwards everyone's traffic
+        every = (k.everything(),)
+        return Grants(put=every, sub=every, query=every, serve=every, token=every, watch=every)
     raise ValueError(f"unknown identity {identity!r} (expected agent-<i> or one of {', '.join(IDENTITIES)})")

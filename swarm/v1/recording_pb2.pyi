@@ -25,3 +25,17 @@ class Malformed(_message.Message):
     error: str
     payload: bytes
     def __init__(self, key: _Optional[str] = ..., error: _Optional[str] = ..., payload: _Optional[bytes] = ...) -> None: ...
+
+class BusGap(_message.Message):
+    __slots__ = ("observer", "down_unix_ns", "up_unix_ns", "last_step_before", "first_step_after")
+    OBSERVER_FIELD_NUMBER: _ClassVar[int]
+    DOWN_UNIX_NS_FIELD_NUMBER: _ClassVar[int]
+    UP_UNIX_NS_FIELD_NUMBER: _ClassVar[int]
+    LAST_STEP_BEFORE_FIELD_NUMBER: _ClassVar[int]
+    FIRST_STEP_AFTER_FIELD_NUMBER: _ClassVar[int]
+    observer: str
+    down_unix_ns: int
+    up_unix_ns: int
+    last_step_before: int
+    first_step_after: int
+    def __init__(self, observer: _Optional[str] = ..., down_unix_ns: _Optional[int] = ..., up_unix_ns: _Optional[int] = ..., last_step_before: _Optional[int] = ..., first_step_after: _Optional[int] = ...) -> None: ...
