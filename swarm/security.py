@@ -56,7 +56,7 @@ from .bus.messages import IDENTITIES, Keys, grants
 
 __all__ = ["make_keys", "acl_config", "apply_router_security", "Credential", "load_credential", "agent_identities"]
 
-_IDENT_RE = re.compile(r"world|selector|recorder|cli|supervisor|observer|claimant|agent-\d+")
+_IDENT_RE = re.compile("|".join([*IDENTITIES, r"agent-\d+"]))
 
 
 def agent_identities(n_sats: int) -> list[str]:

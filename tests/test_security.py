@@ -172,7 +172,9 @@ def test_swarm_keys_makes_owner_only_credentials_and_prints_rules(tmp_path):
     assert {"passwords", "router.json", "agents.json", "claimant.json", "agent-2.json"} <= names and "agent-3.json" not in names
     assert all(stat.S_IMODE(f.stat().st_mode) == 0o600 for f in out.iterdir()) and stat.S_IMODE(out.stat().st_mode) == 0o700
     users = [line.split(":")[0] for line in (out / "passwords").read_text().splitlines()]
-    assert len(set(users)) == len(users) == 10
+    from swarm.bus.messages import IDENTITIES
+
+    assert sorted(users) == sorted([*IDENTITIES, "agent-0", "agent-1", "agent-2"])
     cred = json.loads((out / "agent-2.json").read_text())
     assert cred["user"] == "agent-2" and json.loads((out / "agents.json").read_text())["2"] == cred["password"]
     again = cli.invoke(app, run)
