@@ -764,7 +764,15 @@ def characterize(
     def log(m):
         console.print(m, highlight=False)
 
-    vision = None if scenario is None else _load(scenario, sets).vision
+    vision = None
+    if scenario is not None:
+        from swarmvision.characterize import flown_geometry
+
+        sc = _load(scenario, sets)
+        vision = sc.vision
+        fg = flown_geometry(sc)
+        log(f"{sc.name} flies ranges {fg['range_m'][0]:.1f}–{fg['range_m'][2]:.1f} m (median {fg['range_m'][1]:.1f}), "
+            f"Sun angles {fg['sun_deg'][0]:.0f}–{fg['sun_deg'][2]:.0f}°: the design should cover them")
     store = ResultStore(out / "results.jsonl", resume=resume)
     try:
         with _study(open_executor, workers, cluster) as ex, _progress() as prog:
@@ -790,7 +798,8 @@ def characterize(
 
 @app.command("fit-noise")
 def fit_noise(
-    table: Path = typer.Argument(..., help="a characterization JSON with its samples (swarm characterize --out DIR)"),
+    table: Path = typer.Argument(..., help="a characterization JSON (or .json.gz) with its samples (swarm characterize "
+                                 "--out DIR; shipped: swarmvision/data/*-samples.json.gz)"),
     out: Path = typer.Option(..., "--out", "-o", help="error-model JSON to write (vision.covariance.model)"),
     residuals: Optional[List[Path]] = typer.Option(
         None, "--residuals", help="measurements.npz of runs (swarm sim --measurements): the temporal inflation τ "
@@ -811,12 +820,17 @@ def fit_noise(
         console.print(m, highlight=False)
 
     try:
-        res = json.loads(Path(table).read_text())
+        raw = Path(table).read_bytes()
+        if Path(table).suffix == ".gz":
+            import gzip
+
+            raw = gzip.decompress(raw)
+        res = json.loads(raw)
         if "samples" not in res:
             raise ValueError(f"{table}: no samples (a shipped statistics-only table?): run swarm characterize")
         m = fit_error_model(res, illumination, log=log)
-    except (OSError, ValueError, KeyError) as e:
-        console.print(f"[red]error:[/red] {e}")
+    except (OSError, ValueError, KeyError, EOFError) as e:
+        console.print(f"[red]error:[/red] {table}: {e}")
         raise typer.Exit(2) from e
     ss = [s for s in res["samples"] if s.get("ok") and s.get("q") and s["illumination"] == m.meta["illumination"]]
     plots = [plot_error_model(m, [s["q"] for s in ss], np.array([s["err"] for s in ss]), out.with_name(out.stem + "-fit.png"),
