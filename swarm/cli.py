@@ -806,6 +806,12 @@ def fit_noise(
         "per axis from their normalised errors' autocorrelation (repeatable)"),
     illumination: Optional[str] = typer.Option(None, help="the samples' illumination to fit (default: the first)"),
     max_lag: int = typer.Option(10, min=1, help="longest lag of the autocorrelation (steps)"),
+    window: Optional[int] = typer.Option(
+        None, min=2, help="the filter's memory W (steps): τ is the variance factor of a W-step mean "
+        "(Bartlett weights) instead of the sum of the positive autocorrelations"),
+    scale_from_residuals: bool = typer.Option(
+        False, help="also re-centre each axis's σ on the runs' errors (median (e/σ)² = χ²₁ median), keeping the "
+        "characterisation's dependence on the features"),
 ):
     """Fit the log-linear measurement-noise model of a pose pipeline from characterisation
     samples (and its temporal inflation from runs' residuals); write it and its plots."""
@@ -839,9 +845,22 @@ def fit_noise(
         from swarmvision.error_model import autocorrelation
         from swarmvision.residuals import normalised_series
 
+        runs = [read_residuals(p) for p in residuals]
+        if scale_from_residuals:
+            from swarmvision.error_model import CHI2_1_MEDIAN
+
+            E = np.concatenate([rr["err"] for rr in runs])
+            V = np.concatenate([m.var_C_single(rr["q"]) for rr in runs])
+            z2 = E**2 / V
+            ok = np.all(np.isfinite(z2), axis=1)
+            shift = np.log(np.median(z2[ok], axis=0) / CHI2_1_MEDIAN)
+            m.coef[:, 0] += shift
+            m.min_var = m.min_var * np.exp(shift)
+            m.max_var = m.max_var * np.exp(shift)
+            m.meta["flight_scale"] = {"runs": [str(p) for p in residuals], "var_factor": np.exp(shift).tolist()}
+            log(f"re-centred on the runs' errors: variance × {'/'.join(f'{x:.3g}' for x in np.exp(shift))}")
         series, per_run, allq, allE, allV = [], [], [], [], []
-        for p in residuals:
-            rr = read_residuals(p)
+        for p, rr in zip(residuals, runs, strict=True):
             v = m.var_C_single(rr["q"])
             series += normalised_series(rr, v)
             st = summarize_residuals(rr, v, max_lag)
@@ -850,9 +869,10 @@ def fit_noise(
             allq += rr["q"]
             allE.append(rr["err"])
             allV.append(v)
-        ac = autocorrelation(series, max_lag)
+        ac = autocorrelation(series, max_lag, window)
         m.temporal_inflation = np.maximum(np.asarray(ac["tau"]), 1.0)
-        m.meta["temporal"] = {"runs": per_run, "lag1": ac["lag1"], "tau": ac["tau"], "max_lag": max_lag}
+        m.meta["temporal"] = {"runs": per_run, "lag1": ac["lag1"], "tau": ac["tau"], "max_lag": max_lag, "window": window,
+                              "rho": ac["rho"]}
         log("in flight, normalised by the fitted σ (one measurement alone): " + "; ".join(
             f"{r['run']}: n {r['n']}, mean (e/σ)² {'/'.join(f'{x:.2f}' for x in r['mean_z2'])}" for r in per_run))
         log(f"lag-1 autocorrelation {'/'.join(f'{x:.2f}' for x in ac['lag1'])} → temporal inflation τ "

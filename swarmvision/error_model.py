@@ -255,14 +255,20 @@ def fit_from_samples(samples: list[dict], pipeline: str, camera: dict, features:
     return ErrorModel(pipeline, dict(camera), names, coef, np.ones(6), lo, hi, meta)
 
 
-def autocorrelation(series: list[np.ndarray], max_lag: int = 10) -> dict:
+def autocorrelation(series: list[np.ndarray], max_lag: int = 10, window: int | None = None) -> dict:
     """Autocorrelation of normalised errors pooled over sequences.
 
     ``series``: per (observer, target) pair an (T, 6) array of normalised errors ``e/σ`` at
     consecutive steps (NaN where no measurement). ``ρ_l = Σ z_t z_{t+l} / Σ z_t²`` over the
     pairs present at both steps, per axis (not de-meaned: a persistent bias is exactly the
     correlation a filter must not average away). ``tau`` = 1 + 2 Σ ρ_l, summed while ρ_l
-    stays positive (the initial positive sequence, Geyer 1992), at least 1."""
+    stays positive (the initial positive sequence, Geyer 1992), at least 1. With
+    ``window`` W (steps; the filter's memory): the variance factor of a W-step mean,
+    ``τ_W = 1 + 2 Σ_{l<W} (1 − l/W) ρ_l`` (Bartlett weights), at least 1 — what matters
+    for a filter that averages about W steps of measurements, when ρ does not die out
+    (a bias that persists as long as the geometry)."""
+    if window is not None:
+        max_lag = max(max_lag, int(window) - 1)
     rho = np.full((max_lag + 1, 6), np.nan)
     for lag in range(max_lag + 1):
         num = np.zeros(6)
@@ -278,9 +284,14 @@ def autocorrelation(series: list[np.ndarray], max_lag: int = 10) -> dict:
         rho[lag] = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.nan)
     tau = np.ones(6)
     for k in range(6):
+        if window is not None:
+            lags = np.arange(1, int(window))
+            r = np.nan_to_num(rho[lags, k])
+            tau[k] = max(1.0, 1.0 + 2.0 * float(np.sum((1.0 - lags / window) * r)))
+            continue
         for lag in range(1, max_lag + 1):
             r = rho[lag, k]
             if not np.isfinite(r) or r <= 0:
                 break
             tau[k] += 2 * r
-    return {"rho": rho.tolist(), "lag1": rho[1].tolist(), "tau": tau.tolist()}
+    return {"rho": rho.tolist(), "lag1": rho[1].tolist(), "tau": tau.tolist(), "window": window}

@@ -155,3 +155,34 @@ def test_pose_estimator_attaches_the_fitted_model(tmp_path):
     cfg.covariance = cfg.covariance.model_copy(update={"model": str(tmp_path / "missing.json")})
     with pytest.raises(ValueError, match="no error model"):
         VisionPoseEstimator(cfg, 4, 0.2, 0, 1e-3)
+
+
+@pytest.mark.render
+@pytest.mark.slow
+def test_rendered_stereo_run_attaches_the_model_and_its_errors_fit_it():
+    """stereo-4sat-short cut to 3 satellites and 4 steps: every stereo measurement is
+    recorded with the R the shipped model attaches (× τ), and its error against the truth,
+    in units of the σ of one measurement alone, is neither far above nor far below 1."""
+    from pathlib import Path
+
+    from swarm.models import simulate_scenario
+    from swarm.scenario_files import load_scenario
+    from swarmvision.covariance import floor_cov, resolve_model_path
+    from swarmvision.residuals import residuals, summarize_residuals
+
+    root = Path(__file__).resolve().parents[1]
+    sc = load_scenario(root / "scenarios" / "stereo-4sat-short.yaml", ["n_sats=3", "duration_s=4"])
+    records: list = []
+    res = simulate_scenario(sc, measurements=records)
+    assert len(records) >= 0.8 * int(res.schedule.sum())
+    cam = records[0]["q"]
+    m = load_model(resolve_model_path(sc.vision.covariance.model, "stereo", {"width_px": 1024, "height_px": 1024,
+                                                                          "focal_px": 1440.0, "baseline_m": 0.5}))
+    want = np.array([np.diag(floor_cov(np.diag(m.var_C(rc["q"])), sc.vision.covariance)) for rc in records])
+    np.testing.assert_allclose([rc["var_C"] for rc in records], want)
+    assert cam["fitness"] > 0 and cam["n_points"] >= sc.vision.stereo.min_points
+    rr = residuals(records, res.truth, res.t, sc.orbit.mean_motion_rad_s)
+    assert np.nanmax(np.abs(rr["err"][:, 3:])) < 1.0  # metres: the truth residuals are in the right frame
+    st = summarize_residuals(rr, m.var_C_single(rr["q"]))
+    for x in st["mean_z2_clipped"]:
+        assert 0.05 < x < 5.0
