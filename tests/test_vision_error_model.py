@@ -34,14 +34,14 @@ def _random_quantities(rng, n):
 def test_fit_recovers_known_coefficients():
     rng = np.random.default_rng(1)
     names = FEATURES["stereo"]
-    qs = _random_quantities(rng, 60000)
+    qs = _random_quantities(rng, 30000)
     X = feature_matrix(names, qs)
     true = rng.normal(0, 0.5, size=(6, len(names)))
     true[:, 0] = np.log([1e-4, 1e-4, 4e-5, 1e-4, 1e-4, 9e-4])
     sig = np.sqrt(np.exp(X @ true.T))
     E = sig * rng.standard_normal(sig.shape)
     coef, diag = fit(X, E, ridge=0.0, calibrate="harvey")
-    # log e² = log σ² + log z²: the noise of log z² is 2.2 (its std), over 60000 samples (the collinear
+    # log e² = log σ² + log z²: the noise of log z² is 2.2 (its std), over 30000 samples (the collinear
     # ones — intercept, los², fitness — are the loosest)
     # every coefficient comes back within a few hundredths.
     np.testing.assert_allclose(coef, true, atol=0.15)
@@ -125,6 +125,20 @@ def test_autocorrelation_inflation_makes_a_filter_of_correlated_errors_consisten
 
     assert nees(1.0) > 4.0
     assert 0.7 < nees(tau) < 1.5
+
+
+def test_windowed_inflation_of_a_persistent_bias():
+    """Errors that are half a per-pair bias, half white noise: ρ_l ≈ 0.5 at every lag,
+    the positive-sequence sum would grow without bound, the W-step factor is 1 + 0.5 (W − 1)
+    — the variance of a W-step mean of such errors, checked directly."""
+    rng = np.random.default_rng(4)
+    pairs, T, c, W = 400, 60, 0.5, 20
+    z = np.sqrt(c) * rng.standard_normal((pairs, 1, 6)) + np.sqrt(1 - c) * rng.standard_normal((pairs, T, 6))
+    ac = autocorrelation(list(z), max_lag=30, window=W)
+    np.testing.assert_allclose(np.array(ac["rho"])[1:20].mean(0), c, atol=0.05)
+    np.testing.assert_allclose(ac["tau"], 1 + c * (W - 1), rtol=0.1)
+    var_of_mean = z[:, :W].mean(axis=1).var(axis=0) * W  # in units of one error's variance
+    np.testing.assert_allclose(ac["tau"], var_of_mean, rtol=0.2)
 
 
 def test_pose_estimator_attaches_the_fitted_model(tmp_path):
