@@ -126,7 +126,7 @@ class ErrorModel:
     def var_C(self, qs: list[dict] | dict) -> np.ndarray:
         """(N, 6) camera-frame variances (or (6,) for one measurement's quantities)."""
         one = isinstance(qs, dict)
-        X = feature_matrix(self.features, [qs] if one else qs)
+        X = feature_matrix(self.features, [qs] if isinstance(qs, dict) else qs)
         v = np.clip(np.exp(np.clip(X @ self.coef.T, -60.0, 60.0)), self.min_var, self.max_var)
         v = v * np.asarray(self.temporal_inflation, float)
         return v[0] if one else v

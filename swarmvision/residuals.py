@@ -87,8 +87,9 @@ def write_residuals(res: dict, path) -> None:
     keys = sorted({k for q in qs for k in q if k != "los_Bj"})
     cols = {f"q_{k}": np.array([np.nan if q.get(k) is None else float(q[k]) for q in qs], float) for k in keys}
     los = np.array([q["los_Bj"] for q in qs], float).reshape(len(qs), 3)
-    np.savez_compressed(path, step=res["step"], observer=res["observer"], target=res["target"], err=res["err"],
-                        var=res["var"], q_los_Bj=los, **cols)
+    arrays: dict[str, np.ndarray] = {"step": res["step"], "observer": res["observer"], "target": res["target"],
+                                     "err": res["err"], "var": res["var"], "q_los_Bj": los, **cols}
+    np.savez_compressed(path, **arrays)  # type: ignore[arg-type]  # numpy's stub types **kwds as allow_pickle
 
 
 def read_residuals(path) -> dict:
