@@ -171,6 +171,51 @@ def test_pose_estimator_attaches_the_fitted_model(tmp_path):
         VisionPoseEstimator(cfg, 4, 0.2, 0, 1e-3)
 
 
+def test_fit_noise_command_fits_sets_tau_from_residuals_and_plots(tmp_path):
+    """`swarm fit-noise`: samples → model; a run's residuals (bias + white noise) → τ over
+    the window; the plots of the model against both."""
+    from typer.testing import CliRunner
+
+    from swarm.cli import app
+    from swarmvision.residuals import write_residuals
+
+    rng = np.random.default_rng(5)
+    names = FEATURES["stereo"]
+    qs = _random_quantities(rng, 600)
+    true = np.zeros((6, len(names)))
+    true[:, 0] = np.log(1e-4)
+    true[:, 1] = 2.0
+    sig = np.sqrt(np.exp(feature_matrix(names, qs) @ true.T))
+    cam = {"width_px": 1024, "height_px": 1024, "focal_px": 1440.0, "baseline_m": 0.5}
+    samples = [{"ok": True, "q": q, "err": (s_ * rng.standard_normal(6)).tolist(), "illumination": "solar"}
+               for q, s_ in zip(qs, sig, strict=True)]
+    table = tmp_path / "char.json"
+    table.write_text(json.dumps({"pipeline": "stereo", "camera": cam, "design": {"illuminations": ["solar"]},
+                                 "samples": samples}))
+    # A run: 6 pairs × 40 steps, errors half a per-pair bias, half white noise.
+    T, P = 40, 6
+    run_q = _random_quantities(rng, T * P)
+    s_run = np.sqrt(np.exp(feature_matrix(names, run_q) @ true.T))
+    z = np.sqrt(0.5) * rng.standard_normal((P, 1, 6)) + np.sqrt(0.5) * rng.standard_normal((P, T, 6))
+    err = (z.reshape(P * T, 6)) * s_run
+    res = {"step": np.tile(np.arange(T), P), "observer": np.repeat(np.arange(P), T), "target": np.full(P * T, 7),
+           "err": err, "var": s_run**2, "q": run_q}
+    write_residuals(res, tmp_path / "measurements.npz")
+    out = tmp_path / "model.json"
+    r = CliRunner().invoke(app, ["fit-noise", str(table), "--residuals", str(tmp_path / "measurements.npz"),
+                                 "--window", "10", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    m = load_model(out)
+    np.testing.assert_allclose(m.coef[:, 1], 2.0, atol=1.0)  # 600 samples, 12 features: a loose check
+    assert np.all(np.asarray(m.temporal_inflation) > 2.5) and np.all(np.asarray(m.temporal_inflation) < 9.0)  # 1 + 0.5·9 = 5.5
+    for png in ("model-fit.png", "model-flight.png"):
+        assert (tmp_path / png).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    bad = tmp_path / "stats-only.json"
+    bad.write_text(json.dumps({"pipeline": "stereo", "camera": cam}))
+    r = CliRunner().invoke(app, ["fit-noise", str(bad), "--out", str(tmp_path / "x.json")])
+    assert r.exit_code == 2 and "no samples" in r.output
+
+
 @pytest.mark.render
 @pytest.mark.slow
 def test_rendered_stereo_run_attaches_the_model_and_its_errors_fit_it():
