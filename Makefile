@@ -1,5 +1,5 @@
 # One command to set up and run the default swarm; one to set up and run the tests.
-.PHONY: setup demo sim test test-fast bench image clean
+.PHONY: setup demo sim test test-fast check bench image clean
 
 SWARM ?= .venv/bin/swarm
 DEMO_OUT ?= runs/demo
@@ -21,13 +21,20 @@ demo: setup
 sim: setup
 	$(SWARM) sim scenarios/demo.yaml --out runs/sim
 
-# Every test, slow and container ones included (what CI runs).
+# The house rules as tools (import contracts, ruff, mypy; scripts/check.sh), then every
+# test, slow and container ones included (what CI runs).
 test: setup
+	scripts/check.sh
 	.venv/bin/python -m pytest -q
 
 # Skip the slow, rendering and container tests while iterating.
 test-fast: setup
+	scripts/check.sh
 	.venv/bin/python -m pytest -q -m "not slow and not docker"
+
+# Only the house rules: import contracts, the linter and the type checker.
+check: setup
+	scripts/check.sh
 
 bench: setup
 	.venv/bin/swarm bench filter --sats 3,6,12,25,50,100 --graph complete --out runs/bench/filter.json

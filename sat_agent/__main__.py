@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from swarm.node import bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
+from swarm.node import RunBroken, bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
 
 
 def main(argv=None) -> int:
@@ -34,6 +34,9 @@ def main(argv=None) -> int:
         if ag.done and not ag.stop.is_set():
             # Our final estimate may still be on its way: leave once the recorder has it.
             ag.linger_while_recording(sc.emulator.shutdown_linger_s + 5.0)
+    except RunBroken as exc:
+        ag.log.error("%s; exiting", exc)
+        return exc.exit_code
     finally:
         ag.close()
     return 0

@@ -36,6 +36,9 @@ class Agent(Node):
             self.subscribe(key)
         self.subscribe(self.keys.img(sat) if sc.vision.pipeline != "none" else self.keys.cam(sat))
         self.watch_liveliness(self.keys.alive("agent"))
+        self.watch_liveliness(self.keys.alive("world"))  # gone before the end: the run is broken
+        self.watch_liveliness(self.keys.alive("recorder"))  # back after a bus gap: it is sent the step again
+        self.set_bus_limits(sc.emulator)
         self.queryable(self.keys.cov(sat), self.machine.serve_cov)
         warm = getattr(estimator, "warm_up", None)
         if warm is not None:

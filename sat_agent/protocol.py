@@ -25,7 +25,7 @@ from __future__ import annotations
 import logging
 import socket
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -40,7 +40,7 @@ from swarm.bus.convert import (
     relative_from_batches,
 )
 from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Images, Keys, MeasBatch, Sensors, codec_cpu_ms, replace
-from swarm.protocol import Event, Query, Send, Wait
+from swarm.protocol import Event, Outbox, Query, Send, Wait, WorldLost
 from swarmcore.agent import AgentFilter, filter_params
 from swarmcore.measurement import PoseEstimator
 from swarmcore.mekf import RelativeMeasurements, reframe
@@ -91,6 +91,9 @@ class AgentProtocol:
         self.late_used = self.late_dropped = self.replayed_steps = 0
         self.last_step = -1  # the last step this agent has processed (updated at)
         self.done = False
+        self.world_seen = False
+        self.outbox = Outbox(skip_keys=("/fault",))  # this step's messages, sent again when the bus comes back
+        self._batch_seen: dict[int, set[int]] = {}  # step → observers whose batch came (a copy sent again is no news)
 
     @property
     def est(self):
@@ -114,8 +117,15 @@ class AgentProtocol:
 
     def handle(self, ev: Event) -> list[Send]:
         k: int = getattr(ev.msg, "k", -1)
+        if ev.kind in ("bus", "resync"):
+            return self.outbox.again(ev)
         if ev.kind == "alive":
-            if ev.sat is not None and ev.sat != self.i:
+            if ev.role == "world":
+                if ev.alive:
+                    self.world_seen = True
+                elif self.world_seen and not self.done:
+                    raise WorldLost(f"{self.name}: the world is gone before the end of the run (last step {self.last_step})")
+            elif ev.role in (None, "agent") and ev.sat is not None and ev.sat != self.i:
                 (self.peers_alive.add if ev.alive else self.peers_alive.discard)(ev.sat)
         elif ev.kind == "clock":
             if ev.msg.done:
@@ -129,10 +139,16 @@ class AgentProtocol:
         elif ev.kind == "img":
             self.imgs[k] = ev.msg
         elif ev.kind == "rx":
+            if k in self.rx_steps or k < self.last_step - 1:
+                return []  # a delivery sent again after the bus came back
             self.rx_steps.add(k)
             self.rx_items.extend(it.batch for it in ev.msg.items if it.batch.observer != self.i)
         elif ev.kind == "meas":
             if ev.msg.observer != self.i:
+                seen = self._batch_seen.setdefault(k, set())
+                if ev.msg.observer in seen:
+                    return []  # a copy sent again after the bus came back
+                seen.add(ev.msg.observer)
                 if k <= self.last_step:
                     self.batches_late += 1
                 else:
@@ -283,6 +299,7 @@ class AgentProtocol:
 
     def step(self, k: int):
         em = self.sc.emulator
+        self.outbox.clear()
         clock = self.clocks.pop(k)
         t = clock.t_s
         timeout = em.step_timeout_s if em.time_mode == "lockstep" else 0.8 * self.sc.dt_s / em.realtime_factor
@@ -330,7 +347,7 @@ class AgentProtocol:
         self._prune(k)
 
     def _prune(self, k: int) -> None:
-        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished):
+        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished, self._batch_seen):
             for old in [s for s in store if s < k - 2]:
                 store.pop(old, None)
         self.rx_steps = {s for s in self.rx_steps if s >= k - 2}
@@ -377,6 +394,9 @@ class AgentProtocol:
         )
 
     def run(self):
+        return self.outbox.wrap(self._run())
+
+    def _run(self):
         yield from self.initialise()
         while not self.done:
             nxt = sorted(s for s in self.clocks if s > self.last_step)

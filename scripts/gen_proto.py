@@ -1,14 +1,14 @@
 #!/usr/bin/env python3
 """Generate the Python code of the bus messages from proto/swarm/v1/*.proto.
 
-The .proto files are the single source of truth; the generated ``swarm/v1/*_pb2.py`` are
-committed (so a checkout runs without a code generator) and
+The .proto files are the single source of truth; the generated ``swarm/v1/*_pb2.py`` (and their type stubs
+``*_pb2.pyi``, which the type checker reads) are committed (so a checkout runs without a code generator) and
 ``tests/test_proto_schema.py`` regenerates them and checks they are unchanged. The
 compiler is the one bundled with ``grpcio-tools`` (pinned in constraints.txt): its
 generated code matches the pinned protobuf runtime, which Debian's older protoc does
 not promise.
 
-    python scripts/gen_proto.py            # rewrite swarm/v1/*_pb2.py
+    python scripts/gen_proto.py            # rewrite swarm/v1/*_pb2.py and *_pb2.pyi
     python scripts/gen_proto.py --out DIR  # write into DIR/swarm/v1/ instead
 """
 
@@ -32,10 +32,10 @@ def generate(out: Path) -> list[Path]:
 
     (out / "swarm" / "v1").mkdir(parents=True, exist_ok=True)
     files = proto_files()
-    code = protoc.main(["grpc_tools.protoc", f"-I{PROTO}", f"--python_out={out}", *files])
+    code = protoc.main(["grpc_tools.protoc", f"-I{PROTO}", f"--python_out={out}", f"--pyi_out={out}", *files])
     if code != 0:
         raise SystemExit(f"protoc failed ({code})")
-    return [out / f.replace(".proto", "_pb2.py") for f in files]
+    return [out / f.replace(".proto", suffix) for f in files for suffix in ("_pb2.py", "_pb2.pyi")]
 
 
 def main(argv=None) -> int:

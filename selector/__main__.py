@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from swarm.node import bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
+from swarm.node import RunBroken, bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
 
 
 def main(argv=None) -> int:
@@ -17,6 +17,9 @@ def main(argv=None) -> int:
     install_term_handler(s.stop)
     try:
         s.run_loop()
+    except RunBroken as exc:
+        s.log.error("%s; exiting", exc)
+        return exc.exit_code
     finally:
         s.close()
     return 0

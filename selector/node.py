@@ -18,6 +18,9 @@ class Selector(Node):
         for key in (self.keys.fault(), self.keys.health(), self.keys.clock()):
             self.subscribe(key)
         self.watch_liveliness(self.keys.alive("agent"))
+        self.watch_liveliness(self.keys.alive("world"))  # gone before the end: the run is broken
+        self.watch_liveliness(self.keys.alive("recorder"))  # back after a bus gap: it is sent the selection again
+        self.set_bus_limits(sc.emulator)
         self.announce()
 
     def run_loop(self) -> None:

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from swarm.bus.convert import estimate_from_full, select_msg
 from swarm.bus.messages import Fault, Keys
-from swarm.protocol import Event, Query, Send, Wait
+from swarm.protocol import Event, Outbox, Query, Send, Wait, WorldLost
 from swarmcore.agent import filter_params
 from swarmcore.graphs import scenario_graph
 from swarmcore.scenario import Scenario
@@ -45,12 +45,21 @@ class SelectorProtocol:
         self.next_plan: dict[int, int] = {}  # agent → the step its latest estimate lets us plan
         self.clock_seen = False  # the run has started
         self._asked_first: int | None = None  # the agent last asked for its step-0 prior
+        self.world_seen = False
+        self.outbox = Outbox()  # the latest selection, sent again when the bus comes back
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
 
     def handle(self, ev: Event) -> list[Send]:
-        if ev.kind == "alive" and ev.sat is not None:
+        if ev.kind in ("bus", "resync"):
+            return self.outbox.again(ev)
+        if ev.kind == "alive" and ev.role == "world":
+            if ev.alive:
+                self.world_seen = True
+            elif self.world_seen and not self.done:
+                raise WorldLost("selector: the world is gone before the end of the run")
+        elif ev.kind == "alive" and ev.role in (None, "agent") and ev.sat is not None:
             (self.alive.add if ev.alive else self.alive.discard)(ev.sat)
         elif ev.kind == "est":
             m = ev.msg
@@ -80,6 +89,7 @@ class SelectorProtocol:
             est = estimate_from_full(msg, self.n)
         obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(self.camera_ok, self.alive))
         ms = (time.perf_counter() - t0) * 1e3
+        self.outbox.clear()
         yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
                                                   strategy=sc.selection.strategy, ref_agent=ref, select_ms=ms))
         self.planned.add(k)
@@ -96,6 +106,9 @@ class SelectorProtocol:
             yield from self.plan(0, ref, msg)
 
     def run(self):
+        return self.outbox.wrap(self._run())
+
+    def _run(self):
         if self.sc.selection.strategy == "none":
             log.info("the scenario takes every measurement of its graph: nothing to select")
             yield Wait(lambda: self.done, float("inf"))

@@ -5,11 +5,13 @@ from __future__ import annotations
 import platform
 import statistics
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
 from swarmcore import graphs
+from swarmcore.agent import filter_params
+from swarmcore.measurement import synthetic_batch
 from swarmcore.mekf import predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.world import (
@@ -19,8 +21,6 @@ from swarmcore.world import (
     step_truth,
     world_params,
 )
-from swarmcore.agent import filter_params
-from swarmcore.measurement import synthetic_batch
 
 __all__ = ["bench_filter", "machine_info"]
 
@@ -159,7 +159,6 @@ def bench_late(n: int = 10, history_s: float = 10.0, lags=(0, 1, 2, 5, 10), step
     ms per step when every peer batch arrives ``lag`` steps late and is replayed (0: on time),
     with a history of ``history_s``. The replay re-runs ``lag`` steps each step."""
     from swarmcore.agent import AgentFilter
-    from swarmcore.mekf import RelativeMeasurements
 
     sc = Scenario(n_sats=n, seed=seed, duration_s=float(steps))
     params, est0, inputs = _inputs(n, "complete", steps, seed)

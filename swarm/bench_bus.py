@@ -9,7 +9,6 @@ recorded clock messages (start-up excluded).
 from __future__ import annotations
 
 import json
-import statistics
 import subprocess
 import sys
 import tempfile

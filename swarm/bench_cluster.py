@@ -23,7 +23,7 @@ from __future__ import annotations
 import os
 import statistics
 import time
-from typing import Callable
+from collections.abc import Callable
 
 from swarmcore.scenario import Scenario
 
@@ -90,7 +90,7 @@ def bench_cluster(sc: Scenario, runs: int = 40, workers: int = 2, noop_tasks: in
     with LocalPool(workers) as pool, LocalDaskProcesses(workers) as c, DaskCluster(c.address) as dask:
         study(f"{local_name}, cold", pool)
         study(f"{dask_name}, cold", dask)
-        for r in range(repeats):
+        for _ in range(repeats):
             study(f"{local_name}, warm", pool)
             study(f"{dask_name}, warm", dask)
         local_noop = _noop_overhead(pool, noop_tasks)

@@ -10,13 +10,15 @@ from __future__ import annotations
 
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
 from swarmcore import graphs
 from swarmcore import selection as sel
+from swarmcore.agent import filter_params
+from swarmcore.measurement import synthetic_batch
 from swarmcore.mekf import predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.streams import stream
@@ -27,8 +29,6 @@ from swarmcore.world import (
     step_truth,
     world_params,
 )
-from swarmcore.agent import filter_params
-from swarmcore.measurement import synthetic_batch
 
 from .bench import machine_info
 from .outputs import write_json

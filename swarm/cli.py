@@ -9,7 +9,6 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
-from typing import List, Optional
 
 import typer
 from rich.console import Console
@@ -43,12 +42,12 @@ ClusterOpt = typer.Option(
 ResumeOpt = typer.Option(False, "--resume", help="keep the finished runs in OUT/results.jsonl and run only the others")
 
 
-def _load(path: Optional[Path], sets, seed=None):
+def _load(path: Path | None, sets, seed=None):
     try:
         return load_scenario(path, sets or (), seed)
     except ScenarioError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
 
 
 def _progress() -> Progress:
@@ -72,7 +71,7 @@ def _study(fn, *args, **kw):
         return fn(*args, **kw)
     except ClusterError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
 
 
 def _report_failed(rows: list[tuple[str, str]], what: str, out: Path, header: str) -> None:
@@ -96,7 +95,16 @@ def _force_progress() -> bool:
     return os.environ.get("SWARM_PROGRESS", "") == "1"
 
 
+def number(x, spec: str = ".3g") -> str:
+    """A value for a table: "no data" rather than nan (:func:`swarm.outputs.number`)."""
+    from .outputs import number as fmt
+
+    return fmt(x, spec)
+
+
 def _summary_table(summary: dict, title: str) -> Table:
+    from .outputs import NO_DATA, no_data_reason
+
     t = Table(title=title)
     t.add_column("error (time RMS)")
     t.add_column("self att [rad]", justify="right")
@@ -105,13 +113,10 @@ def _summary_table(summary: dict, title: str) -> Table:
     t.add_column("others pos [m]", justify="right")
     for key, label in (("rms", "full run"), ("rms_second_half", "second half")):
         r = summary[key]
-        t.add_row(
-            label,
-            f"{r['self']['att_rad']:.3g}",
-            f"{r['self']['pos_m']:.3g}",
-            f"{r['others']['att_rad']:.3g}",
-            f"{r['others']['pos_m']:.3g}",
-        )
+        t.add_row(label, *(number(r[w][u]) for w in ("self", "others") for u in ("att_rad", "pos_m")))
+    if any(number(summary[key][w][u]) == NO_DATA for key in ("rms", "rms_second_half") for w in ("self", "others")
+           for u in ("att_rad", "pos_m")):
+        t.caption = f"{NO_DATA}: {no_data_reason(summary)}"
     return t
 
 
@@ -139,8 +144,8 @@ def _links_table(summary: dict) -> Table | None:
 def sim(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
     out: Path = typer.Option(..., "--out", "-o", help="run folder to write"),
-    seed: Optional[int] = typer.Option(None, help="override the scenario seed"),
-    sets: Optional[List[str]] = SetOpt,
+    seed: int | None = typer.Option(None, help="override the scenario seed"),
+    sets: list[str] | None = SetOpt,
     arrays: bool = typer.Option(True, help="write truth.npz and estimates.npz"),
     measurements: bool = typer.Option(
         False, "--measurements", help="rendered scenarios: also write OUT/measurements.npz (every vision "
@@ -152,7 +157,6 @@ def sim(
     Writes OUT/summary.json, OUT/truth.npz, OUT/estimates.npz and OUT/scenario.yaml.
     """
     from .models import simulate_scenario
-
     from .outputs import write_run
 
     sc = _load(scenario, sets, seed)
@@ -180,7 +184,7 @@ def sim(
     if (lt := _links_table(summary)) is not None:
         console.print(lt)
     console.print(
-        f"NEES mean {summary['nees']['mean']:.2f} (dof 6) · gate accepted {summary['gate']['accepted']}, "
+        f"NEES mean {number(summary['nees']['mean'], '.2f')} (dof 6) · gate accepted {summary['gate']['accepted']}, "
         f"rejected {summary['gate']['rejected']} · filter step median "
         f"{summary['timing']['filter_step_ms_median']:.3f} ms · wrote {out}"
     )
@@ -196,10 +200,10 @@ def mc(
     runs: int = typer.Option(..., "--runs", "-r", min=1, help="number of runs (run i has seed S + i)"),
     out: Path = typer.Option(..., "--out", "-o", help="folder for run_XXXX/ and mc.json"),
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
-    seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
-    sets: Optional[List[str]] = SetOpt,
+    seed: int | None = typer.Option(None, help="base seed S (default: the scenario's)"),
+    sets: list[str] | None = SetOpt,
     arrays: bool = typer.Option(False, help="also write each run's npz arrays"),
-    cluster: Optional[str] = ClusterOpt,
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Monte Carlo: R runs in parallel processes (or on a Dask cluster); writes each run's
@@ -230,7 +234,7 @@ def mc(
         "rms_second_half.others.pos_m",
         "nees.mean",
     ):
-        t.add_row(key, f"{st[key]['mean']:.4g} ± {st[key]['std']:.2g}")
+        t.add_row(key, f"{number(st[key]['mean'], '.4g')} ± {number(st[key]['std'], '.2g')}")
     console.print(t)
     console.print(f"wrote {out / 'mc.json'}")
     _report_failed([(str(f["seed"]), f["error"]) for f in res["failed"]], "runs", out, "seed")
@@ -240,14 +244,17 @@ def mc(
 def run(
     scenario: Path = typer.Argument(..., help="scenario YAML file"),
     out: Path = typer.Option(..., "--out", "-o", help="run folder: run.mcap, summary.json, logs/"),
-    seed: Optional[int] = typer.Option(None, help="override the scenario seed"),
-    sets: Optional[List[str]] = SetOpt,
-    timeout: Optional[float] = typer.Option(None, help="stop the run after this many wall seconds"),
+    seed: int | None = typer.Option(None, help="override the scenario seed"),
+    sets: list[str] | None = SetOpt,
+    timeout: float | None = typer.Option(None, help="stop the run after this many wall seconds"),
+    routers: int = typer.Option(1, "--routers", min=1, max=2, help="Zenoh routers: 2 = two meshed routers, every role given both endpoints (fails over)"),
 ):
     """Run the swarm as real processes on a local Zenoh bus (router, recorder, world,
     selector, one agent per satellite) and compute summary.json from the recording.
 
-    While it runs, `swarm fault --run-dir OUT ...` injects faults.
+    While it runs, `swarm fault --run-dir OUT ...` injects faults. Exit status: 0, the
+    world's status, 128 + signal when interrupted, 3 when the bus was lost (no router
+    within emulator.bus_lost_after_s), 4 when the world died.
     """
     from .launch import Interrupted, LocalSwarm
     from .outputs import write_json
@@ -255,10 +262,10 @@ def run(
 
     sc = _load(scenario, sets, seed)
     try:
-        swarm = LocalSwarm(sc, out, log=lambda s: console.print(s))
+        swarm = LocalSwarm(sc, out, log=lambda s: console.print(s), routers=routers)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     code: int | None = 1
     # SIGINT (Ctrl-C), SIGTERM and SIGHUP interrupt the run: every process is stopped, the
     # recording closed, and the summary of the steps recorded so far marked as interrupted.
@@ -274,16 +281,33 @@ def run(
         finally:
             swarm.stop()
     sig = swarm.interrupted if code is None else None
-    if sig is None:
+    broken = swarm.broken if sig is None else None
+    if sig is None and broken is None:
         summary = load_recording(out / "run.mcap", sc.n_sats, sc.steps).summary(sc)
     else:
         summary = _interrupted_summary(out / "run.mcap", sc)
-        summary["interrupted"] = {"reason": sig.name, "signal": int(sig), "last_step": summary["steps"] - 1, "steps_planned": sc.steps}
+        last = _last_step(summary)
+        if sig is not None:
+            summary["interrupted"] = {"reason": sig.name, "signal": int(sig), "last_step": last, "steps_planned": sc.steps}
+        else:
+            summary["interrupted"] = {"reason": broken, "world_exit_code": code, "last_step": last, "steps_planned": sc.steps}
+    # Router faults the bus could not carry (no router left to carry the report).
+    known = {(f.get("action"), f.get("target"), f.get("phase")) for f in summary.get("faults", [])}
+    for f in swarm.router_faults:
+        if (f["action"], f["target"], f["phase"]) not in known:
+            summary.setdefault("faults", []).append({k: v for k, v in f.items() if not k.endswith("_unix_s")})
     summary["run"] = swarm.run
     summary["world_exit_code"] = code
     write_json(out / "summary.json", summary)
     if summary["steps"]:
         console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed} (from the recording)"))
+    if summary.get("bus_gaps"):
+        for g in summary["bus_gaps"]:
+            if g["duration_s"] is None:
+                console.print(f"bus gap: no router reachable after step {g['last_step_before']}; it never came back", highlight=False)
+            else:
+                console.print(f"bus gap: {g['duration_s']:.2f} s with no router (after step {g['last_step_before']}, "
+                              f"resumed at step {g['first_step_after']})", highlight=False)
         if (lt := _links_table(summary)) is not None:
             console.print(lt)
     if summary.get("faults"):
@@ -303,8 +327,19 @@ def run(
             highlight=False,
         )
         raise typer.Exit(128 + int(sig))
+    if broken is not None:
+        console.print(f"[bold red]BROKEN RUN[/bold red] at step {summary['interrupted']['last_step']} of {sc.steps - 1}: {broken}; "
+                      "every process stopped, the recording closed; summary.json says \"interrupted\"", highlight=False)
+        from .protocol import EXIT_BUS_LOST, EXIT_WORLD_LOST
+
+        raise typer.Exit(EXIT_BUS_LOST if code == EXIT_BUS_LOST else EXIT_WORLD_LOST)
     if code != 0:
         raise typer.Exit(code)
+
+
+def _last_step(summary: dict) -> int:
+    """The last step the recording holds an estimate of (or its last truth step)."""
+    return int(summary.get("last_estimated_step", summary["steps"] - 1))
 
 
 def _interrupted_summary(path: Path, sc) -> dict:
@@ -330,12 +365,12 @@ app.add_typer(fault_app, name="fault")
 @fault_app.callback()
 def fault_target(
     ctx: typer.Context,
-    run_dir: Optional[Path] = typer.Option(None, "--run-dir", help="the run folder of `swarm run` (has run.json)"),
+    run_dir: Path | None = typer.Option(None, "--run-dir", help="the run folder of `swarm run` (has run.json)"),
     compose: bool = typer.Option(False, "--compose", help="the swarm of `docker compose up` (docker CLI for process and network faults)"),
-    connect: Optional[str] = typer.Option(None, "--connect", help="bus endpoint (default with --compose: tcp/127.0.0.1:$SWARM_BUS_PORT or 7447)"),
-    run_id: Optional[str] = typer.Option(None, "--run", help="run id (default with --compose: $SWARM_RUN or 'compose')"),
-    project: Optional[str] = typer.Option(None, "--project", help="compose project name (default: any)"),
-    network: Optional[str] = typer.Option(None, "--network", help="compose bus network for partition/heal (default: *_bus)"),
+    connect: str | None = typer.Option(None, "--connect", help="bus endpoint (default with --compose: tcp/127.0.0.1:$SWARM_BUS_PORT or 7447)"),
+    run_id: str | None = typer.Option(None, "--run", help="run id (default with --compose: $SWARM_RUN or 'compose')"),
+    project: str | None = typer.Option(None, "--project", help="compose project name (default: any)"),
+    network: str | None = typer.Option(None, "--network", help="compose bus network for partition/heal (default: *_bus)"),
 ):
     """Where the swarm is."""
     ctx.obj = dict(run_dir=run_dir, compose=compose, connect=connect, run_id=run_id, project=project, network=network)
@@ -348,7 +383,7 @@ def _send_fault(ctx: typer.Context, **fields):
         result = send_fault(**ctx.obj, **fields)
     except (RuntimeError, ValueError, FileNotFoundError) as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     typer.echo(result)
 
 
@@ -396,6 +431,24 @@ def fault_restart_selector(ctx: typer.Context):
     _send_fault(ctx, action="restart-selector")
 
 
+@fault_app.command("kill-router")
+def fault_kill_router(ctx: typer.Context, router: int = typer.Argument(0, help="the router's index (0; 0 or 1 with --routers 2)")):
+    """SIGKILL a Zenoh router (`docker kill` under compose). With one router the bus is gone:
+    the run pauses, and ends broken after emulator.bus_lost_after_s; with two, clients fail over."""
+    _send_fault(ctx, action="kill-router", target=router)
+
+
+@fault_app.command("restart-router")
+def fault_restart_router(
+    ctx: typer.Context,
+    router: int = typer.Argument(0, help="the router's index (0; 0 or 1 with --routers 2)"),
+    down_s: float = typer.Option(0.0, "--down-s", min=0.0, max=3600.0, help="wall seconds the router stays down"),
+):
+    """Kill a Zenoh router and start a new one on the same endpoint (`docker restart`
+    under compose); every role reconnects and the run goes on where it was."""
+    _send_fault(ctx, action="restart-router", target=router, down_s=down_s)
+
+
 @fault_app.command("drop")
 def fault_drop(ctx: typer.Context, sat: int, rate: float = typer.Option(..., "--rate", min=0.0, max=1.0, help="fraction of SAT's outgoing messages lost")):
     """Lose a fraction of satellite SAT's outgoing measurement batches and estimates."""
@@ -418,11 +471,11 @@ def fault_heal(ctx: typer.Context, sat: int):
 def fault_netem(
     ctx: typer.Context,
     sat: int,
-    clear: Optional[str] = typer.Argument(None, metavar="[clear]", help="'clear' removes the impairment"),
-    delay: Optional[str] = typer.Option(None, "--delay", help="one-way delay added to what SAT sends, e.g. 200ms (s, ms, us)"),
-    jitter: Optional[str] = typer.Option(None, "--jitter", help="± spread around the delay (uniform), e.g. 50ms"),
-    loss: Optional[str] = typer.Option(None, "--loss", help="packets lost, e.g. 10%"),
-    rate: Optional[str] = typer.Option(None, "--rate", help="egress rate cap, e.g. 1mbit (bit, kbit, mbit, gbit; bps = bytes/s)"),
+    clear: str | None = typer.Argument(None, metavar="[clear]", help="'clear' removes the impairment"),
+    delay: str | None = typer.Option(None, "--delay", help="one-way delay added to what SAT sends, e.g. 200ms (s, ms, us)"),
+    jitter: str | None = typer.Option(None, "--jitter", help="± spread around the delay (uniform), e.g. 50ms"),
+    loss: str | None = typer.Option(None, "--loss", help="packets lost, e.g. 10%"),
+    rate: str | None = typer.Option(None, "--rate", help="egress rate cap, e.g. 1mbit (bit, kbit, mbit, gbit; bps = bytes/s)"),
 ):
     """Impair satellite SAT's network with Linux traffic control (compose only): `netem 3
     --delay 200ms --jitter 50ms --loss 10% --rate 1mbit`, or `netem 3 clear`."""
@@ -439,12 +492,12 @@ def fault_netem(
             args = Netem.from_cli(delay, jitter, loss, rate).args()
     except NetemError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     _send_fault(ctx, action="netem", target=sat, netem=args)
 
 
 @app.command()
-def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), out: Optional[Path] = typer.Option(None, "--out")):
+def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), out: Path | None = typer.Option(None, "--out")):
     """Salvage every complete message of a damaged recording into a clean MCAP."""
     from .mcaplog import recover as _recover
 
@@ -455,7 +508,7 @@ def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), o
 @app.command()
 def report(
     run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison / links-study folder"),
-    out: Optional[Path] = typer.Option(None, "--out", "-o", help="folder for the figures and report.html (default: RUN/report)"),
+    out: Path | None = typer.Option(None, "--out", "-o", help="folder for the figures and report.html (default: RUN/report)"),
 ):
     """Figures and one self-contained HTML page: errors against ±3σ per filter, NEES with
     its χ² band, gate rejections, the measurement schedule, faults on every time axis; with
@@ -466,7 +519,7 @@ def report(
         page = make_report(run, out)
     except (FileNotFoundError, ValueError) as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
-        raise typer.Exit(2)
+        raise typer.Exit(2) from None
     console.print(f"wrote {page} ({len(list(page.parent.glob('*.png')))} figures)")
 
 
@@ -475,7 +528,7 @@ def bench_filter_cmd(
     sats: str = typer.Option("3,6,12,25,50,100", help="comma-separated swarm sizes"),
     graph: str = typer.Option("complete", help="complete, star, chain or duplex_chain"),
     out: Path = typer.Option(Path("bench-filter.json"), "--out", "-o", help="JSON file to write"),
-    steps: Optional[int] = typer.Option(None, help="timed steps per size (default: by size)"),
+    steps: int | None = typer.Option(None, help="timed steps per size (default: by size)"),
     stacked_max_n: int = typer.Option(25, help="largest n for the stacked reference"),
 ):
     """Median ms per filter step (predict + update, one filter), fast form vs stacked reference."""
@@ -523,6 +576,31 @@ def bench_bus_cmd(
     console.print(f"wrote {out}")
 
 
+@bench_app.command("router")
+def bench_router_cmd(
+    runs: int = typer.Option(5, help="runs of each case (restart, failover)"),
+    down_s: float = typer.Option(1.0, "--down-s", help="restart case: how long the router stays down (s)"),
+    out: Path = typer.Option(Path("runs/bench/router.json"), "--out", "-o", help="JSON file to write"),
+):
+    """How long each role takes to notice a lost router and to be back on the bus (median
+    over runs): one router SIGKILLed and restarted, and two meshed routers with one killed."""
+    from .bench import machine_info
+    from .bench_router import bench_router
+    from .outputs import write_json
+
+    doc = bench_router(runs=runs, down_s=down_s, workdir=out.parent / (out.stem + "-runs"), log=lambda s: console.print(s, highlight=False))
+    write_json(out, {"machine": machine_info(), **doc})
+    for case, m in doc["medians"].items():
+        t = Table(title=f"{case}: median over {m['runs']} runs (all completed: {m['all_completed']}); "
+                        f"run resumed {m['resumed_median_ms']} ms after the router was back")
+        for col in ("role", "notice [ms]", "back on the bus [ms]", "samples"):
+            t.add_column(col, justify="right")
+        for role, v in sorted(m["roles"].items()):
+            t.add_row(role, str(v.get("notice_median_ms", "—")), str(v.get("back_median_ms", "—")), str(v["n"]))
+        console.print(t)
+    console.print(f"wrote {out}")
+
+
 @bench_app.command("run")
 def bench_run_cmd(
     sats: str = typer.Option("5,10", help="comma-separated swarm sizes"),
@@ -543,7 +621,7 @@ def bench_run_cmd(
 @bench_app.command("cluster")
 def bench_cluster_cmd(
     scenario: Path = typer.Option(Path("scenarios/demo.yaml"), help="scenario of the Monte Carlo runs"),
-    sets: Optional[List[str]] = SetOpt,
+    sets: list[str] | None = SetOpt,
     runs: int = typer.Option(40, min=2, help="runs per study"),
     workers: int = typer.Option(2, min=1, help="local pool processes = Dask workers (one thread each)"),
     noop_tasks: int = typer.Option(200, "--noop", min=10, help="no-op tasks for the scheduling overhead"),
@@ -572,9 +650,9 @@ def compare(
         "complete,random,random_tree,greedy,swarm_greedy,fast_swarm_greedy,logdet_greedy", help="comma-separated selection strategies"
     ),
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
-    seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
-    sets: Optional[List[str]] = SetOpt,
-    cluster: Optional[str] = ClusterOpt,
+    seed: int | None = typer.Option(None, help="base seed S (default: the scenario's)"),
+    sets: list[str] | None = SetOpt,
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Paired comparison of selection strategies over the same seeds (dissertation Table 6.1, Figure 6.3).
@@ -611,7 +689,7 @@ def compare(
     for s in names:
         sm = res["summary"][s]
         ratios = [f"{sm[k]['vs_random']['ratio_of_means']:.3f}" if "vs_random" in sm[k] else "—" for k in ("att_full", "pos_full")]
-        t.add_row(s, *[f"{sm[k]['mean']:.3g}" for k, _ in METRICS], *ratios, f"{sm['select_ms_median']:.2f}")
+        t.add_row(s, *[number(sm[k]["mean"]) for k, _ in METRICS], *ratios, number(sm["select_ms_median"], ".2f"))
     console.print(t)
     console.print(f"wrote {out / 'compare.md'}, {out / 'compare.json'} and {len(names)} heat maps")
     _report_failed(failed, "runs", out, "run")
@@ -623,15 +701,15 @@ def links_study(
     out: Path = typer.Option(..., "--out", "-o", help="folder for links_study.json, links_study.md and the plots"),
     runs: int = typer.Option(5, "--runs", "-r", min=1, help="paired seeds per cell (run i has seed S + i in every cell)"),
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
-    seed: Optional[int] = typer.Option(None, help="base seed S (default: the scenario's)"),
-    sets: Optional[List[str]] = SetOpt,
+    seed: int | None = typer.Option(None, help="base seed S (default: the scenario's)"),
+    sets: list[str] | None = SetOpt,
     full: bool = typer.Option(False, "--full", help="the full sweep: every latency × every loss rate × replay/drop, and the caps"),
-    latencies: Optional[str] = typer.Option(None, help="comma-separated latencies (s) instead of the sweep's"),
-    losses: Optional[str] = typer.Option(None, help="comma-separated Gilbert–Elliott loss rates (0..1) instead of the sweep's"),
-    loss_latency: Optional[float] = typer.Option(None, min=0.0, help="the latency (s) of the loss sweep (default sweep: 2)"),
-    caps: Optional[str] = typer.Option(None, help="comma-separated fractions of the complete graph's need ('' for none)"),
-    late: Optional[str] = typer.Option(None, help="comma-separated filter.late modes (replay,drop)"),
-    cluster: Optional[str] = ClusterOpt,
+    latencies: str | None = typer.Option(None, help="comma-separated latencies (s) instead of the sweep's"),
+    losses: str | None = typer.Option(None, help="comma-separated Gilbert–Elliott loss rates (0..1) instead of the sweep's"),
+    loss_latency: float | None = typer.Option(None, min=0.0, help="the latency (s) of the loss sweep (default sweep: 2)"),
+    caps: str | None = typer.Option(None, help="comma-separated fractions of the complete graph's need ('' for none)"),
+    late: str | None = typer.Option(None, help="comma-separated filter.late modes (replay,drop)"),
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Sweep the network: latency, bursty loss and a data-rate cap below what the complete
@@ -695,7 +773,7 @@ def links_study(
         p, st = c["params"], c["stats"]
         t.add_row(f"{p['latency_s']:g}", f"{p['loss']:.0%}", p["late"], p["arm"] + ("" if p["budget"] is None else f" m={p['budget']}"),
                   "—" if p["rate_Bps"] is None else f"{p['rate_Bps']:.0f}",
-                  *[f"{st[k]['mean']:.3g}" for k, _ in METRICS[:2] + METRICS[4:6]], f"{st['links']['delivered_fraction']:.1%}")
+                  *[number(st[k]["mean"]) for k, _ in METRICS[:2] + METRICS[4:6]], f"{st['links']['delivered_fraction']:.1%}")
     console.print(t)
     console.print(f"{len(doc['cells'])} cells × {runs} seeds in {doc['wall_s']:.0f} s · wrote {out / 'links_study.md'}, "
                   f"{out / 'links_study.json'} and the plots")
@@ -709,10 +787,10 @@ def bench_selection_cmd(
     strategies: str = typer.Option(
         "complete,random,random_tree,greedy,swarm_greedy,fast_swarm_greedy,logdet_greedy", help="comma-separated selection strategies"
     ),
-    scenario: Optional[Path] = typer.Option(Path("scenarios/selection.yaml"), help="base scenario (n_sats is overridden; the cube grows as n^(1/3))"),
-    reps: Optional[int] = typer.Option(None, help="timed steps per case (default: 30 for n ≤ 20, else 10)"),
+    scenario: Path | None = typer.Option(Path("scenarios/selection.yaml"), help="base scenario (n_sats is overridden; the cube grows as n^(1/3))"),
+    reps: int | None = typer.Option(None, help="timed steps per case (default: 30 for n ≤ 20, else 10)"),
     out: Path = typer.Option(Path("bench-selection.json"), "--out", "-o", help="JSON file to write"),
-    sets: Optional[List[str]] = SetOpt,
+    sets: list[str] | None = SetOpt,
 ):
     """Median ms per selection step (select_for_scenario) per swarm size, budget and strategy."""
     from .bench_selection import bench_selection
@@ -734,15 +812,15 @@ def bench_selection_cmd(
 def characterize(
     pipeline: str = typer.Option(..., "--pipeline", help="mono or stereo"),
     out: Path = typer.Option(..., "--out", "-o", help="folder for the JSON table and the Figure 5.7 plots"),
-    scenario: Optional[Path] = typer.Option(None, help="take cameras, lighting and noise from this scenario's vision section"),
-    sets: Optional[List[str]] = SetOpt,
+    scenario: Path | None = typer.Option(None, help="take cameras, lighting and noise from this scenario's vision section"),
+    sets: list[str] | None = SetOpt,
     ranges: str = typer.Option("3,6,9,12,15,18,21,24,27,30,33", help="comma-separated ranges (m)"),
     orientations: int = typer.Option(6, min=1, help="target attitudes (Fibonacci sphere; the dissertation: 20)"),
     suns: int = typer.Option(6, min=1, help="Sun directions (Fibonacci sphere; the dissertation: 20)"),
     illumination: str = typer.Option("solar,global", help="solar (Sun only) and/or global (Sun + ambient)"),
     seed: int = typer.Option(0, help="seed of the Monte Carlo draws"),
     workers: int = typer.Option(1, "--workers", "-w", min=1, help="parallel worker processes (each renders on its own)"),
-    cluster: Optional[str] = ClusterOpt,
+    cluster: str | None = ClusterOpt,
     resume: bool = ResumeOpt,
 ):
     """Monte Carlo error characterisation of a pose pipeline (range × attitude × Sun).
@@ -912,8 +990,8 @@ def bench_vision_cmd(
 
 @scenario_app.command("show")
 def scenario_show(
-    scenario: Optional[Path] = typer.Argument(None, help="scenario YAML (default: all defaults)"),
-    sets: Optional[List[str]] = SetOpt,
+    scenario: Path | None = typer.Argument(None, help="scenario YAML (default: all defaults)"),
+    sets: list[str] | None = SetOpt,
 ):
     """Print the fully resolved scenario (every default filled in) as YAML."""
     import yaml

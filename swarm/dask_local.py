@@ -14,6 +14,7 @@ scheduler is gone (``--death-timeout``), and :meth:`LocalDaskProcesses.stop` end
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import subprocess
@@ -34,10 +35,8 @@ TASK_TOPIC = "swarm-task"
 def _die_with_parent() -> None:  # runs in the child between fork and exec
     import ctypes
 
-    try:
+    with contextlib.suppress(OSError, AttributeError):
         ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
 
 
 class TaskEvents(WorkerPlugin):
@@ -110,7 +109,7 @@ class LocalDaskProcesses:
         self.workers[name] = p
         return p
 
-    def start(self) -> "LocalDaskProcesses":
+    def start(self) -> LocalDaskProcesses:
         from distributed import Client
 
         self.scheduler = self._spawn("scheduler", ["scheduler", "--host", "127.0.0.1", "--port", str(self.port), "--no-dashboard"])
@@ -156,7 +155,7 @@ class LocalDaskProcesses:
             self._tmp.cleanup()
             self._tmp = None
 
-    def __enter__(self) -> "LocalDaskProcesses":
+    def __enter__(self) -> LocalDaskProcesses:
         return self.start()
 
     def __exit__(self, *exc) -> None:

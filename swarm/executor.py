@@ -41,9 +41,10 @@ import time
 import traceback
 import uuid
 from abc import ABC, abstractmethod
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterator, Mapping
+from typing import Any
 
 __all__ = [
     "Outcome",
@@ -110,8 +111,8 @@ class Executor(ABC):
     def as_completed(self) -> Iterator[Outcome]:
         """Every task submitted so far (and not yet returned), as each finishes."""
 
-    def close(self) -> None:  # pragma: no cover - trivial
-        pass
+    def close(self) -> None:  # noqa: B027 - optional hook: most executors hold nothing to release
+        """Release what the executor holds (nothing, unless a subclass says otherwise)."""
 
     def __enter__(self):
         return self
@@ -312,7 +313,7 @@ class ResultStore:
                         self.stored[rec["key"]] = (rec["fp"], rec["result"])
                     except (ValueError, KeyError, TypeError):
                         continue
-        self._f = open(self.path, "a", encoding="utf-8")
+        self._f = open(self.path, "a", encoding="utf-8")  # noqa: SIM115 - held open for appends until close()
 
     def get(self, key: str, fp: str):
         """(True, result) when a result for this key and fingerprint is stored."""

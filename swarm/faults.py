@@ -22,29 +22,31 @@ from pathlib import Path
 
 import zenoh
 
-from swarmcore.scenario import NETWORK_FAULTS, PROCESS_FAULTS, SELECTOR_PROCESS_FAULTS
+from swarmcore.scenario import NETWORK_FAULTS, PROCESS_FAULTS, ROUTER_FAULTS, SELECTOR_PROCESS_FAULTS
 
 from .bus.messages import SCHEMA_VERSION, Fault, Keys, MessageError, opt, replace, validate
 from .bus.session import BusConfig
 from .netem import CLEAR, NO_QDISC, UNKNOWN_QDISC, netemd_args, show_script, tc_script
 from .node import Node
+from .protocol import BusLost
 
 __all__ = ["send_fault", "compose_containers", "netem_state", "netem_helper_name"]
 
 
 
-def _target(run_dir, connect, run_id, compose) -> tuple[str, str, int]:
+def _target(run_dir, connect, run_id, compose) -> tuple[list[str], str, int]:
     if run_dir is not None:
         info_file = Path(run_dir) / "run.json"
         if not info_file.is_file():
             raise FileNotFoundError(f"{info_file}: not found (is `swarm run --out {run_dir}` running?)")
         info = json.loads(info_file.read_text())
-        return info["endpoint"], info["run"], int(info["n_sats"])
+        return info.get("endpoints") or [info["endpoint"]], info["run"], int(info["n_sats"])
     if compose:
-        port = os.environ.get("SWARM_BUS_PORT", "7447")
-        return connect or f"tcp/127.0.0.1:{port}", run_id or os.environ.get("SWARM_RUN", "compose"), 10_000
+        ports = [os.environ.get("SWARM_BUS_PORT", "7447"), *([p] if (p := os.environ.get("SWARM_BUS_PORT2")) else [])]
+        eps = connect.split(",") if connect else [f"tcp/127.0.0.1:{p}" for p in ports]
+        return eps, run_id or os.environ.get("SWARM_RUN", "compose"), 10_000
     if connect and run_id:
-        return connect, run_id, 10_000
+        return connect.split(","), run_id, 10_000
     raise ValueError("give --run-dir, or --connect and --run, or --compose")
 
 
@@ -91,6 +93,20 @@ def _agent_hosts(node: Node, want: int | None, timeout: float = 10.0) -> dict[in
 
 def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | None) -> str:
     cont = compose_containers(project)
+    if cmd.action in ROUTER_FAULTS:
+        # Router 0 is service "router", router 1 "router2" (compose.routers2.yaml).
+        service = "router" if not opt(cmd, "target") else f"router{cmd.target + 1}"
+        ids = [c["ID"] for c in cont if c["service"] == service]
+        if not ids:
+            raise RuntimeError(f"no container of service {service}")
+        _docker("kill", ids[0])
+        if cmd.action == "restart-router":
+            down = float(opt(cmd, "down_s") or 0.0)
+            if down > 0:
+                time.sleep(down)  # the fault itself: the router stays down this long
+            _docker("start", ids[0])
+            return f"docker kill, then start {service} ({ids[0][:12]}) after {down:g} s"
+        return f"docker kill {service} ({ids[0][:12]})"
     if cmd.action in SELECTOR_PROCESS_FAULTS:
         ids = [c["ID"] for c in cont if c["service"] == "selector"]
     elif cmd.action == "heal":
@@ -237,11 +253,13 @@ def _bus_network(project: str | None) -> str:
 
 
 def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0, **fields) -> str:
-    endpoint, run, n = _target(run_dir, connect, run_id, compose)
+    endpoints, run, n = _target(run_dir, connect, run_id, compose)
+    endpoint = ",".join(endpoints)
+    timeout += float(fields.get("down_s") or 0.0)
     if not compose and fields.get("action") in NETWORK_FAULTS:
         raise ValueError(f"{fields['action']} needs --compose (local processes share one network)")
     try:
-        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=[endpoint], connect_timeout_ms=5000))
+        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=endpoints, connect_timeout_ms=5000))
     except zenoh.ZError as exc:
         raise RuntimeError(f"cannot reach the swarm's bus at {endpoint}: {exc}") from None
     keys = Keys(run)
@@ -273,8 +291,13 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
             raise ValueError(f"{cmd.action} needs --compose (local processes share one network)")
         node.put(keys.fault(), cmd)
         deadline = time.monotonic() + timeout
+        node.bus_lost_after_s = 10.0  # a router killed for good takes the report's way with it
         while time.monotonic() < deadline:
-            ev = node.next_event(deadline - time.monotonic())
+            try:
+                ev = node.next_event(deadline - time.monotonic())
+            except BusLost:
+                return f"{cmd.action}: sent at step {k}; no router reachable since (the bus is gone: the run stops " \
+                       "after emulator.bus_lost_after_s)"
             if ev is None:
                 break
             if ev.kind == "fault" and ev.msg.phase in ("done", "failed") and ev.msg.action == cmd.action and opt(ev.msg, "target") == opt(cmd, "target"):

@@ -168,7 +168,7 @@ class FoxgloveDeriver:
         for v in m.views:
             for side in (("",) if len(v.images_mono8) == 1 else ("/left", "/right")):
                 im = next(pix)
-                msg = RawImage(timestamp=_ts(int(round(m.t_s * 1e9))), frame_id=f"sat{m.sat}/cam{v.camera}",
+                msg = RawImage(timestamp=_ts(round(m.t_s * 1e9)), frame_id=f"sat{m.sat}/cam{v.camera}",
                                width=v.width_px, height=v.height_px, encoding="mono8", step=v.width_px, data=im.tobytes())
                 self._put(f"/sat{m.sat}/cam{v.camera}{side}", msg, log_ns)
 

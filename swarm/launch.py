@@ -39,11 +39,12 @@ from pathlib import Path
 
 import yaml
 
-from swarmcore.scenario import AGENT_PROCESS_FAULTS, Scenario
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
 
-from .bus.messages import Fault, Keys, as_dict, replace
+from .bus.messages import Fault, Keys, as_dict, opt, replace
 from .bus.session import BusConfig
 from .node import Node
+from .protocol import EXIT_BUS_LOST
 
 __all__ = ["LocalSwarm", "Interrupted", "free_port"]
 
@@ -70,7 +71,10 @@ def free_port() -> int:
 class LocalSwarm:
     """The processes of one run; :meth:`run` drives it to the end."""
 
-    def __init__(self, sc: Scenario, out: Path, run_id: str | None = None, python: str = sys.executable, log=print):
+    def __init__(self, sc: Scenario, out: Path, run_id: str | None = None, python: str = sys.executable, log=print,
+                 routers: int = 1):
+        if routers not in (1, 2):
+            raise ValueError(f"--routers {routers}: 1 or 2 (two routers in a mesh)")
         if (why := sc.vision.distributed_refusal()) is not None:
             raise ValueError(why)
         self.sc = sc
@@ -85,6 +89,12 @@ class LocalSwarm:
         self.scenario_file.write_text(yaml.safe_dump(sc.model_dump(mode="json"), sort_keys=False))
         self.procs: dict[str, subprocess.Popen] = {}
         self.endpoint = None
+        self.n_routers = routers
+        self.endpoints: list[str] = []  # router i listens on endpoints[i]
+        self.router_names = ["router" if i == 0 else f"router-{i}" for i in range(routers)]
+        self.broken: str | None = None  # why the run could not go on (bus lost, world gone)
+        self.router_faults: list[dict] = []  # router faults executed here (the bus may not have carried the report)
+        self._router_report: tuple[Fault, float] | None = None  # the latest router fault's report, repeated until
         self.bus = None
         self.node: Node | None = None
         self.faults: list[dict] = []
@@ -132,17 +142,14 @@ class LocalSwarm:
         # from the cache. Runs while the router and the recorder start.
         # (Short-lived; if it fails, each agent compiles for itself as before.)
         warm = subprocess.Popen([self.python, "-c", _WARM], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        port = free_port()
-        self.endpoint = f"tcp/127.0.0.1:{port}"
-        with open(self.out / "logs" / "router.log", "wb") as logf:
-            router = self._popen("router", ["swarm.router", "--listen", self.endpoint], stdout=subprocess.PIPE, stderr=logf)
-        self.procs["router"] = router
-        line = _readline(router.stdout, timeout=30.0, cancelled=lambda: self.interrupted is not None)
-        self._check_interrupted()
-        if not line or b"READY" not in line:
-            raise RuntimeError(f"the Zenoh router did not start (see {self.out / 'logs' / 'router.log'})")
-        self.bus = BusConfig(mode="client", connect=[self.endpoint])
+        self.endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(self.n_routers)]
+        self.endpoint = self.endpoints[0]
+        for i in range(self.n_routers):
+            self._start_router(i, timeout=30.0)
+        self.bus = BusConfig(mode="client", connect=list(self.endpoints))
         self.node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
+        self.node.hold_s = self.sc.emulator.liveliness_hold_s
+        self.node.bus_grace_s = self.sc.emulator.bus_grace_s  # never gives up on the bus: it owns the router
         self.node.subscribe(self.keys.fault())
         self.node.subscribe(self.keys.clock())
         self.node.watch_liveliness()
@@ -174,11 +181,26 @@ class LocalSwarm:
         self._write_run_json()
         self._check_interrupted()
 
+    def _start_router(self, i: int, timeout: float) -> None:
+        """Start router ``i`` on its endpoint (the same one after a restart), meshed with
+        the others, and wait until it says READY."""
+        name = self.router_names[i]
+        mesh = [a for e in self.endpoints[:i] for a in ("--connect", e)]
+        with open(self.out / "logs" / f"{name}.log", "ab" if name in self.procs else "wb") as logf:
+            router = self._popen(name, ["swarm.router", "--listen", self.endpoints[i], *mesh], stdout=subprocess.PIPE, stderr=logf)
+        with self._lock:
+            self.procs[name] = router
+        line = _readline(router.stdout, timeout=timeout, cancelled=lambda: self.interrupted is not None)
+        self._check_interrupted()
+        if not line or b"READY" not in line:
+            raise RuntimeError(f"the Zenoh router {name} did not start (see {self.out / 'logs' / (name + '.log')})")
+
     def _write_run_json(self) -> None:
         info = {
             "run": self.run,
             "supervisor_pid": os.getpid(),
             "endpoint": self.endpoint,
+            "endpoints": self.endpoints,
             "n_sats": self.sc.n_sats,
             "pids": {k: p.pid for k, p in self.procs.items()},
             "scenario": str(self.scenario_file),
@@ -202,14 +224,19 @@ class LocalSwarm:
             raise RuntimeError(f"{role} did not come up within {timeout:.0f} s (see {self.out / 'logs'})")
 
     # -- faults ------------------------------------------------------------------------
-    def _report(self, f: Fault, phase: str, detail: str) -> None:
+    def _report(self, f: Fault, phase: str, detail: str) -> Fault:
         # A scheduled command is stamped with the step it opens, whose clock has not come
         # yet: report at that step, not at the last clock seen here.
         k = max(self.k, f.k)
         done = replace(f, phase=phase, sender="supervisor", k=k, t_s=k * self.sc.dt_s, detail=detail)
         self.node.put(self.keys.fault(), done)
+        return done
 
     def _handle(self, ev) -> None:
+        if ev.kind == "resync" and self._router_report is not None and time.monotonic() < self._router_report[1]:
+            # A session reconnecting after the report went out may have missed it: again (the
+            # same bytes; a recording reads it once).
+            self.node.put(self.keys.fault(), self._router_report[0])
         if ev.kind == "clock":
             self.k = ev.msg.k
         elif ev.kind == "fault" and ev.msg.phase == "command":
@@ -218,6 +245,8 @@ class LocalSwarm:
             self.faults.append(as_dict(ev.msg, exclude=("schema_version", "run")))
 
     def execute(self, f: Fault) -> None:
+        if f.action in ROUTER_FAULTS:
+            return self._router_fault(f)
         name = f"agent-{f.target}" if f.action in AGENT_PROCESS_FAULTS else "selector"
         p = self.procs.get(name)
         running = p is not None and p.poll() is None
@@ -248,6 +277,50 @@ class LocalSwarm:
                 self.spawn_selector()
             self._write_run_json()
             self._report(f, "done", f"started pid {self.procs[name].pid}")
+
+    def _router_fault(self, f: Fault) -> None:
+        """kill-router / restart-router (target: the router's index, default 0). While no
+        router is up nothing can be reported on the bus: the report goes out once this
+        node is connected again (and is kept here for the summary in any case)."""
+        i = int(opt(f, "target") or 0)
+        if not 0 <= i < self.n_routers:
+            self._report(f, "failed", f"no router {i} (this run has {self.n_routers})")
+            return
+        name = self.router_names[i]
+        p = self.procs.get(name)
+        t_down = time.time()
+        was_running = p is not None and p.poll() is None
+        if was_running:
+            p.kill()  # SIGKILL: the router's links just close
+            p.wait()
+        if f.action == "kill-router":
+            detail = f"SIGKILL pid {p.pid}" if was_running else f"{name} is not running"
+        else:
+            down_s = float(opt(f, "down_s") or 0.0)
+            if down_s > 0:
+                time.sleep(down_s)  # the fault itself: the router stays down this long (wall time)
+            self._start_router(i, timeout=30.0)
+            t_up = time.time()
+            self._write_run_json()
+            detail = (f"SIGKILL pid {p.pid}, " if was_running else "") + (
+                f"new router pid {self.procs[name].pid} on {self.endpoints[i]} after {time.time() - t_down:.2f} s")
+        self.router_faults.append({"k": max(self.k, f.k), "action": f.action, "target": i, "phase": "done", "sender": "supervisor",
+                                   "detail": detail, "t_down_unix_s": t_down,
+                                   **({"t_up_unix_s": t_up} if f.action == "restart-router" else {})})
+        if not was_running and f.action == "kill-router":
+            self._report(f, "failed", detail)
+            return
+        # Report once this node is connected again (at once when another router is up)
+        # and every liveliness token that went with the router is back: a report put
+        # before the others have reconnected would reach nobody.
+        def on_event(ev) -> None:
+            if ev.kind == "clock":
+                self.k = ev.msg.k
+
+        n = self.node
+        n.wait_for(lambda: n.bus_up and bool(n._routers), 5.0 if f.action == "kill-router" else 30.0, on_event)
+        n.wait_for(lambda: not n._held, self.sc.emulator.bus_grace_s, on_event, wake=lambda: time.monotonic() + 0.1)
+        self._router_report = (self._report(f, "done", detail), time.monotonic() + self.sc.emulator.bus_grace_s)
 
     # -- signals -------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -300,26 +373,29 @@ class LocalSwarm:
                 self._handle(ev)
                 if ev.kind == "clock" and progress is not None:
                     progress(ev.msg.k + 1, self.sc.steps)
+        code = world.wait()
+        if code != 0 and self.interrupted is None:
+            self.broken = _broken_reason(code)
+            self.say(f"[bold red]the run is broken[/bold red] at step {self.k}: {self.broken}; stopping every process")
+            return code
         # Drain fault reports still in flight.
         while self.interrupted is None and (ev := self.node.next_event(0.3)) is not None:
             self._handle(ev)
-        return world.wait()
+        return code
 
     def stop(self) -> None:
         """Stop every process, in order: the roles that publish (world, selector, agents),
         then the recorder (it closes ``run.mcap``), then the router. After a normal end
         they are finishing by themselves; after an interrupt each gets a few seconds.
         Whatever is still there after its grace period is killed with its process group."""
-        interrupted = self.interrupted is not None
+        interrupted = self.interrupted is not None or self.broken is not None
         rec = self.procs.get("recorder")
         world = self.procs.get("world")
         if not interrupted and rec is not None and world is not None and world.poll() is not None:
             # The recorder finishes by itself after the world's last clock (once the bus
             # is quiet); give it that chance before anything is stopped.
-            try:
+            with contextlib.suppress(subprocess.TimeoutExpired):
                 rec.wait(timeout=_RECORDER_GRACE_S)
-            except subprocess.TimeoutExpired:
-                pass
         grace = _INTERRUPT_GRACE_S if interrupted else _ROLE_GRACE_S
         producers = ["world", "selector", *(n for n in self.procs if n.startswith("agent-"))]
         self._terminate(producers, grace)
@@ -327,7 +403,7 @@ class LocalSwarm:
         if self.node is not None:
             self.node.close()
             self.node = None
-        self._terminate(["router"], _INTERRUPT_GRACE_S)
+        self._terminate(self.router_names, _INTERRUPT_GRACE_S)
         if self._lifeline is not None:
             for fd in self._lifeline:
                 os.close(fd)
@@ -349,6 +425,15 @@ class LocalSwarm:
                 p.wait()
 
 
+def _broken_reason(code: int) -> str:
+    """Why the world ended before the run did, from its exit status."""
+    if code == EXIT_BUS_LOST:
+        return "bus lost: no Zenoh router reachable within emulator.bus_lost_after_s (see logs/world.log)"
+    if code < 0:
+        return f"the world died ({signal.Signals(-code).name})"
+    return f"the world exited with status {code} (see logs/world.log)"
+
+
 _WARM = "from swarmcore import kernels; kernels.warm_up(); from swarm.bus import fastcheck; fastcheck.warm_up()"
 
 
@@ -361,10 +446,8 @@ def _kill_group(p: subprocess.Popen, sig: int) -> None:
     """Signal a running child's process group (each child leads its own session, so its
     group id is its pid). A child already reaped is left alone: its pid is free for reuse."""
     if p.poll() is None:
-        try:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(p.pid, sig)
-        except (ProcessLookupError, PermissionError):
-            pass
 
 
 def _readline(stream, timeout: float, cancelled=lambda: False) -> bytes | None:

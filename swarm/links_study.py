@@ -44,10 +44,10 @@ from __future__ import annotations
 import math
 import multiprocessing as mp
 import time
+from collections.abc import Callable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -203,7 +203,7 @@ def cells(sweep: Sweep, pr: dict) -> list[Cell]:
         out += [Cell("loss", sweep.loss_latency_s, p, m, mean_burst=b) for p in sweep.loss_rates for m in sweep.late_modes]
     for f in sweep.cap_fractions:
         cap = round(f * pr["need_Bps"], 1)
-        q = int(round(cap * sweep.queue_s))
+        q = round(cap * sweep.queue_s)
         m = budget_for(cap, pr)
         out += [
             Cell("cap", 0.0, 0.0, "replay", "complete", f, cap, None, q, b),

@@ -9,8 +9,8 @@ error) and left out of the statistics; the other runs complete.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import yaml

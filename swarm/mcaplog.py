@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import os
 import struct
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 from mcap.data_stream import RecordBuilder
 from mcap.records import Channel, DataEnd, Footer, Header, Message, Schema
@@ -142,8 +142,7 @@ def iter_records(path: str | Path) -> Iterator[tuple[Schema | None, Channel, Mes
     with open(path, "rb") as f:
         try:
             reader = make_reader(f)
-            for schema, channel, msg in reader.iter_messages(log_time_order=False):
-                yield schema, channel, msg
+            yield from reader.iter_messages(log_time_order=False)
             return
         except Exception:
             f.seek(0)

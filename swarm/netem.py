@@ -128,7 +128,7 @@ class Netem:
             raise NetemError("--jitter needs --delay (netem's jitter is a spread around the delay)")
 
     @classmethod
-    def from_cli(cls, delay: str | None = None, jitter: str | None = None, loss: str | None = None, rate: str | None = None) -> "Netem":
+    def from_cli(cls, delay: str | None = None, jitter: str | None = None, loss: str | None = None, rate: str | None = None) -> Netem:
         """From the CLI's option strings (each validated, errors name the option)."""
         return cls(
             delay_s=None if delay is None else parse_time_s("--delay", delay),
@@ -149,7 +149,7 @@ class Netem:
         return " ".join(out)
 
     @classmethod
-    def parse(cls, args: str) -> "Netem":
+    def parse(cls, args: str) -> Netem:
         """Inverse of :meth:`args` (what a received Fault message carries): the same grammar
         and ranges; anything else raises :class:`NetemError` naming the word."""
         words = str(args).split()

@@ -4,6 +4,7 @@ with malformed-message accounting, and the command-line scaffolding of a role's 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import gc
 import logging
 import signal
@@ -17,7 +18,7 @@ from swarmcore.scenario import Scenario
 
 from .bus.messages import Keys, MessageError, check_key, counted, decode, encode, parse_key, prepare
 from .bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
-from .protocol import Event, Query, Send, Wait
+from .protocol import BusLost, Event, Query, RunBroken, Send, Wait
 
 __all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scenario"]
 
@@ -42,10 +43,93 @@ class Node:
         self._malformed_logged = 0
         self._malformed_lock = threading.Lock()
         self.stop = threading.Event()
+        self.bus = bus
+        # The bus's health as this node sees it (main thread only, but _routers; see
+        # _on_transport): router links, gaps, liveliness changes held back, limits.
+        self.hold_s = 0.3
+        self.bus_grace_s = 10.0
+        self.bus_lost_after_s = float("inf")
+        self.bus_down_since: float | None = None
+        self.gaps: list[tuple[float, float]] = []  # (down, up), time.monotonic()
+        self._held: dict[str, tuple[Event, float | None]] = {}  # token key -> (its DELETE, when it counts)
+        self._epoch = 0  # bumped whenever the bus came back: waits restart their timeout
+        self._routers: set[str] = set()
+        self._routers_lock = threading.Lock()
         self.session = open_session(bus)
-        self.token = None
+        self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
+        self.token: zenoh.LivelinessToken | None = None
         if announce:
             self.announce()
+
+    def set_bus_limits(self, em) -> None:
+        """Take the bus limits of a scenario's ``emulator`` settings."""
+        self.hold_s = em.liveliness_hold_s
+        self.bus_grace_s = em.bus_grace_s
+        self.bus_lost_after_s = em.bus_lost_after_s
+
+    # -- the bus's health -------------------------------------------------------------
+    def _on_transport(self, ev) -> None:
+        """(Zenoh's thread) A link to a router opened or closed: an event ``bus`` (alive =
+        some router reachable) whenever that changes."""
+        if ev.transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        zid = str(ev.transport.zid)
+        with self._routers_lock:
+            before = bool(self._routers)
+            (self._routers.add if ev.kind == zenoh.SampleKind.PUT else self._routers.discard)(zid)
+            after = bool(self._routers)
+        if before != after:
+            self.inbox.put_event(Event("", "bus", None, alive=after))
+
+    @property
+    def bus_up(self) -> bool:
+        return self.bus_down_since is None
+
+    def _filter(self, ev: Event) -> Event | None:
+        """(Main thread) What the machine is told of ``ev``. A vanished liveliness token is
+        held back (``hold_s``; while the bus is down and ``bus_grace_s`` after it comes back)
+        and forgotten if the token comes back meanwhile: a router going down takes every
+        token with it (they go a moment before the link to it is seen closed), and a client
+        failing over to another router re-declares its token in milliseconds."""
+        now = time.monotonic()
+        if ev.kind == "bus":
+            if not ev.alive:
+                if self.bus_down_since is not None:
+                    return None
+                self.bus_down_since = now
+                self._held = {k: (e, None) for k, (e, _t) in self._held.items()}
+                self.log.warning("bus lost: no Zenoh router reachable (%s); waiting for it to come back (at most %.0f s)",
+                                 ",".join(self.bus.connect) or "no endpoint", self.bus_lost_after_s)
+                return ev
+            if self.bus_down_since is None:
+                return None  # the first link, not a return
+            self.gaps.append((self.bus_down_since, now))
+            self.log.warning("bus back after %.2f s", now - self.bus_down_since)
+            self.bus_down_since = None
+            self._epoch += 1
+            self._held = {k: (e, now + self.bus_grace_s) for k, (e, _t) in self._held.items()}
+            return ev
+        if ev.kind == "alive":
+            if not ev.alive:
+                self._held[ev.key] = (ev, None if self.bus_down_since is not None else now + self.hold_s)
+                return Event(ev.key, "held", ev.sat, role=ev.role)  # gone, or only out of reach: not known yet
+            if self._held.pop(ev.key, None) is not None:
+                self._epoch += 1
+                return Event(ev.key, "resync", ev.sat, role=ev.role)  # never gone, as far as anyone need know
+        return ev
+
+    def _due(self, now: float) -> Event | None:
+        for key, (ev, at) in self._held.items():
+            if at is not None and at <= now:
+                del self._held[key]
+                return ev
+        return None
+
+    def _next_wake(self) -> float | None:
+        times = [at for _e, at in self._held.values() if at is not None]
+        if self.bus_down_since is not None:
+            times.append(self.bus_down_since + self.bus_lost_after_s)
+        return min(times) if times else None
 
     def announce(self) -> None:
         """Declare this node alive. Roles call it after declaring their subscribers and
@@ -72,10 +156,8 @@ class Node:
 
     def _undeclare_all(self) -> None:
         for h in self._handles:
-            try:
+            with contextlib.suppress(Exception):
                 h.undeclare()
-            except Exception:
-                pass
         self._handles.clear()
         try:
             if self.token is not None:
@@ -142,8 +224,28 @@ class Node:
 
     def next_event(self, timeout: float | None) -> Event | None:
         """The next decoded event, or None when ``timeout`` passes. Malformed input is
-        counted, logged and skipped (the wait continues within the same deadline)."""
-        return self.inbox.get(timeout)  # decoded, valid events only (see _decode)
+        counted, logged and skipped (the wait continues within the same deadline).
+        Liveliness losses come through :meth:`_filter`. Raises :class:`BusLost` once no
+        router has been reachable for ``bus_lost_after_s``."""
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while True:
+            now = time.monotonic()
+            if (due := self._due(now)) is not None:
+                return due
+            if self.bus_down_since is not None and now - self.bus_down_since >= self.bus_lost_after_s:
+                raise BusLost(f"{self.name}: no Zenoh router reachable for {now - self.bus_down_since:.1f} s "
+                              f"({','.join(self.bus.connect) or 'no endpoint'}): the run is broken")
+            wake = self._next_wake()
+            rem = None if deadline is None else max(0.0, deadline - now)
+            if wake is not None:
+                rem = max(0.0, wake - now) if rem is None else min(rem, max(0.0, wake - now))
+            ev = self.inbox.get(rem)  # decoded, valid events only (see _decode)
+            if ev is not None:
+                ev = self._filter(ev)
+                if ev is not None:
+                    return ev
+            elif deadline is not None and time.monotonic() >= deadline:
+                return None
 
     @counted
     def _decode(self, s) -> Event | None:
@@ -178,10 +280,16 @@ class Node:
         (or the node is asked to stop). ``wake()`` may name an earlier instant (monotonic)
         at which ``cond`` can change without a new event. The one wait loop of the roles."""
         deadline = time.monotonic() + timeout
+        epoch = self._epoch
         while not cond():
             if self.stop.is_set():
                 return False
             now = time.monotonic()
+            if self.bus_down_since is not None or self._epoch != epoch:
+                # The bus is down, or came back meanwhile: the timeout counts from its
+                # return (the lockstep world pauses rather than run on alone).
+                deadline = max(deadline, now + timeout)
+                epoch = self._epoch
             remaining = deadline - now
             if remaining <= 0:
                 # Take in what has already arrived before giving up (a zero wait drains).
@@ -251,13 +359,13 @@ class Node:
                 return False
             return True
         finally:
-            try:
+            with contextlib.suppress(Exception):
                 sub.undeclare()
-            except Exception:
-                pass
 
     def close(self) -> None:
         self._undeclare_all()
+        with contextlib.suppress(Exception):
+            self._transport_listener.undeclare()
         self.session.close()
 
 
@@ -317,4 +425,4 @@ def install_term_handler(node_stop: threading.Event) -> None:
     signal.signal(signal.SIGINT, handler)
 
 
-__all__ += ["install_term_handler", "bus_config_from_args", "freeze_startup_objects"]
+__all__ += ["install_term_handler", "bus_config_from_args", "freeze_startup_objects", "RunBroken"]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +11,28 @@ import yaml
 
 from swarmcore.sim import SimResult
 
-__all__ = ["write_run", "write_json", "read_json"]
+__all__ = ["write_run", "write_json", "read_json", "number", "NO_DATA", "no_data_reason"]
+
+NO_DATA = "no data"
+
+
+def number(x, spec: str = ".3g") -> str:
+    """``x`` formatted with ``spec``, or "no data" when it is missing or not finite: a
+    table never presents a NaN as a result."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return NO_DATA
+    return format(v, spec) if math.isfinite(v) else NO_DATA
+
+
+def no_data_reason(summary: dict) -> str:
+    """Why a summary's table has "no data" cells."""
+    intr = summary.get("interrupted")
+    if intr:
+        return (f"the run ended at step {intr.get('last_step')} of {intr.get('steps_planned', 0) - 1} "
+                f"({intr.get('reason')}): no estimate to compare")
+    return "no filter estimated those steps (every agent dead, or nothing recorded)"
 
 
 def write_json(path: Path, data) -> None:

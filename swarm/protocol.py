@@ -16,10 +16,32 @@ as that sequence, and the generator's frame is the machine's state.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
-from typing import Any, Callable, Generator, NamedTuple, Protocol
+from typing import Any, NamedTuple, Protocol
 
-__all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock"]
+__all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock", "RunBroken", "BusLost", "WorldLost",
+           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "Outbox"]
+
+#: Exit status of a role (and of ``swarm run``) whose bus did not come back within
+#: ``emulator.bus_lost_after_s``, and of one whose world is gone before the run's end.
+EXIT_BUS_LOST = 3
+EXIT_WORLD_LOST = 4
+
+
+class RunBroken(RuntimeError):
+    """The run cannot go on (raised from a machine's ``handle`` or the shell's wait);
+    the role's main logs the message and exits with :attr:`exit_code`."""
+
+    exit_code = 1
+
+
+class BusLost(RunBroken):
+    exit_code = EXIT_BUS_LOST
+
+
+class WorldLost(RunBroken):
+    exit_code = EXIT_WORLD_LOST
 
 
 class Event(NamedTuple):
@@ -65,6 +87,43 @@ class Wait:
 
 
 Action = Send | Query | Wait
+
+
+class Outbox:
+    """What a machine has published since its current step began, to publish again when
+    the bus comes back (events ``bus`` with ``alive=True``: this role's link to a router
+    is up again; ``resync``: a peer's liveliness came back before it counted as gone).
+
+    Why: a put while no router is reachable is dropped without an error, and a router
+    killed mid-step takes what it was forwarding with it; in lockstep every receiver
+    handles a message it already has as a no-op, so sending the step's messages again
+    loses nothing and changes nothing.
+    """
+
+    def __init__(self, skip_keys: tuple[str, ...] = ()):
+        self.sends: list[Send] = []
+        self.skip = skip_keys
+
+    def clear(self) -> None:
+        self.sends.clear()
+
+    def wrap(self, gen):
+        """Run generator ``gen`` (a machine's ``run``), keeping each Send it yields."""
+        reply = None
+        while True:
+            try:
+                action = gen.send(reply)
+            except StopIteration:
+                return
+            if isinstance(action, Send) and not action.key.endswith(self.skip):
+                self.sends.append(action)
+            reply = yield action
+
+    def again(self, ev: Event) -> list[Send]:
+        """The sends to repeat for event ``ev`` (none unless the bus came back)."""
+        if ev.kind == "resync" or (ev.kind == "bus" and ev.alive):
+            return list(self.sends)
+        return []
 
 
 class Clock(Protocol):

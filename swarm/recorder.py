@@ -25,18 +25,40 @@ python -m swarm.recorder --run RUN --out FILE.mcap [--flush-every-s 1] [bus flag
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
 import sys
 import threading
 import time
 
-from .bus.messages import MODELS, Keys, Liveliness, Malformed, MessageError, check_key, decode, file_descriptor_set, parse_key, prepare, replace
+from .bus.messages import (
+    MODELS,
+    BusGap,
+    Keys,
+    Liveliness,
+    Malformed,
+    MessageError,
+    check_key,
+    decode,
+    file_descriptor_set,
+    parse_key,
+    prepare,
+    replace,
+)
 from .bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
 from .mcaplog import CheckpointWriter
 
 log = logging.getLogger("recorder")
 
 _STOP_DRAIN_S = 2.0  # after SIGTERM: at most this long for the messages still arriving
+
+
+class _LinkChange:
+    """(Put on the inbox by Zenoh's thread) some router reachable again, or none any more."""
+
+    def __init__(self, up: bool):
+        self.up = up
+        self.wall_ns = time.time_ns()
 
 
 class Recorder:
@@ -61,6 +83,19 @@ class Recorder:
         self.token = self.session.liveliness().declare_token(self.keys.alive("recorder", 0))
         self._schema_ids: dict[str, int] = {}
         self._est_at: dict[int, set[int]] = {}
+        # The bus's health: gaps are recorded on swarm/<run>/_gap; a bus that does not come
+        # back, or a world that goes before its last step, ends the recording.
+        em = scenario.emulator if scenario is not None else None
+        self.bus_lost_after_s = em.bus_lost_after_s if em is not None else 30.0
+        self.hold_s = em.liveliness_hold_s if em is not None else 0.3
+        self.broken: str | None = None
+        self.last_k = -1
+        self.gaps: list[BusGap] = []  # closed gaps whose first step after is not known yet
+        self.down: tuple[int, float] | None = None  # (wall ns, monotonic) since no router is reachable
+        self._routers: set[str] = set()
+        self._world_seen = False
+        self._world_gone_at: float | None = None
+        self._transports = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
         self.foxglove = None
         if derive_foxglove and scenario is not None:
             from .foxglove import FoxgloveDeriver
@@ -68,10 +103,48 @@ class Recorder:
             self.foxglove = FoxgloveDeriver(self.w, scenario.orbit.mean_motion_rad_s, scenario.spacecraft.half_size_m,
                                             images=scenario.emulator.record_images)
 
+    def _on_transport(self, ev) -> None:
+        import zenoh
+
+        if ev.transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        before = bool(self._routers)
+        (self._routers.add if ev.kind == zenoh.SampleKind.PUT else self._routers.discard)(str(ev.transport.zid))
+        if before != bool(self._routers):
+            self.inbox.put_event(_LinkChange(bool(self._routers)))
+
+    def _link(self, ch: _LinkChange) -> None:
+        if not ch.up and self.down is None:
+            self.down = (ch.wall_ns, time.monotonic())
+            log.warning("bus lost after step %d: no router reachable (giving up after %.0f s)", self.last_k, self.bus_lost_after_s)
+        elif ch.up and self.down is not None:
+            log.warning("bus back after %.2f s", (ch.wall_ns - self.down[0]) / 1e9)
+            self.gaps.append(BusGap(observer="recorder", down_unix_ns=self.down[0], up_unix_ns=ch.wall_ns,
+                                    last_step_before=self.last_k, first_step_after=-1))
+            self.down = None
+            self._world_gone_at = None  # the world's token went with the bus
+
+    def _write_gaps(self, first_after: int) -> None:
+        for g in self.gaps:
+            g.first_step_after = first_after
+            self.w.add(self._channel(f"{self.keys.root}/_gap", "gap"), g.SerializeToString(), time.time_ns())
+        self.gaps.clear()
+
+    def _check_broken(self) -> None:
+        now = time.monotonic()
+        if self.down is not None and now - self.down[1] >= self.bus_lost_after_s:
+            self.broken = f"bus lost: no router reachable for {now - self.down[1]:.0f} s after step {self.last_k}"
+            self.gaps.append(BusGap(observer="recorder", down_unix_ns=self.down[0], up_unix_ns=0,
+                                    last_step_before=self.last_k, first_step_after=-1))
+        elif self._world_gone_at is not None and self.down is None and now - self._world_gone_at >= self.hold_s + 0.5:
+            self.broken = f"the world is gone after step {self.last_k}"
+        if self.broken:
+            log.error("%s: closing the recording", self.broken)
+
     def _channel(self, topic: str, kind: str) -> int:
         sid = self._schema_ids.get(kind)
         if sid is None:
-            cls = {"alive": Liveliness, "malformed": Malformed}.get(kind) or MODELS[kind]
+            cls = {"alive": Liveliness, "malformed": Malformed, "gap": BusGap}.get(kind) or MODELS[kind]
             sid = self._schema_ids[kind] = self.w.schema(cls.DESCRIPTOR.full_name, "protobuf", file_descriptor_set(cls))
         return self.w.channel(topic, sid, "protobuf")
 
@@ -85,6 +158,11 @@ class Recorder:
             if kind == "alive":
                 parts = s.key.split("/")
                 body = Liveliness(key=s.key, role=parts[3], id=parts[4], alive=s.kind == "put").SerializeToString()
+                if parts[3] == "world":
+                    if s.kind == "put":
+                        self._world_seen, self._world_gone_at = True, None
+                    elif self._world_seen and not self.done and self.down is None:
+                        self._world_gone_at = time.monotonic()
                 self.w.add(self._channel(f"{self.keys.root}/alive", "alive"), body, now)
                 return
             if s.kind == "delete":
@@ -105,6 +183,9 @@ class Recorder:
             if kind == "est" and self.final is not None and msg.k == self.final[0]:
                 self.final[1].discard(msg.own)
             if kind == "clock":
+                if self.gaps and not msg.done:
+                    self._write_gaps(msg.k)
+                self.last_k = max(self.last_k, msg.k)
                 if msg.done:
                     self.done = True
                     self.final = (msg.k, set(msg.live_agents) - self._seen_final(msg.k))
@@ -124,12 +205,16 @@ class Recorder:
 
         self.w.flush()
         t0, count = time.monotonic(), 0
+        seen: set[tuple[str, int, int]] = set()  # a message sent again after a bus gap: drawn once
         for topic, _schema, data, log_ns, _pub in iter_messages(self.w.path):
             try:
                 run, kind, _sat = parse_key(topic)
             except MessageError:
                 continue
             if run == self.run and kind in ("truth", "est", "meas", "links"):
+                if (ident := (topic, len(data), hash(data))) in seen:
+                    continue
+                seen.add(ident)
                 self.foxglove.on_message(kind, MODELS[kind].FromString(data), log_ns)  # recorded: already checked
                 count += 1
                 if count % 2000 == 0:
@@ -149,10 +234,13 @@ class Recorder:
         """Record until the run is done (or we are asked to stop), then keep draining:
         until every agent alive at the end has delivered its last estimate (they travel
         independently of the world's final clock) and the bus has been quiet ``quiet_s``."""
-        while not self.stop.is_set() and not self.done:
+        while not self.stop.is_set() and not self.done and not self.broken:
             s = self.inbox.get(0.2)
-            if s is not None:
+            if isinstance(s, _LinkChange):
+                self._link(s)
+            elif s is not None:
                 self.record(s)
+            self._check_broken()
             if time.monotonic() - self.last_flush_wall >= 1.0:
                 self.flush()
         end_by = time.monotonic() + max_linger_s
@@ -163,21 +251,27 @@ class Recorder:
                 end_by = min(end_by, time.monotonic() + _STOP_DRAIN_S)
             owed = self.final is not None and bool(self.final[1]) and not self.stop.is_set()
             s = self.inbox.get(min(1.0, end_by - time.monotonic()) if owed else quiet_s)
+            if self.broken:
+                end_by = min(end_by, time.monotonic() + _STOP_DRAIN_S)
+                owed = False
             if s is None and not owed:
                 break
-            if s is not None:
+            if isinstance(s, _LinkChange):
+                self._link(s)
+            elif s is not None:
                 self.record(s)
 
     def close(self) -> None:
-        for h in self._subs:
-            try:
+        if self.down is not None and not self.broken:
+            self.gaps.append(BusGap(observer="recorder", down_unix_ns=self.down[0], up_unix_ns=0,
+                                    last_step_before=self.last_k, first_step_after=-1))
+        if self.gaps:
+            self._write_gaps(-1)
+        for h in [*self._subs, self._transports]:
+            with contextlib.suppress(Exception):
                 h.undeclare()
-            except Exception:
-                pass
-        try:
+        with contextlib.suppress(Exception):
             self.token.undeclare()
-        except Exception:
-            pass
         self.session.close()
         if self.foxglove is not None:
             self._derive_scene()
@@ -216,10 +310,22 @@ def main(argv=None) -> int:
         from .outputs import write_json
         from .recording import load_recording
 
-        summary = load_recording(a.out, sc.n_sats, sc.steps).summary(sc)
+        if r.broken or not r.done:
+            try:
+                summary = load_recording(a.out, sc.n_sats, None).summary(sc)
+            except (ValueError, FileNotFoundError):
+                summary = {"scenario": sc.name, "n_sats": sc.n_sats, "seed": sc.seed, "steps": 0, "faults": []}
+            summary["interrupted"] = {"reason": r.broken or "the recorder was stopped before the run's end",
+                                      "last_step": r.last_k, "steps_planned": sc.steps}
+        else:
+            summary = load_recording(a.out, sc.n_sats, sc.steps).summary(sc)
         summary["run"] = a.run
         write_json(a.summary, summary)
         logging.getLogger("recorder").info("wrote %s", a.summary)
+    if r.broken:
+        from .protocol import EXIT_BUS_LOST, EXIT_WORLD_LOST
+
+        return EXIT_BUS_LOST if r.broken.startswith("bus lost") else EXIT_WORLD_LOST
     return 0
 
 

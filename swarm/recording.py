@@ -13,11 +13,11 @@ import numpy as np
 
 from swarmcore.links import LinkCounters
 from swarmcore.metrics import pose_errors, pose_nees, summarize
-from swarmcore.sim import late_summary, link_summary
 from swarmcore.scenario import Scenario
+from swarmcore.sim import late_summary, link_summary
 
 from .bus.convert import array, pairs_from_select
-from .bus.messages import Liveliness, MessageError, as_dict, decode, parse_key
+from .bus.messages import BusGap, Liveliness, MessageError, as_dict, decode, parse_key
 from .mcaplog import iter_messages
 
 __all__ = ["Recording", "BusTimes", "load_recording"]
@@ -54,7 +54,9 @@ class Recording:
     link_latencies: list = field(default_factory=list)  # (sender, receiver, sent step, latency s)
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
     rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
-    bus: "BusTimes | None" = None  # every bus message's sender, kind, step, publish and receive time
+    bus: BusTimes | None = None  # every bus message's sender, kind, step, publish and receive time
+    gaps: list = field(default_factory=list)  # the recorder's bus gaps (no router reachable)
+    resent: int = 0  # messages recorded twice (sent again after a bus gap; read once)
 
     def bus_latency_ms(self, published_from_ns: int | None = None, published_to_ns: int | None = None) -> dict:
         """Per sender (``agent-3``, ``world``, ...): the one-way bus latency of its messages
@@ -99,6 +101,7 @@ class Recording:
                 "faults": self.faults,
                 "selector_fallback_steps": self.fallback_steps,
                 "messages": self.counts,
+                **({"bus_gaps": self.gaps} if self.gaps else {}),
             },
         )
 
@@ -206,6 +209,7 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
     )
     counts: dict[str, int] = {}
     bus_rows: list[tuple[str, str, int, int, int]] = []
+    seen: set[tuple[str, int, int, int]] = set()  # (topic, step, size, hash of the payload) read so far
     for topic, schema, data, log_ns, pub_ns in iter_messages(path):
         _check_format(topic, schema)
         try:
@@ -216,12 +220,24 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
         counts[kind] = counts.get(kind, 0) + 1
         if kind == "alive":
             rec.liveliness.append({**as_dict(Liveliness.FromString(data)), "log_time_ns": log_ns})
+        if kind == "_gap":
+            g = BusGap.FromString(data)
+            rec.gaps.append({"observer": g.observer, "down_unix_ns": g.down_unix_ns, "up_unix_ns": g.up_unix_ns or None,
+                             "duration_s": (g.up_unix_ns - g.down_unix_ns) / 1e9 if g.up_unix_ns else None,
+                             "last_step_before": g.last_step_before, "first_step_after": g.first_step_after})
         if kind not in _USED:
             continue
         try:
             m = decode(kind, data)
         except MessageError:
             continue
+        # A message sent again after a bus gap is the same bytes: read it once.
+        ident = (topic, m.k, len(data), hash(data))
+        if ident in seen:
+            counts[kind] -= 1
+            rec.resent += 1
+            continue
+        seen.add(ident)
         bus_rows.append((m.sender, kind, m.k, pub_ns, log_ns))
         k = m.k
         if not 0 <= k < K:
@@ -267,6 +283,8 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             d = as_dict(m)
             rec.faults.append({**{f: d[f] for f in ("k", "t_s", "action", "phase", "sender", "target", "camera", "state", "rate",
                                                   "netem", "detail")}, "log_time_ns": log_ns})
+    if rec.resent:
+        counts["resent_after_gap"] = rec.resent
     rec.counts = counts
     if bus_rows:
         sender, kinds, ks, pub, log = zip(*bus_rows)

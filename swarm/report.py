@@ -27,11 +27,13 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from scipy.stats import chi2  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
+from scipy.stats import chi2
 
-from swarmcore import quat  # noqa: E402
+from swarmcore import quat
+
+from .outputs import NO_DATA, no_data_reason, number
 
 __all__ = ["RunData", "LinkData", "load_run", "make_report"]
 
@@ -287,15 +289,16 @@ def _mc_figures(d: Path, out: Path) -> tuple[list[Path], str]:
     p = _save(fig, out / "mc_bars.png")
     rows = "".join(
         f"<tr><td>{r['seed']}</td>"
-        + "".join(f"<td>{r[b]['others'][u]:.4g}</td>" for b in ("rms", "rms_second_half") for u in ("att_rad", "pos_m"))
-        + f"<td>{r['nees_mean']:.2f}</td></tr>"
+        + "".join(f"<td>{number(r[b]['others'][u], '.4g')}</td>" for b in ("rms", "rms_second_half") for u in ("att_rad", "pos_m"))
+        + f"<td>{number(r['nees_mean'], '.2f')}</td></tr>"
         for r in mc["per_run"]
     )
     table = (
         "<table><tr><th>seed</th><th>others att [rad]</th><th>others pos [m]</th><th>2nd half att</th><th>2nd half pos</th><th>NEES</th></tr>"
         + rows
         + "</table><table><tr><th>field</th><th>mean</th><th>std</th><th>min</th><th>max</th></tr>"
-        + "".join(f"<tr><td>{k}</td><td>{v['mean']:.4g}</td><td>{v['std']:.2g}</td><td>{v['min']:.4g}</td><td>{v['max']:.4g}</td></tr>" for k, v in st.items())
+        + "".join(f"<tr><td>{k}</td><td>{number(v['mean'], '.4g')}</td><td>{number(v['std'], '.2g')}</td><td>{number(v['min'], '.4g')}</td>"
+                  f"<td>{number(v['max'], '.4g')}</td></tr>" for k, v in st.items())
         + "</table>"
     )
     return [p], table
@@ -464,10 +467,21 @@ def _summary_table(s: dict) -> str:
     if not s or "rms" not in s:
         return ""
     rows = []
+    cells = []
     for key, label in (("rms", "full run"), ("rms_second_half", "second half")):
         r = s[key]
-        rows.append(f"<tr><td>{label}</td>" + "".join(f"<td>{r[w][u]:.3g}</td>" for w in ("self", "others") for u in ("att_rad", "pos_m")) + "</tr>")
-    extra = f"<p>NEES mean {s['nees']['mean']:.2f} (dof 6) · gate accepted {s['gate']['accepted']}, rejected {s['gate']['rejected']}</p>"
+        row = [number(r[w][u]) for w in ("self", "others") for u in ("att_rad", "pos_m")]
+        cells += row
+        rows.append(f"<tr><td>{label}</td>" + "".join(f"<td>{c}</td>" for c in row) + "</tr>")
+    extra = f"<p>NEES mean {number(s['nees']['mean'], '.2f')} (dof 6) · gate accepted {s['gate']['accepted']}, rejected {s['gate']['rejected']}</p>"
+    if NO_DATA in cells:
+        extra += f"<p><b>{NO_DATA}</b>: {html.escape(no_data_reason(s))}</p>"
+    if s.get("interrupted"):
+        extra += f"<p><b>This run is incomplete</b>: {html.escape(str(s['interrupted'].get('reason')))}, last step {s['interrupted'].get('last_step')}.</p>"
+    for g in s.get("bus_gaps", []):
+        extra += (f"<p>Bus gap (no router reachable, seen by the {html.escape(g['observer'])}): "
+                  + (f"{g['duration_s']:.2f} s" if g["duration_s"] is not None else "never came back")
+                  + f" after step {g['last_step_before']}.</p>")
     return "<table><tr><th>time RMS</th><th>self att [rad]</th><th>self pos [m]</th><th>others att [rad]</th><th>others pos [m]</th></tr>" + "".join(rows) + "</table>" + extra
 
 

@@ -18,6 +18,8 @@ import zenoh
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description="Zenoh router for a swarm")
     p.add_argument("--listen", action="append", default=None, help="endpoint, e.g. tcp/0.0.0.0:7447 (repeatable)")
+    p.add_argument("--connect", action="append", default=None,
+                   help="another router's endpoint to mesh with (repeatable): clients given both endpoints fail over")
     p.add_argument("--config", default=None, help="a Zenoh JSON5 configuration file")
     p.add_argument("--exit-when-done", metavar="RUN", default=None, help="exit once run RUN's world reports its last step (and the recorder has left)")
     a = p.parse_args(argv)
@@ -25,6 +27,11 @@ def main(argv=None) -> int:
     cfg = zenoh.Config.from_file(a.config) if a.config else zenoh.Config()
     cfg.insert_json5("mode", json.dumps("router"))
     cfg.insert_json5("listen/endpoints", json.dumps(a.listen or ["tcp/0.0.0.0:7447"]))
+    if a.connect:
+        cfg.insert_json5("connect/endpoints", json.dumps(a.connect))
+        # Keep trying: the other router may start later, or come back after a fault.
+        cfg.insert_json5("connect/timeout_ms", "-1")
+        cfg.insert_json5("connect/retry", json.dumps({"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}))
     cfg.insert_json5("scouting/multicast/enabled", "false")
     from .bus.session import apply_shared_memory
 
@@ -44,10 +51,29 @@ def main(argv=None) -> int:
     return 0
 
 
+_WORLD_GONE_S = 5.0  # the world's token gone this long (not a client failing over): the run is over
+
+
 def _watch_run(session, run: str, stop: threading.Event):
-    """Stop when the run's world has said ``done`` and no recorder is alive any more."""
-    state = {"done": False, "recorders": set()}
+    """Stop when the run's world has said ``done`` (or is gone: a broken run) and no
+    recorder is alive any more."""
+    state = {"done": False, "recorders": set(), "world": False}
     lock = threading.Lock()
+
+    def world_gone() -> None:
+        with lock:
+            if not state["world"] and not state["done"]:
+                logging.info("run %s: the world is gone", run)
+                state["done"] = True
+                check()
+
+    def on_world(sample):
+        with lock:
+            state["world"] = sample.kind == zenoh.SampleKind.PUT
+        if sample.kind != zenoh.SampleKind.PUT:
+            t = threading.Timer(_WORLD_GONE_S, world_gone)
+            t.daemon = True
+            t.start()
 
     def check():
         if state["done"] and not state["recorders"]:
@@ -79,6 +105,7 @@ def _watch_run(session, run: str, stop: threading.Event):
     return [
         session.declare_subscriber(f"swarm/{run}/clock", on_clock),
         session.liveliness().declare_subscriber(f"swarm/{run}/alive/recorder/*", on_alive, history=True),
+        session.liveliness().declare_subscriber(f"swarm/{run}/alive/world/*", on_world, history=True),
     ]
 
 

@@ -341,6 +341,8 @@ FaultAction = Literal[
     "partition",
     "heal",
     "netem",
+    "kill-router",
+    "restart-router",
 ]
 FAULT_ACTIONS: tuple[str, ...] = get_args(FaultAction)
 #: Faults on an agent's process, carried out by the supervisor (``swarm run``) or Docker.
@@ -350,8 +352,11 @@ SELECTOR_PROCESS_FAULTS = ("kill-selector", "restart-selector")
 #: Faults on a container's network: compose only (local processes share one network).
 #: netem: Linux traffic control (delay, jitter, loss, rate) in the container's namespace.
 NETWORK_FAULTS = ("partition", "heal", "netem")
+#: Faults on the bus itself: a Zenoh router's process (target: the router's index, 0 by
+#: default; ``swarm run --routers 2`` has two). Carried out by the supervisor or Docker.
+ROUTER_FAULTS = ("kill-router", "restart-router")
 #: Faults some process other than the bus roles carries out (supervisor, Docker).
-PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS
+PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS + ROUTER_FAULTS
 #: Faults that name a satellite.
 TARGETED_FAULTS = (*AGENT_PROCESS_FAULTS, "camera", "drop", *NETWORK_FAULTS)
 
@@ -365,6 +370,10 @@ class FaultSpec(_Model):
     camera: int | None = Field(None, ge=0, le=5, description="camera index 0..5 (+z,+x,+y,−x,−y,−z)")
     state: Literal["on", "off"] | None = None
     rate: float | None = Field(None, ge=0.0, le=1.0, description="drop: fraction of outgoing messages lost")
+    down_s: float | None = Field(
+        None, ge=0.0, le=3600.0, description="restart-router: how long (wall s) the router stays down before a new one "
+        "starts on the same endpoint (default 0)"
+    )
 
     @model_validator(mode="after")
     def _complete(self):
@@ -376,6 +385,8 @@ class FaultSpec(_Model):
             raise ValueError("action camera needs camera (0..5) and state (on|off)")
         if self.action == "drop" and self.rate is None:
             raise ValueError("action drop needs rate (0..1)")
+        if self.down_s is not None and self.action != "restart-router":
+            raise ValueError("down_s is for action restart-router")
         return self
 
 
@@ -400,6 +411,17 @@ class Emulator(_Model):
     flush_every_s: PosFloat = Field(1.0, description="recorder: flush to disk at least this often (sim time)")
     record_images: bool = Field(
         False, description="recorder: also write every rendered image (foxglove.RawImage, large) besides its metadata"
+    )
+    bus_grace_s: PosFloat = Field(
+        10.0, description="a peer whose liveliness vanished with the bus (no router reachable) is declared dead only if "
+        "it is still gone this long after the bus came back; any other disappearance counts after liveliness_hold_s"
+    )
+    liveliness_hold_s: PosFloat = Field(
+        0.3, description="how long a vanished liveliness token is held before it counts (the link to a router may be "
+        "going down with it, or a client failing over to another router)"
+    )
+    bus_lost_after_s: PosFloat = Field(
+        30.0, description="no router reachable this long: the run is broken, every role exits (non-zero)"
     )
     shutdown_linger_s: PosFloat = Field(
         30.0, description="after the last step: how long the recorder waits for every live agent's final estimate, "

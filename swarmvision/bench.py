@@ -14,7 +14,6 @@ import time
 import numpy as np
 
 from swarmcore import quat
-
 from swarmcore.vision_config import VisionConfig
 
 __all__ = ["bench_vision", "scenario_rtf"]
@@ -35,12 +34,12 @@ def bench_vision(cfg: VisionConfig | None = None, repeats: int = 10, log=None) -
     """Time the pieces at the configured (default) resolutions; returns a JSON-ready dict."""
     import cv2
 
-    from .mono import MonoPipeline
     from .models import cube_satellite, model_radius, reference_cloud, spacecraft_model
+    from .mono import MonoPipeline
     from .noise import apply_noise
-    from .views import face_intrinsics
     from .render import SceneRenderer
     from .stereo import StereoPipeline, stereo_intrinsics
+    from .views import face_intrinsics
 
     cfg = cfg or VisionConfig()
     say = log or (lambda s: None)
@@ -100,7 +99,7 @@ def bench_vision(cfg: VisionConfig | None = None, repeats: int = 10, log=None) -
         R_true = quat.attitude_matrix(qs).T
         infos = []
 
-        def proc():
+        def proc(left=left, right=right, R_true=R_true, p=p, infos=infos):
             res = sp.measure(left, right, R_true, p + 0.05, np.random.default_rng(1))
             infos.append(res.info if res is not None else {})
 
@@ -128,7 +127,7 @@ def scenario_rtf(scenarios, steps: int = 10, log=None) -> list[dict]:
     for path, sc in scenarios:
         sc = sc.model_copy(update={"duration_s": steps * sc.dt_s})
         stamps = []
-        simulate(sc, measurement_model(sc), progress=lambda k, K: stamps.append(time.perf_counter()))
+        simulate(sc, measurement_model(sc), progress=lambda k, K, stamps=stamps: stamps.append(time.perf_counter()))
         wall = stamps[-1] - stamps[0]  # steps 1..K (step 0 excluded)
         step_s = np.diff(stamps)
         row = {

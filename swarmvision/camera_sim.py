@@ -145,7 +145,7 @@ class RenderedCameras:
         noise = self.cfg.noise
         if self.cfg.pipeline == "mono":
             need: dict[int, set] = {}
-            for k, (i, j) in enumerate(zip(obs, tgt)):
+            for k, i in enumerate(obs):
                 need.setdefault(int(i), set()).update(self.cameras_seeing(r_rel[k]))
             for i in sorted(need):
                 for c in sorted(need[i]):

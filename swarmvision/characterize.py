@@ -19,6 +19,7 @@ reads) and PNG plots (matplotlib, Agg).
 
 from __future__ import annotations
 
+import itertools
 import json
 import time
 from itertools import pairwise
@@ -28,7 +29,6 @@ import numpy as np
 
 from swarmcore import quat
 from swarmcore.streams import stream
-
 from swarmcore.vision_config import VisionConfig
 
 __all__ = ["fit_error_model", "plot_error_model", "flown_geometry", "characterize", "characterize_cell", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
@@ -46,8 +46,8 @@ def fibonacci_sphere(n: int) -> np.ndarray:
 
 
 def camera_signature(cfg: VisionConfig, pipeline: str) -> dict:
-    from .views import face_intrinsics
     from .stereo import stereo_intrinsics
+    from .views import face_intrinsics
 
     if pipeline == "mono":
         k = face_intrinsics(cfg)
@@ -103,8 +103,8 @@ def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir:
     from .error_model import quantities
     from .mono import MonoPipeline
     from .noise import apply_noise
-    from .views import face_intrinsics
     from .render import SceneRenderer
+    from .views import face_intrinsics
 
     cfg = VisionConfig.model_validate(cfg_data)
     atts, suns = np.asarray(atts, float), np.asarray(suns, float)
@@ -238,7 +238,10 @@ def _trimmed_mse(E: np.ndarray, k: float = 5.0):
     return mse, 1.0 - inl.mean(axis=0)
 
 
-def summarize_samples(samples: list, ranges, sun_edges=np.arange(0, 181, 30)) -> dict:
+SUN_EDGES_DEG = np.arange(0, 181, 30)
+
+
+def summarize_samples(samples: list, ranges, sun_edges=SUN_EDGES_DEG) -> dict:
     """Statistics per range bin and per Sun-angle bin (what the filter's R is built from)."""
     rows = {"range_m": [], "count": [], "success_rate": [], "mean": [], "var": [], "mse": [], "mse_trimmed": [], "outlier_frac": []}
     mse_by_range = {}
@@ -260,7 +263,7 @@ def summarize_samples(samples: list, ranges, sun_edges=np.arange(0, 181, 30)) ->
     centers = 0.5 * (sun_edges[1:] + sun_edges[:-1])
     sun = {"sun_deg": centers.tolist(), "edges_deg": list(map(float, sun_edges)), "count": [], "success_rate": [],
            "factor": [], "mse_trimmed": []}
-    for lo, hi in zip(sun_edges[:-1], sun_edges[1:]):
+    for lo, hi in itertools.pairwise(sun_edges):
         ss = [s for s in samples if lo <= s["sun_deg"] < hi or (hi == sun_edges[-1] and s["sun_deg"] == hi)]
         ok = [s for s in ss if s["ok"] and np.all(np.isfinite(mse_by_range[s["range_m"]]))]
         sun["count"].append(len(ok))

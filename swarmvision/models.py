@@ -65,11 +65,11 @@ def _quad(center, ax_u, ax_v, half_u, half_v, uv_scale=None):
     return corners, np.tile(n, (4, 1)), uv, idx
 
 
-def _box_faces(center, half_extents, R_BP=np.eye(3), uv_scale=0.5):
+def _box_faces(center, half_extents, R_BP=None, uv_scale=0.5):
     """Six quads of a box (centre, half extents along its own axes, rotation part→body)."""
     c = np.asarray(center, float)
     h = np.asarray(half_extents, float)
-    R = np.asarray(R_BP, float)
+    R = np.eye(3) if R_BP is None else np.asarray(R_BP, float)
     ex, ey, ez = R[:, 0], R[:, 1], R[:, 2]
     quads = [
         (c + h[2] * ez, ex, ey, h[0], h[1]),  # +z
@@ -160,7 +160,7 @@ def spacecraft_model(seed: int = 0) -> tuple[Part, ...]:
     rng = stream(seed, "vision_model_texture")
     parts: list[Part] = []
 
-    def box(name, center, half, tex, R=np.eye(3), uv_scale=0.5, **mat):
+    def box(name, center, half, tex, R=None, uv_scale=0.5, **mat):
         p, n, uv, idx = _box_faces(center, half, R, uv_scale)
         parts.append(Part(name, p, n, uv, idx, tex, repeat=True, **mat))
 

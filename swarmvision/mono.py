@@ -34,9 +34,9 @@ import numpy as np
 
 from swarmcore import quat
 from swarmcore.cameras import BORESIGHT_B, Intrinsics
+from swarmcore.vision_config import MonoConfig
 
 from . import tags
-from swarmcore.vision_config import MonoConfig
 
 __all__ = [
     "TagDetection",
@@ -171,7 +171,7 @@ class MonoPipeline:
         """Target poses (rvec, tvec of B_j in C) from each tag's two IPPE solutions."""
         cands = []
         for d in dets:
-            n, rvecs, tvecs, errs = cv2.solvePnPGeneric(
+            n, rvecs, tvecs, _errs = cv2.solvePnPGeneric(
                 self.obj_T, d.corners_px, self.K, self.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE
             )
             for rv, tv in zip(rvecs[:n], tvecs[:n]):

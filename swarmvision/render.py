@@ -23,6 +23,7 @@ falls back to OSMesa.
 from __future__ import annotations
 
 import atexit
+import contextlib
 import os
 import subprocess
 import sys
@@ -77,7 +78,7 @@ def _import_pyrender():
     # pyrender 0.1.45 still uses np.infty (removed in NumPy 2): restore the alias before
     # importing it (it is read at call time in Mesh.bounds, so the alias must stay).
     if not hasattr(np, "infty"):
-        np.infty = np.inf
+        np.infty = np.inf  # noqa: NPY201 - the very alias pyrender reads
     import pyrender
 
     return pyrender
@@ -98,10 +99,8 @@ def _release_all() -> None:
     lazy imports fail and pyrender's own ``__del__`` would print errors)."""
     while _LIVE_CONTEXTS:
         r = _LIVE_CONTEXTS.pop()
-        try:
+        with contextlib.suppress(Exception):  # best effort at exit
             r.delete()
-        except Exception:  # noqa: BLE001 - best effort at exit
-            pass
 
 
 atexit.register(_release_all)
@@ -234,10 +233,8 @@ class SceneRenderer:
     def close(self) -> None:
         """Release the GL contexts (explicitly; see ``_LIVE_CONTEXTS``)."""
         for r in self._renderers.values():
-            try:
+            with contextlib.suppress(Exception):  # context teardown is best effort
                 r.delete()
-            except Exception:  # noqa: BLE001 - context teardown is best effort
-                pass
             if r in _LIVE_CONTEXTS:
                 _LIVE_CONTEXTS.remove(r)
         self._renderers.clear()

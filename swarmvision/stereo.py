@@ -26,7 +26,6 @@ import cv2
 import numpy as np
 
 from swarmcore.cameras import Intrinsics
-
 from swarmcore.vision_config import StereoConfig
 
 __all__ = ["StereoPipeline", "StereoResult", "tracking_camera_T_CB", "stereo_intrinsics"]

@@ -76,7 +76,7 @@ def tag_image(tag: int, px_per_cell: int = 24, quiet_cells: float | None = None,
         raise ValueError(f"tag id {tag} outside the 36h11 family (0..{N_CODES - 1})")
     if quiet_cells is not None:
         face_cells = CELLS_BLACK + 2 * quiet_cells
-    side = int(round(face_cells * px_per_cell))
+    side = round(face_cells * px_per_cell)
     black = CELLS_BLACK * px_per_cell
     marker = cv2.aruco.generateImageMarker(dictionary(), int(tag), black, borderBits=1)
     img = np.full((side, side), 255, dtype=np.uint8)

@@ -30,8 +30,9 @@ error is not the filter's error.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -73,7 +74,7 @@ def _vec_local(y, x):
 
 def _att_retract(q, d):
     q = np.asarray(q, dtype=float)
-    return quat.retract(q, np.reshape(d, q.shape[:-1] + (3,)))
+    return quat.retract(q, np.reshape(d, (*q.shape[:-1], 3)))
 
 
 def _att_local(q, q_hat):

@@ -36,7 +36,7 @@ def _cli_tree():
         tree[path] = cmd
         for name, sub in getattr(cmd, "commands", {}).items():
             if not sub.hidden:
-                walk(sub, path + (name,))
+                walk(sub, (*path, name))
 
     walk(typer.main.get_command(app), ())
     return tree
@@ -90,7 +90,7 @@ def _resolve(tree, words: tuple[str, ...], line: str) -> tuple[str, ...]:
             continue
         if not is_group:
             continue  # an argument or an option's value
-        assert path + (w,) in tree, f"README `{line}`: `swarm {' '.join(path + (w,))}` is not a command (have {sorted(cmd.commands)})"
+        assert (*path, w) in tree, f"README `{line}`: `swarm {' '.join((*path, w))}` is not a command (have {sorted(cmd.commands)})"
         path += (w,)
     return path
 

@@ -132,7 +132,7 @@ def test_pool_processes_die_with_a_killed_study(tmp_path):
     finally:
         study.send_signal(signal.SIGKILL)
         study.wait()
-    gone, alive = psutil.wait_procs(children, timeout=30)
+    _gone, alive = psutil.wait_procs(children, timeout=30)
     assert not alive, f"orphaned pool processes: {alive}"
 
 
@@ -242,7 +242,7 @@ def test_a_worker_killed_mid_run_costs_only_its_task(cluster, tmp_path):
             victim = next(m["key"] for m in events if m["name"] == "w0" and m["state"] == "executing"
                           and parse_key(m["key"])[0] == "mc.run_one")
             cluster.kill_worker("w0")
-            stdout, stderr = study.communicate(timeout=600)
+            _stdout, stderr = study.communicate(timeout=600)
         finally:
             if study.poll() is None:
                 study.kill()

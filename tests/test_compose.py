@@ -63,8 +63,8 @@ def _summary(out):
 
 
 def _sim(n, sets):
-    from swarm.scenario_files import load_scenario
     from swarm.models import measurement_model
+    from swarm.scenario_files import load_scenario
     from swarmcore.sim import simulate
 
     sc = load_scenario(ROOT / "scenarios" / "demo.yaml", [f"n_sats={n}", *sets])
@@ -217,10 +217,11 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
     everyone else's stay small; the namespace is clean afterwards; and, lockstep, the
     numbers are exactly the undisturbed run's (TCP resends what netem drops; the delay only
     slows the run)."""
+    from swarm_harness import within_3sigma_fraction
+
     from swarm.faults import netem_state
     from swarm.launch import free_port
     from swarm.recording import load_recording
-    from swarm_harness import within_3sigma_fraction
     from swarmcore.scenario import Scenario
 
     port = str(free_port())
@@ -277,3 +278,75 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
     ref = _sim(n, [f"duration_s={dur}"])
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: netem changed the numbers"
+
+
+def _fault_both(c: Compose, *args) -> str:
+    """`swarm fault --compose ...` from the host, given both routers' ports."""
+    p = subprocess.run([sys.executable, "-m", "swarm.cli", "fault", "--compose", "--project", c.project, *args], cwd=ROOT,
+                       env=dict(os.environ, SWARM_BUS_PORT=c.env["SWARM_BUS_PORT"], SWARM_BUS_PORT2=c.env.get("SWARM_BUS_PORT2", "")),
+                       capture_output=True, text=True, timeout=300)
+    print(f"fault {args}: {p.stdout.strip()} {p.stderr.strip()[-300:]}", flush=True)
+    assert p.returncode == 0 and "done" in p.stdout, p.stdout + p.stderr
+    return p.stdout
+
+
+def _docker_wait(c: Compose, service: str) -> int:
+    ids = c("ps", "-q", service).stdout.split()
+    r = subprocess.run(["docker", "wait", *ids], capture_output=True, text=True, timeout=900)
+    assert r.returncode == 0, r.stderr
+    return int(r.stdout.split()[0])
+
+
+@pytest.mark.slow
+def test_two_meshed_routers_one_killed_the_run_completes(image, tmp_path):
+    """compose.routers2.yaml: two meshed routers, every role given both endpoints; router 0
+    (the one every role connected to first) is killed mid-run: the roles fail over to
+    router 1, the run completes with the numbers of the in-process run."""
+    from swarm.launch import free_port
+    from swarm.recording import load_recording
+
+    n, dur = 4, 30
+    sets = f"duration_s={dur} emulator.lockstep_max_realtime_factor=3"
+    env = {"SWARM_N": str(n), "SWARM_SET_EXTRA": sets, "SWARM_BUS_PORT": str(free_port()), "SWARM_BUS_PORT2": str(free_port())}
+    c = Compose(tmp_path / "out", env, files=("compose.yaml", "compose.routers2.yaml"))
+    try:
+        c("up", "-d", timeout=600)
+        _wait_step(c, 10)
+        _fault_both(c, "kill-router", "0")
+        assert _docker_wait(c, "world") == 0
+        assert _docker_wait(c, "recorder") == 0
+    finally:
+        (tmp_path / "compose.log").write_text(c("logs", "--no-color", "-t", check=False).stdout)
+        c.down()
+    s = _summary(c.out)
+    assert "interrupted" not in s and s["steps"] == dur + 1, s.get("interrupted")
+    rec = load_recording(c.out / "run.mcap", n, dur + 1)
+    assert rec.alive.all() and np.isfinite(rec.t).all()
+    ref = _sim(n, sets.split())
+    for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
+        assert s[key] == ref[key], f"{key}: the run with a router killed differs from the in-process run"
+
+
+@pytest.mark.slow
+def test_one_router_killed_the_world_exits_non_zero_and_the_summary_says_so(image, tmp_path):
+    """One router, killed for good: every container ends within the bound, the world with
+    status 3 (what `docker compose up --exit-code-from world` returns), and the recorder's
+    summary.json is marked interrupted (bus lost) at the last step it recorded."""
+    from swarm.launch import free_port
+
+    sets = "duration_s=300 emulator.lockstep_max_realtime_factor=3 emulator.bus_lost_after_s=5"
+    c = Compose(tmp_path / "out", {"SWARM_N": "3", "SWARM_SET_EXTRA": sets, "SWARM_BUS_PORT": str(free_port())})
+    try:
+        c("up", "-d", timeout=600)
+        _wait_step(c, 8)
+        _fault_both(c, "kill-router", "0")
+        assert _docker_wait(c, "world") == 3
+        assert _docker_wait(c, "recorder") == 3
+        for svc in ("agent", "selector"):
+            assert _docker_wait(c, svc) != 0
+    finally:
+        (tmp_path / "compose.log").write_text(c("logs", "--no-color", "-t", check=False).stdout)
+        c.down()
+    s = _summary(c.out)
+    intr = s["interrupted"]
+    assert intr["reason"].startswith("bus lost") and 8 <= intr["last_step"] < 300, intr

@@ -54,7 +54,7 @@ def mc(request):
 
 
 def test_nees_within_chi2_bounds(mc):
-    (n, graph), runs = mc
+    (_n, _graph), runs = mc
     nees = np.stack([r.nees for r in runs])  # (M, K, F, n)
     avg = nees.mean(axis=0)  # (K, F, n): run-average per step, filter and target
     lo, hi = chi2.ppf([0.025, 0.975], 6 * RUNS) / RUNS
@@ -68,7 +68,7 @@ def test_nees_within_chi2_bounds(mc):
 
 
 def test_nis_within_chi2_bounds(mc):
-    (n, graph), runs = mc
+    (_n, _graph), runs = mc
     nis = np.stack([r.nis for r in runs])  # (M, K, F)
     dof = np.stack([r.nis_dof for r in runs])
     tot, totdof = nis.sum(axis=0), dof.sum(axis=0)  # (K, F)

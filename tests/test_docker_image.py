@@ -62,7 +62,7 @@ def docker_run(image: str, *args: str, volumes: dict[Path, str] | None = None,
     cmd = ["docker", "run", "--rm", "--user", f"{os.getuid()}:{os.getgid()}", "-e", "HOME=/tmp"]
     for host, inside in (volumes or {}).items():
         cmd += ["-v", f"{host}:{inside}"]
-    return subprocess.run(cmd + [image, *args], capture_output=True, text=True, timeout=timeout)
+    return subprocess.run([*cmd, image, *args], capture_output=True, text=True, timeout=timeout)
 
 
 def test_help(image):
@@ -167,7 +167,7 @@ def test_sim_in_container_matches_host(image, tmp_path):
     assert summary_c["n_sats"] == 4
 
     out_h = tmp_path / "host"
-    r = subprocess.run(_host_swarm() + ["sim", str(ROOT / "scenarios" / "demo.yaml"), "--out", str(out_h)],
+    r = subprocess.run([*_host_swarm(), "sim", str(ROOT / "scenarios" / "demo.yaml"), "--out", str(out_h)],
                        cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     summary_h = json.loads((out_h / "summary.json").read_text())

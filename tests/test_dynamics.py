@@ -45,7 +45,8 @@ def test_rk4_attitude_conserves_momentum_and_energy_without_torque():
     q0 = quat.normalize(np.array([0.2, 0.1, -0.4, 0.8]))
     w0 = np.array([0.05, -0.03, 0.08])
     q, w = dynamics.rk4_attitude(q0, w0, J, 50.0, substeps=500)
-    h_I = lambda q, w: quat.attitude_matrix(q).T @ (J @ w)  # inertial angular momentum
+    def h_I(q, w):
+        return quat.attitude_matrix(q).T @ (J @ w)  # inertial angular momentum
     np.testing.assert_allclose(h_I(q, w), h_I(q0, w0), rtol=1e-9)
     np.testing.assert_allclose(w @ J @ w, w0 @ J @ w0, rtol=1e-10)
 

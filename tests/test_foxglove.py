@@ -6,12 +6,11 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
+from swarm_harness import run_swarm, scenario
 
 from swarm.foxglove import q_BH
 from swarmcore import quat
 from swarmcore.dynamics import T_IH
-
-from swarm_harness import run_swarm, scenario
 
 
 def test_foxglove_quaternion_puts_body_axes_in_the_hcw_frame():
@@ -29,7 +28,7 @@ def test_foxglove_quaternion_puts_body_axes_in_the_hcw_frame():
 @pytest.mark.integration
 def test_derived_channels_validate_against_their_schemas(tmp_path):
     sc = scenario(n_sats=3, duration_s=6)
-    rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
+    _rec, _summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
     counts = {}
     with open(tmp_path / "run" / "run.mcap", "rb") as f:
@@ -103,7 +102,7 @@ def test_links_channel_shows_each_directed_link_in_the_state_of_its_step(tmp_pat
     rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
     names = [s for s, _ in LINK_STATES]
-    colours = {name: rgb for name, rgb in LINK_STATES}
+    colours = dict(LINK_STATES)
     # The expected state of every step, from the recorded LinkStats (the world's counters).
     counters = {}
     for topic, _schema, data, _lt, _pt in iter_messages(tmp_path / "run" / "run.mcap"):

@@ -13,18 +13,17 @@ import threading
 import numpy as np
 import pytest
 import zenoh
+from swarm_harness import run_swarm, scenario, within_3sigma_fraction
 
 from swarm.bus import messages as M
+from swarm.bus.convert import batch_msg
 from swarm.bus.messages import Clock, Keys
 from swarm.bus.session import BusConfig
-from swarm.bus.convert import batch_msg
 from swarmcore.cameras import best_camera
 from swarmcore.mekf import RelativeMeasurements
-from swarmcore.sim import simulate
 from swarmcore.sensors import relative_pose
+from swarmcore.sim import simulate
 from swarmcore.world import initial_truth, step_truth, world_params
-
-from swarm_harness import run_swarm, scenario, within_3sigma_fraction
 
 pytestmark = pytest.mark.integration
 
@@ -121,7 +120,7 @@ def test_distributed_selection_equals_in_process_selection(tmp_path):
 @pytest.mark.slow
 def test_killed_agent_survivors_keep_estimating_it_within_3_sigma(tmp_path):
     sc = scenario(duration_s=40, faults=[{"at_step": 10, "action": "kill-agent", "target": 2}])
-    rec, summary, codes, sw = run_swarm(sc, tmp_path / "run")
+    rec, summary, codes, _sw = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
     assert codes["agent-2"] == -signal.SIGKILL
     survivors = [0, 1, 3]
@@ -154,8 +153,8 @@ def test_camera_off_produces_nothing_after_the_fault(tmp_path):
     sc = scenario(duration_s=25, faults=[{"at_step": k_fault, "action": "camera", "target": sat, "camera": cam, "state": "off"}])
     rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
-    from swarm.mcaplog import iter_messages
     from swarm.bus.messages import decode
+    from swarm.mcaplog import iter_messages
 
     used = {"before": 0, "after": 0}
     for topic, _s, data, _lt, _pt in iter_messages(tmp_path / "run" / "run.mcap"):
@@ -194,7 +193,7 @@ def test_restarted_agent_reconverges(tmp_path):
         duration_s=60,
         faults=[{"at_step": 10, "action": "kill-agent", "target": 2}, {"at_step": 20, "action": "restart-agent", "target": 2}],
     )
-    rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
+    rec, _summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
     back = np.flatnonzero(rec.alive[:, 2])
     assert back[back > 10].min() <= 21, "the restarted agent did not rejoin at once"
@@ -273,7 +272,7 @@ def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
                 stop.wait(0.05)
 
     try:
-        rec, summary, codes, sw = run_swarm(sc, tmp_path / "run", during=flood)
+        rec, summary, codes, _sw = run_swarm(sc, tmp_path / "run", during=flood)
     finally:
         stop.set()
     assert sent["n"] > 1000
@@ -308,7 +307,7 @@ def test_recorder_sigkill_leaves_a_readable_file(tmp_path):
             sub.undeclare()
 
     out = tmp_path / "run"
-    rec, summary, codes, sw = run_swarm(sc, out, during=kill_recorder)
+    rec, _summary, codes, _sw = run_swarm(sc, out, during=kill_recorder)
     assert killed and codes["recorder"] == -signal.SIGKILL and codes["world"] == 0
     from mcap.reader import make_reader
 
@@ -342,13 +341,13 @@ def test_cli_faults_against_a_running_swarm_and_dropped_messages(tmp_path):
             p = subprocess.run([sys.executable, "-m", "swarm.cli", "fault", "--run-dir", str(sw.out), *args], capture_output=True, text=True, timeout=120)
             results[args[0]] = (p.returncode, p.stdout + p.stderr)
 
-    rec, summary, codes, sw = run_swarm(sc, tmp_path / "run", during=inject)
+    rec, summary, codes, _sw = run_swarm(sc, tmp_path / "run", during=inject)
     assert codes["world"] == 0
     assert results["camera"][0] == 0 and "done" in results["camera"][1], results
     assert results["drop"][0] == 0 and "done" in results["drop"][1], results
     done = {f["action"]: f["k"] for f in summary["faults"] if f["phase"] == "done"}
-    from swarm.mcaplog import iter_messages
     from swarm.bus.messages import decode
+    from swarm.mcaplog import iter_messages
 
     after = 0
     for topic, _s, data, _lt, _pt in iter_messages(tmp_path / "run" / "run.mcap"):

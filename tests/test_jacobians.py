@@ -10,9 +10,9 @@ is checked whole — the blocks the filter fills and the zeros it leaves — ove
 
 import numpy as np
 import pytest
+from numdiff import ATTITUDE, EUCLIDEAN, numerical_generator, numerical_jacobian, product, swarm_state
 from scipy.linalg import block_diag, expm
 
-from numdiff import ATTITUDE, EUCLIDEAN, numerical_generator, numerical_jacobian, product, swarm_state
 from swarmcore import dynamics, quat
 from swarmcore.mekf import (
     AbsoluteMeasurement,
@@ -174,14 +174,14 @@ def test_predict_is_linearised_by_its_transition_blocks(own):
     rest = {}
     for dt in (1.0, 0.2, 0.1):
         p = _params(own=own, dt=dt)
-        num = numerical_jacobian(lambda x: predict(x, p, gyro), est, M, M, eps=1e-5)
+        num = numerical_jacobian(lambda x, p=p: predict(x, p, gyro), est, M, M, eps=1e-5)
         phi, _Q, _w = state_jacobian_blocks(est, p, gyro - est.bias_B)
         err = num - block_diag(*phi)
         assert np.abs(err[exact]).max() < 1e-9, (dt, np.abs(err[exact]).max())
         for b in others:
             w = est.omega_BI_B[b]
             w_dot = dynamics.euler_rate(w, J, p.J_inv)
-            F_dot = numerical_jacobian(lambda s: attitude_F((w + s * w_dot)[None], J, p.J_inv, np.array([False]))[0], np.zeros(1))
+            F_dot = numerical_jacobian(lambda s, w=w, w_dot=w_dot, p=p: attitude_F((w + s * w_dot)[None], J, p.J_inv, np.array([False]))[0], np.zeros(1))
             lead = 0.5 * F_dot.reshape(6, 6) * dt**2
             rest[dt, b] = np.abs(err[12 * b : 12 * b + 6, 12 * b : 12 * b + 6] - lead).max()
             if dt < 1.0:

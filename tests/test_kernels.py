@@ -35,7 +35,7 @@ def test_compiled_kernels_equal_numpy_twins(seed):
 
 def test_information_handles_repeated_pairs():
     # The same pair measured twice adds its information twice.
-    n, P, obs, tgt, y, Hi, Hj, R = _case(m=1)
+    n, _P, obs, tgt, y, Hi, Hj, R = _case(m=1)
     one = kernels.information(n, obs, tgt, y, Hi, Hj, R)
     two = kernels.information(n, np.r_[obs, obs], np.r_[tgt, tgt], np.r_[y, y], np.r_[Hi, Hi], np.r_[Hj, Hj], np.r_[R, R])
     np.testing.assert_allclose(two[0], 2 * one[0], rtol=1e-12)
@@ -72,10 +72,10 @@ def test_compiled_attitude_kernels_equal_numpy_twins(seed):
     """Residuals and Jacobians, torque-free RK4, retraction and the constant-rate step:
     the compiled forms the filter uses equal the vectorised numpy ones to round-off."""
     from swarmcore import dynamics, quat
+    from swarmcore.agent import filter_params
     from swarmcore.dynamics import T_IH
     from swarmcore.mekf import RelativeMeasurements, relative_residuals, relative_residuals_numpy
     from swarmcore.scenario import Scenario
-    from swarmcore.agent import filter_params
     from swarmcore.world import initial_estimate, initial_truth
 
     rng = np.random.default_rng(seed)

@@ -75,7 +75,7 @@ def test_tiny_sweep_through_the_command_equals_direct_runs(tmp_path):
         assert c["stats"]["att_others"]["mean"] == run["att_others"]
         if (q["latency_s"], q["loss"], q["late"], q["rate_Bps"]) == (0.0, 0.0, "replay", None) and q["arm"] == "complete":
             # Latency 0 without range / c is the ideal network: bit-equal to no links at all.
-            ideal = simulate_scenario(load_scenario(SCEN, BASE + ["links.enabled=false"], seed=seed))
+            ideal = simulate_scenario(load_scenario(SCEN, [*BASE, "links.enabled=false"], seed=seed))
             np.testing.assert_array_equal(res.est["q_BI"], ideal.est["q_BI"])
             np.testing.assert_array_equal(res.est["P_diag"], ideal.est["P_diag"])
             # What the complete graph needs (the probe): n − 1 copies of each batch per step.

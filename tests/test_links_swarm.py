@@ -6,11 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from swarm_harness import run_swarm, scenario, within_3sigma_fraction
 
 from swarm.models import simulate_scenario
 from swarmcore import quat
 from swarmcore.mekf import BLOCK
-from swarm_harness import run_swarm, scenario, within_3sigma_fraction
 
 LINKS = {
     "enabled": True,
@@ -81,7 +81,7 @@ def test_a_restarted_agent_gets_its_state_through_the_radio(tmp_path):
     sc = scenario(n_sats=4, duration_s=40, faults=[{"at_step": 10, "action": "kill-agent", "target": 2},
                                                    {"at_step": 15, "action": "restart-agent", "target": 2}],
                   links={"enabled": True, "latency": {"fixed_s": 0.5}, "rate_Bps": 20000.0, "queue_bytes": 10**6})
-    rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
+    rec, _summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
     fates = [f for f in rec.rejoins if f["sat"] == 2]
     assert fates and fates[0]["fate"] == "delivered"

@@ -62,15 +62,23 @@ def test_sigkill_at_random_instants_leaves_a_readable_file(tmp_path):
     for trial in range(12):
         p = tmp_path / f"k{trial}.mcap"
         proc = subprocess.Popen([sys.executable, "-c", WRITER, str(p)], stdout=subprocess.PIPE, text=True)
-        flushes = []  # completed flushes reported by the writer (read on a thread)
-        reader = threading.Thread(target=lambda: flushes.extend(int(x) for x in proc.stdout), daemon=True)
+        flushes: list[int] = []  # completed flushes reported by the writer (read on a thread)
+        first = threading.Event()
+
+        def read(proc=proc, flushes=flushes, first=first):
+            for x in proc.stdout:
+                flushes.append(int(x))
+                first.set()
+
+        reader = threading.Thread(target=read, daemon=True)
         reader.start()
-        # Kill at a random instant (not a synchronisation: any instant must be safe).
-        threading.Event().wait(rng.uniform(0.3, 0.8))
+        # Wait until the writer is writing (its start-up time depends on the machine's load),
+        # then kill it at a random instant (not a synchronisation: any instant must be safe).
+        assert first.wait(60), "the writer never flushed"
+        threading.Event().wait(rng.uniform(0.0, 0.5))
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait()
         reader.join(10)
-        assert flushes, "the writer never flushed"
         flushed = flushes[-1]
         got = _read(p)
         assert got[:flushed] == list(range(flushed)), f"trial {trial}: lost flushed messages"

@@ -12,16 +12,16 @@ from swarm.bus.convert import (
     full_estimate_msg,
     images_msg,
     matrix,
+    observation_from_images,
     pairs_from_select,
     relative_from_batches,
-    observation_from_images,
     select_msg,
     truth_msg,
 )
 from swarmcore import quat
 from swarmcore.mekf import RelativeMeasurements, SwarmEstimate
-from swarmcore.scenario import Scenario
 from swarmcore.metrics import pose_cov_blocks
+from swarmcore.scenario import Scenario
 from swarmcore.world import initial_truth
 
 RUN = "t-1"
@@ -268,7 +268,7 @@ def test_replace_as_dict_and_optional_fields():
     f = M.Fault(**H, action="kill-selector", phase="command")
     assert M.opt(f, "target") is None and f.target == 0
     d = M.as_dict(M.replace(f, phase="done", detail="x"), exclude=("schema_version", "run"))
-    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None}
+    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None, "down_s": None}
     assert f.phase == "command", "replace must not touch the original"
     g = M.replace(EXAMPLES["fault"], target=None)
     assert not g.HasField("target") and EXAMPLES["fault"].target == 1
@@ -322,6 +322,13 @@ def test_shallow_decoding_of_estimates_checks_what_it_reads():
         M.decode("meas", _nan_R(), shallow=True)
 
 
+
+def _with(a: np.ndarray, index, value) -> np.ndarray:
+    """A copy of ``a`` with ``a[index] = value``."""
+    b = a.copy()
+    b[index] = value
+    return b
+
 def test_compiled_batch_checks_give_the_numpy_verdicts():
     from swarm.bus import fastcheck as F
 
@@ -330,15 +337,15 @@ def test_compiled_batch_checks_give_the_numpy_verdicts():
     r0 = np.asarray(base.r_ij_Bi_m).reshape(-1, 3)
     R0 = array(base.R_Bi)
     cases = {"sound": (q0, r0, R0), "empty": (np.zeros((0, 4)), np.zeros((0, 3)), np.zeros((0, 6, 6)))}
-    q = q0.copy(); q[1, 2] = np.nan; cases["q NaN"] = (q, r0, R0)
-    q = q0.copy(); q[0] *= 1.001; cases["q not unit"] = (q, r0, R0)
-    q = q0.copy(); q[0] *= 1 + 5e-7; cases["q within tolerance"] = (q, r0, R0)
-    r = r0.copy(); r[1, 0] = np.inf; cases["r inf"] = (q0, r, R0)
-    R = R0.copy(); R[1, 0, 5] = np.nan; cases["R NaN upper"] = (q0, r0, R)
-    R = R0.copy(); R[0, 4, 1] += 1e-3; cases["R asymmetric"] = (q0, r0, R)
-    R = R0.copy(); R[0, 4, 1] += 1e-12 * R0[0].max(); cases["R round-off"] = (q0, r0, R)
-    R = R0.copy(); R[1, 3, 3] = -R[1, 3, 3]; cases["R indefinite"] = (q0, r0, R)
-    R = R0.copy(); R[1] = np.ones((6, 6)); cases["R singular"] = (q0, r0, R)
+    cases["q NaN"] = (_with(q0, (1, 2), np.nan), r0, R0)
+    cases["q not unit"] = (_with(q0, 0, q0[0] * 1.001), r0, R0)
+    cases["q within tolerance"] = (_with(q0, 0, q0[0] * (1 + 5e-7)), r0, R0)
+    cases["r inf"] = (q0, _with(r0, (1, 0), np.inf), R0)
+    cases["R NaN upper"] = (q0, r0, _with(R0, (1, 0, 5), np.nan))
+    cases["R asymmetric"] = (q0, r0, _with(R0, (0, 4, 1), R0[0, 4, 1] + 1e-3))
+    cases["R round-off"] = (q0, r0, _with(R0, (0, 4, 1), R0[0, 4, 1] + 1e-12 * R0[0].max()))
+    cases["R indefinite"] = (q0, r0, _with(R0, (1, 3, 3), -R0[1, 3, 3]))
+    cases["R singular"] = (q0, r0, _with(R0, 1, np.ones((6, 6))))
     want = {"sound": 0, "empty": 0, "q NaN": 1, "q not unit": 2, "q within tolerance": 0, "r inf": 3, "R NaN upper": 4,
             "R asymmetric": 5, "R round-off": 0, "R indefinite": 6, "R singular": 6}
     for name, (q, r, R) in cases.items():

@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
+from numdiff import ATTITUDE, EUCLIDEAN, numerical_generator, numerical_jacobian, product, swarm_state
 from scipy.linalg import expm
 
-from numdiff import ATTITUDE, EUCLIDEAN, numerical_generator, numerical_jacobian, product, swarm_state
 from swarmcore import quat
 from swarmcore.mekf import FilterParams, SwarmEstimate, _apply_correction
 
@@ -35,9 +35,9 @@ def test_rotation_action_on_a_vector(rng):
     for _ in range(5):
         q, v = quat.random_quaternion(rng), rng.normal(size=3)
         T = quat.attitude_matrix(q)
-        J_a = numerical_jacobian(lambda p: quat.attitude_matrix(p) @ v, q, domain=ATTITUDE)
+        J_a = numerical_jacobian(lambda p, v=v: quat.attitude_matrix(p) @ v, q, domain=ATTITUDE)
         np.testing.assert_allclose(J_a, quat.skew(T @ v), atol=1e-9)
-        J_v = numerical_jacobian(lambda w: T @ w, v)
+        J_v = numerical_jacobian(lambda w, T=T: T @ w, v)
         np.testing.assert_allclose(J_v, T, atol=1e-9)
 
 

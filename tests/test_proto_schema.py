@@ -26,10 +26,11 @@ PROTO = ROOT / "proto"
 def test_generated_code_is_what_the_schema_files_generate(tmp_path):
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "gen_proto.py"), "--out", str(tmp_path)], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    fresh = sorted((tmp_path / "swarm" / "v1").glob("*_pb2.py"))
-    committed = sorted((ROOT / "swarm" / "v1").glob("*_pb2.py"))
-    assert [f.name for f in fresh] == [f.name for f in committed] == [f.stem + "_pb2.py" for f in sorted((PROTO / "swarm" / "v1").glob("*.proto"))]
-    stale = [f.name for f, g in zip(fresh, committed) if f.read_bytes() != g.read_bytes()]
+    fresh = sorted((tmp_path / "swarm" / "v1").glob("*_pb2.py*"))  # the code and its type stubs
+    committed = sorted((ROOT / "swarm" / "v1").glob("*_pb2.py*"))
+    want = sorted(f.stem + suffix for f in (PROTO / "swarm" / "v1").glob("*.proto") for suffix in ("_pb2.py", "_pb2.pyi"))
+    assert [f.name for f in fresh] == [f.name for f in committed] == want
+    stale = [f.name for f, g in zip(fresh, committed, strict=True) if f.read_bytes() != g.read_bytes()]
     assert not stale, f"run scripts/gen_proto.py: {stale} differ from what proto/ generates"
 
 
@@ -50,7 +51,7 @@ def recording(tmp_path_factory):
 
     sc = scenario(n_sats=3, duration_s=5, selection={"strategy": "random", "budget": 3})
     out = tmp_path_factory.mktemp("proto") / "run"
-    rec, summary, codes, _ = run_swarm(sc, out)
+    rec, _summary, codes, _ = run_swarm(sc, out)
     assert codes["world"] == 0
     return out / "run.mcap", rec, sc
 
@@ -60,7 +61,7 @@ def test_mcap_reader_decodes_every_project_channel_from_its_embedded_schema(reco
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
-    path, rec, sc = recording
+    path, rec, _sc = recording
     ours = {cls.DESCRIPTOR.full_name: cls for cls in M.MODELS.values()}
     seen = {}
     with open(path, "rb") as f:
@@ -69,7 +70,7 @@ def test_mcap_reader_decodes_every_project_channel_from_its_embedded_schema(reco
         for ch in summary.channels.values():
             s = summary.schemas[ch.schema_id]
             assert ch.message_encoding == "protobuf" and s.encoding == "protobuf", ch.topic
-        for schema, ch, raw, msg in r.iter_decoded_messages():
+        for schema, ch, _raw, msg in r.iter_decoded_messages():
             if ch.topic.startswith("/foxglove/"):
                 continue
             name = schema.name
@@ -103,7 +104,7 @@ def _numbers(text: str, field: str) -> list[float]:
 def test_protoc_decode_of_recorded_messages_equals_the_python_values(recording):
     from swarm.mcaplog import iter_messages
 
-    path, rec, sc = recording
+    path, rec, _sc = recording
     done = set()
     for topic, _schema, data, _lt, _pt in iter_messages(path):
         if not topic.startswith("swarm/"):

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from protocol_driver import Driver, FakeClock
+
 from sat_agent.protocol import AgentProtocol
 from swarm.bus.convert import batch_msg, detections, full_estimate_msg, sensors_msg
 from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Keys
@@ -210,3 +210,29 @@ def test_restart_in_lockstep_asks_every_live_peer_and_takes_the_freshest():
     assert sorted(q.key for q in d.queries) == [K.cov(1), K.cov(2)]
     (prior,) = d.sent_on(K.est(0))
     assert prior.k == 4 and a.last_step == 4
+
+
+def test_bus_back_sends_the_step_again_copies_are_no_news_and_a_lost_world_ends_the_run():
+    """Issue 16: after a bus gap the agent sends its step's batch, estimate and health again;
+    a batch or a world's message sent again is handled as the no-op it is (not a late
+    batch); a world gone before the run's end raises WorldLost."""
+    from swarm.protocol import WorldLost
+
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    d = Driver(a, clock, answer=prior_answer(sc, world.truth))
+    d.feed(Event(K.alive("world", 0), "alive", 0, alive=True, role="world"))
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True, role="agent"), Event(K.alive("agent", 2), "alive", 2, alive=True, role="agent"))
+    world.advance(0)
+    b1, b2 = meas_event(world.batch(1, 0)), meas_event(world.batch(2, 0))
+    d.feed(*world.events_for(0, 0), b1, b2)
+    step0 = [s for s in d.take() if s.msg.k == 0 and not (s.key == K.est(0) and s.msg.phase == "prior")]
+    assert [s.key for s in step0] == [K.meas(0), K.est(0), K.health(0)]
+    d.feed(Event(K.alive("recorder", 0), "resync", 0, role="recorder"))
+    assert d.take() == step0, "the recorder came back: the step's messages again"
+    d.feed(*world.events_for(0, 0), b1, b2)  # the world and the peers send step 0 again
+    assert a.batches_late == 0 and not d.sent and a.last_step == 0
+    with pytest.raises(WorldLost):
+        d.feed(Event(K.alive("world", 0), "alive", 0, alive=False, role="world"))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from protocol_driver import Driver, FakeClock
+
 from selector.protocol import SelectorProtocol
 from swarm.bus.convert import estimate_msg, full_estimate_msg
 from swarm.bus.messages import Clock, Keys

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
 from protocol_driver import Driver, FakeClock
+
 from swarm.bus.convert import matrix, select_msg
 from swarm.bus.messages import Estimate, Fault, Health, Keys
 from swarm.protocol import Event
@@ -50,7 +50,7 @@ def started_world(sc: Scenario, **kw) -> tuple[Driver, WorldProtocol, FakeClock]
 
 def test_step_publishes_truth_clock_sensors_and_cameras_then_waits_for_every_estimate():
     sc = scenario()
-    d, w, _ = started_world(sc)
+    d, _w, _ = started_world(sc)
     keys = [s.key for s in d.take()]
     assert keys[:2] == [K.truth(), K.clock()]
     assert keys[2:5] == [K.sensors(0), K.sensors(1), K.sensors(2)]
@@ -84,7 +84,7 @@ def test_a_dead_agent_is_not_waited_for_and_gets_nothing():
 
 def test_a_silent_agent_costs_one_step_timeout_then_the_world_moves_on():
     sc = scenario(emulator={"step_timeout_s": 5.0})
-    d, _w, clock = started_world(sc)
+    d, _w, _clock = started_world(sc)
     d.take()
     d.feed(est(0, 0), est(1, 0))
     d.elapse(4.9)
@@ -194,3 +194,23 @@ def test_fault_events_from_others_are_kept():
     f = Fault(run=RUN, sender="supervisor", k=0, t_s=0.0, action="kill-agent", target=1, phase="done")
     d.feed(Event(K.fault(), "fault", None, msg=f))
     assert w.fault_done == [f]
+
+
+def test_bus_back_sends_the_step_again_and_a_held_token_holds_the_step():
+    """Issue 16: when the bus comes back (or a peer's token that went with it returns) the
+    world sends its current step's messages again, the same ones; while a token is only
+    held (gone, not yet known whether for good) the step does not end."""
+    sc = scenario()
+    d, _w, _ = started_world(sc)
+    first = d.take()
+    d.feed(Event("", "bus", None, alive=False))
+    assert not d.sent, "nothing to send while the bus is down"
+    d.feed(Event("", "bus", None, alive=True))
+    assert d.take() == first, "the step's truth, clock, sensors and cameras, again"
+    d.feed(Event(K.alive("recorder", 0), "held", 0, role="recorder"))
+    d.feed(est(0, 0), est(1, 0), est(2, 0))
+    assert not [s for s in d.sent if s.key == K.clock()], "step 1 must wait: the recorder is only out of reach"
+    d.feed(Event(K.alive("recorder", 0), "resync", 0, role="recorder"))
+    again = d.take()
+    assert [s.key for s in again[: len(first)]] == [s.key for s in first]  # step 0 again for the recorder, then step 1
+    assert [s.msg.k for s in again if s.key == K.clock()] == [0, 1]

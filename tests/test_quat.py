@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
+from numdiff import numerical_jacobian
 from scipy.spatial.transform import Rotation
 
-from numdiff import numerical_jacobian
 from swarmcore import quat
 
 

@@ -113,7 +113,6 @@ def test_report_of_a_sim_run_with_links_has_the_link_section(tmp_path):
 @pytest.mark.integration
 def test_report_of_a_recording_with_links_shows_latencies_and_queues(tmp_path):
     import numpy as np
-
     from swarm_harness import run_swarm, scenario
 
     links = {"enabled": True, "latency": {"fixed_s": 1.0, "jitter": {"distribution": "uniform", "scale_s": 1.0}},
@@ -132,3 +131,23 @@ def test_report_of_a_recording_with_links_shows_latencies_and_queues(tmp_path):
     assert int(rows["all"][1]) == summary["links"]["totals"]["delivered"] == len(lat)
     attrs = _browser_check(tmp_path / "rep" / "report.html")
     assert attrs["errors"] == "0" and attrs["images"] == attrs["images-loaded"] == "10"
+
+
+def test_tables_say_no_data_and_why_instead_of_nan():
+    """A summary with missing errors (a run cut short) prints "no data" and the reason, never nan."""
+    from rich.console import Console
+
+    from swarm.cli import _summary_table as cli_table
+    from swarm.report import _summary_table as html_table
+
+    nan = float("nan")
+    block = {"self": {"att_rad": 1e-4, "pos_m": 0.01}, "others": {"att_rad": nan, "pos_m": nan}}
+    s = {"rms": block, "rms_second_half": block, "nees": {"mean": nan}, "gate": {"accepted": 0, "rejected": 0},
+         "interrupted": {"reason": "bus lost", "last_step": 7, "steps_planned": 61}}
+    con = Console(width=200, record=True)
+    con.print(cli_table(s, "t"))
+    text = con.export_text()
+    page = html_table(s)
+    for out in (text, page):
+        assert "nan" not in out.lower(), out
+        assert "no data" in out and "bus lost" in out and "step 7 of 60" in out, out

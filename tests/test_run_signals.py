@@ -94,7 +94,7 @@ def _run_and_signal(tmp_path, sig: int):
     scn = tmp_path / "signals.yaml"
     scn.write_text(yaml.safe_dump(SCENARIO))
     out = tmp_path / "run"
-    log = open(tmp_path / "swarm-run.log", "wb")
+    log = open(tmp_path / "swarm-run.log", "wb")  # noqa: SIM115 - the child writes to it; closed in the finally below
     sup = subprocess.Popen([sys.executable, "-m", "swarm.cli", "run", str(scn), "--out", str(out)], stdout=log, stderr=subprocess.STDOUT)
     procs: list[psutil.Process] = []
     try:
@@ -129,7 +129,7 @@ def _check_closed_and_marked(out, sig: signal.Signals) -> None:
     summary = json.loads((out / "summary.json").read_text())
     intr = summary["interrupted"]
     assert intr["reason"] == sig.name and intr["signal"] == int(sig)
-    planned = int(round(SCENARIO["duration_s"])) + 1
+    planned = round(SCENARIO["duration_s"]) + 1
     assert K_SIGNAL <= intr["last_step"] < planned - 1 and intr["steps_planned"] == planned
     assert summary["steps"] == intr["last_step"] + 1
     # The recording was closed cleanly: a finalised, indexed MCAP whose last step is the

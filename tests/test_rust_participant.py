@@ -14,11 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from swarm_harness import run_swarm, scenario
 
 from swarm.bus import messages as M
 from swarm.bus.session import BusConfig
-
-from swarm_harness import run_swarm, scenario
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -70,7 +69,7 @@ def test_rust_participant_prints_every_agents_estimate_as_recorded(watcher, tmp_
         out, err = p.communicate(timeout=600)
         state["out"], state["err"] = out, ready + err
 
-    rec, summary, codes, sw = run_swarm(sc, tmp_path / "run", during=watch)
+    rec, _summary, codes, _sw = run_swarm(sc, tmp_path / "run", during=watch)
     assert finished.wait(60) and "out" in state, "the participant did not finish"
     assert codes["world"] == 0
     p = state["proc"]

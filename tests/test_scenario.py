@@ -61,9 +61,9 @@ def test_set_overrides_any_field(tmp_path):
     sc = load_scenario(f, ["graph.kind=chain", "filter.gate.enabled=false", "sensors.relative.sigma_pos_camera_m=[0.1, 0.1, 0.05]"], seed=9)
     assert sc.graph.kind == "chain" and sc.filter.gate.enabled is False and sc.seed == 9
     assert sc.sensors.relative.sigma_pos_camera_m == [0.1, 0.1, 0.05]
-    with pytest.raises(ScenarioError, match="graph.kind"):
+    with pytest.raises(ScenarioError, match=r"graph\.kind"):
         load_scenario(f, ["graph.kind=ring"])
-    with pytest.raises(ScenarioError, match="dotted.key=value"):
+    with pytest.raises(ScenarioError, match=r"dotted\.key=value"):
         parse_overrides(["n_sats"])
 
 

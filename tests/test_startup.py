@@ -1,16 +1,16 @@
 """Start-up: the roles of a scenario that renders nothing load no vision library."""
 
+import contextlib
 import subprocess
 import sys
 import threading
 from pathlib import Path
 
 import pytest
+from swarm_harness import run_swarm, scenario
 
 from swarm.bus.messages import Clock, Keys
 from swarm.bus.session import BusConfig
-
-from swarm_harness import run_swarm, scenario
 
 VISION = ("cv2", "open3d", "pyrender", "trimesh", "OpenGL", "pyglet")
 
@@ -40,12 +40,10 @@ def test_running_roles_of_a_scenario_without_rendering_map_no_vision_library(tmp
             assert seen.wait(120)
             sub.undeclare()
         for name, p in sw.procs.items():
-            try:
+            with contextlib.suppress(OSError):
                 maps[name] = Path(f"/proc/{p.pid}/maps").read_text()
-            except OSError:
-                pass
 
-    rec, summary, codes, sw = run_swarm(sc, tmp_path / "run", during=look)
+    _rec, _summary, codes, _sw = run_swarm(sc, tmp_path / "run", during=look)
     assert codes["world"] == 0
     assert {"world", "recorder", "agent-0", "agent-1", "agent-2"} <= set(maps)
     for name, text in maps.items():

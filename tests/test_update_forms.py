@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 
 from swarmcore import graphs, quat
+from swarmcore.agent import filter_params
+from swarmcore.measurement import synthetic_batch
 from swarmcore.mekf import SOLVERS, choose_method, predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.sim import simulate
-from swarmcore.agent import filter_params
-from swarmcore.measurement import synthetic_batch
 from swarmcore.world import (
     absolute_measurements,
     initial_estimate,
@@ -64,7 +64,7 @@ def test_information_and_sequential_equal_stacked(n, graph, steps):
 
 
 def test_equal_with_rejections_and_without_absolute():
-    est, p, ab, rel = _setup(4, "complete", sensors={"relative": {"sigma_att_rad": 0.003, "sigma_pos_m": 0.001}})
+    est, p, _ab, rel = _setup(4, "complete", sensors={"relative": {"sigma_att_rad": 0.003, "sigma_pos_m": 0.001}})
     # Corrupt two measurements so the gate rejects them.
     r = rel.r_ij_Bi.copy()
     r[[1, 5]] += 5.0

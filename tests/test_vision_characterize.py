@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -59,13 +60,13 @@ def test_characterized_noise_interpolates_range_and_sun():
 def test_small_characterization_writes_statistics_and_plots(tmp_path):
     """A 2-range × 2-attitude × 3-Sun monocular run: JSON with per-axis statistics per range
     and Sun bin, the Figure 5.7 plots, and errors that grow with range."""
-    from swarmvision.characterize import run_cli
     from swarmcore.vision_config import CovarianceConfig
+    from swarmvision.characterize import run_cli
     from swarmvision.covariance import CharacterizedNoise
 
     files = run_cli("mono", tmp_path, ranges=[3.0, 6.0], orientations=2, suns=3, illuminations=("global",),
                     ambient_global=0.3, log=lambda s: None)
-    res = json.loads(open(files["json"]).read())
+    res = json.loads(Path(files["json"]).read_text())
     st = res["illuminations"]["global"]
     assert st["by_range"]["range_m"] == [3.0, 6.0]
     assert all(c >= 5 for c in st["by_range"]["count"])  # ≥ 5 of 6 images give a pose
@@ -74,7 +75,7 @@ def test_small_characterization_writes_statistics_and_plots(tmp_path):
     assert mse[1, 5] > mse[0, 5]  # line-of-sight error grows with range
     assert len(res["samples"]) == 2 * 2 * 3
     for p in files["plots"]:
-        assert open(p, "rb").read(8) == b"\x89PNG\r\n\x1a\n"
+        assert Path(p).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     cn = CharacterizedNoise(res, CovarianceConfig(), "global", res["camera"])
     assert cn.cov_C(6.0)[5, 5] > cn.cov_C(3.0)[5, 5]
 

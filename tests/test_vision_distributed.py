@@ -7,13 +7,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from swarm_harness import run_swarm
 
 from swarm.mcaplog import iter_messages
-from swarm.scenario_files import load_scenario
 from swarm.models import measurement_model
+from swarm.scenario_files import load_scenario
 from swarmcore.sim import simulate
-
-from swarm_harness import run_swarm
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,7 +37,7 @@ def _same_as_in_process(sc, rec, summary):
 
 
 def test_mono_images_on_the_bus_give_the_in_process_numbers(tmp_path):
-    sc = load_scenario(ROOT / "scenarios" / "mono-5sat.yaml", SMALL_MONO + ["emulator.record_images=true"])
+    sc = load_scenario(ROOT / "scenarios" / "mono-5sat.yaml", [*SMALL_MONO, "emulator.record_images=true"])
     rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0 and rec.alive.all()
     ref = _same_as_in_process(sc, rec, summary)

@@ -20,8 +20,8 @@ def test_apriltag_corner_refinement_is_unbiased():
     convention; the pipeline corrects it. Tags warped into an image with a known
     homography (no renderer involved): mean corner error under 0.1 px per axis, RMS under
     0.3 px (measured: about −0.04 mean and 0.13 px RMS; uncorrected the mean is +0.46)."""
-    from swarmvision import tags
     from swarmcore.vision_config import MonoConfig
+    from swarmvision import tags
     from swarmvision.mono import MonoPipeline
 
     img = tags.tag_image(7, 20)  # 200 px face, black square from pixel 20 to 179
@@ -162,9 +162,10 @@ def test_vision_system_mono_measurements_in_the_filter_frames():
     compared with ``relative_pose`` (q_BjBi, r_ij_Bi): < 5 cm, < 2° (ambient light on, so
     no tag is lost in shadow); covariances are
     symmetric positive definite 6×6 in B_i; order canonical; images deterministic."""
+    from vision_helpers import VisionChain
+
     from swarmcore.sensors import relative_pose
     from swarmcore.vision_config import VisionConfig
-    from vision_helpers import VisionChain
 
     cfg = VisionConfig.model_validate({"pipeline": "mono", "covariance": {"source": "pnp"}, "lighting": {"ambient": 0.3}})
     n = 3
@@ -198,9 +199,10 @@ def test_losing_and_regaining_a_target():
     """Satellite 1 is measured, then drifts out to 60 m (tags < 12 px: not decoded, so
     no measurement and the track is lost), then comes back to 4 m: it is regained and
     measured correctly again."""
+    from vision_helpers import VisionChain
+
     from swarmcore.sensors import relative_pose
     from swarmcore.vision_config import VisionConfig
-    from vision_helpers import VisionChain
 
     cfg = VisionConfig.model_validate({"pipeline": "mono", "covariance": {"source": "pnp"}, "lighting": {"ambient": 0.3}})
     vs = VisionChain(cfg, 2, 0.2, seed=1, mean_motion=1.08e-3)

@@ -79,7 +79,7 @@ def test_rendered_pixels_match_opencv_projection():
     p_I = np.array([0.3, -0.2, 0.5])
     worst = 0.0
     offsets = []
-    for k in range(12):
+    for _ in range(12):
         p_C = np.array([rng.uniform(-0.4, 0.4), rng.uniform(-0.3, 0.3), 1.0]) * rng.uniform(2.0, 3.0)
         X_I = p_I + T_CI.T @ p_C
         r.set_bodies(quat.from_attitude_matrix(T_CI)[None, :], X_I[None, :])  # body axes = camera axes
@@ -91,7 +91,7 @@ def test_rendered_pixels_match_opencv_projection():
         offsets.append([u_c - uv[0, 0, 0], v_c - uv[0, 0, 1]])
         worst = max(worst, float(np.hypot(*offsets[-1])))
         # depth is linear z in the camera frame
-        assert depth[int(round(v_c)), int(round(u_c))] == pytest.approx(p_C[2], abs=1e-3)
+        assert depth[round(v_c), round(u_c)] == pytest.approx(p_C[2], abs=1e-3)
     bias = np.abs(np.mean(offsets, axis=0))
     assert np.all(bias < 0.06), f"rendered points biased off the OpenCV projection by {bias} px"
     assert worst < 0.25, f"rendered point off the OpenCV projection by {worst:.3f} px"

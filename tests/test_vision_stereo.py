@@ -17,7 +17,7 @@ def test_tracking_camera_points_its_boresight_at_the_target():
     from swarmvision.stereo import tracking_camera_T_CB
 
     rng = np.random.default_rng(0)
-    for r in list(rng.normal(size=(20, 3))) + [np.array([0, 0, 1.0]), np.array([0, 0, -2.0])]:
+    for r in [*list(rng.normal(size=(20, 3))), np.array([0, 0, 1.0]), np.array([0, 0, -2.0])]:
         T = tracking_camera_T_CB(r)
         np.testing.assert_allclose(T @ r / np.linalg.norm(r), [0, 0, 1], atol=1e-12)
         np.testing.assert_allclose(T @ T.T, np.eye(3), atol=1e-12)
@@ -134,10 +134,11 @@ def test_vision_system_stereo_measurements_in_the_filter_frames():
     """Rendered stereo cameras and the stereo pose estimator: tracking pairs aimed at each scheduled target, the observer's
     own body hidden, ICP seeded with a prediction; measurements match ``relative_pose``
     in B_i within 10 cm and 2° at 9–14 m."""
+    from vision_helpers import VisionChain
+
     from swarmcore.mekf import init_estimate
     from swarmcore.sensors import relative_pose
     from swarmcore.vision_config import VisionConfig
-    from vision_helpers import VisionChain
 
     cfg = VisionConfig.model_validate({"pipeline": "stereo", "covariance": {"source": "fixed"}, "lighting": {"ambient": 0.1}})
     n = 3

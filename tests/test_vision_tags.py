@@ -55,10 +55,10 @@ def test_rendered_tag_decodes_to_the_right_satellite_and_face():
     """Every face of two satellites (of a 9-satellite swarm), turned towards a camera 3 m
     away, decodes to tag 6·sat + face, with the four corners where the tag geometry
     projects (< 1 px: the face texture is laid out the right way round)."""
-    from swarmvision import tags
-    from swarmvision.mono import MonoPipeline
     from swarmcore.vision_config import MonoConfig
+    from swarmvision import tags
     from swarmvision.models import cube_satellite
+    from swarmvision.mono import MonoPipeline
     from swarmvision.render import SceneRenderer
 
     n = 9
@@ -81,7 +81,7 @@ def test_rendered_tag_decodes_to_the_right_satellite_and_face():
             img = r.render(np.eye(3), np.zeros(3), intr)
             dets = mp.detect(img)
             assert [(d.sat, d.face) for d in dets if d.face == face] == [(sat, face)], [(d.sat, d.face) for d in dets]
-            d = [d for d in dets if d.face == face][0]
+            d = next(d for d in dets if d.face == face)
             X = tags.tag_corners_B(face, 0.32, 0.2) @ quat.attitude_matrix(q) + r_I[sat]
             uv, _ = cv2.projectPoints(X, np.zeros(3), np.zeros(3), intr.K(), None)
             assert np.abs(d.corners_px - uv.reshape(4, 2)).max() < 1.0

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from swarm.node import bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
+from swarm.node import RunBroken, bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
 
 
 def main(argv=None) -> int:
@@ -22,6 +22,9 @@ def main(argv=None) -> int:
         if not w.stop.is_set():
             # The "done" clock may still be on its way: leave once the recorder has finished.
             w.linger_while_recording(sc.emulator.shutdown_linger_s + 5.0)
+    except RunBroken as exc:
+        w.log.error("%s; exiting", exc)
+        return exc.exit_code
     finally:
         w.close()
     return 0

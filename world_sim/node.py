@@ -32,6 +32,7 @@ class World(Node):
         if sc.links.enabled:
             self.subscribe(self.keys.meas())  # the radio channel carries the agents' batches
         self.watch_liveliness()
+        self.set_bus_limits(sc.emulator)
         self.queryable(self.keys.init(), self.machine.serve_prior)
         self.queryable(self.keys.claim(), self.machine.serve_claim)
         if sc.links.enabled:

@@ -21,7 +21,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -51,11 +51,11 @@ from swarm.bus.messages import (
     Select,
     replace,
 )
-from swarm.protocol import Event, Send, Wait
+from swarm.protocol import Event, Outbox, Send, Wait
 from swarmcore.graphs import edges, scenario_graph
 from swarmcore.links import LinkCounters, LinkModel
 from swarmcore.measurement import CameraModel
-from swarmcore.scenario import AGENT_PROCESS_FAULTS, Scenario
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
 from swarmcore.selection import mask_dead, select_for_scenario
 from swarmcore.sim import link_body_radius
 from swarmcore.world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
@@ -106,6 +106,11 @@ class WorldProtocol:
         self._claims: dict[str, int] = {}
         self._claimed_at: dict[int, float] = {}
         self.progress: Callable[[int, int], None] | None = None
+        # The step's messages, sent again when the bus comes back (faults are not: a
+        # command executed twice would be two faults).
+        self.outbox = Outbox(skip_keys=("/fault",))
+        self._aired: set[tuple[int, int]] = set()  # (step, observer) of batches already on the radio
+        self.limbo: set[str] = set()  # liveliness tokens gone, not yet known whether for good (a bus gap)
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -151,6 +156,16 @@ class WorldProtocol:
 
     # -- events -------------------------------------------------------------------
     def handle(self, ev: Event) -> list[Send]:
+        if ev.kind == "held":
+            self.limbo.add(ev.key)
+            return []
+        if ev.kind in ("resync", "alive"):
+            self.limbo.discard(ev.key)
+        if ev.kind in ("bus", "resync"):
+            again = self.outbox.again(ev)
+            if again:
+                log.info("step %d: the bus is back (%s); sending the step's %d messages again", self.k, ev.kind, len(again))
+            return again
         if ev.kind == "alive":
             if ev.role == "agent" and ev.sat is not None:
                 if ev.alive:
@@ -171,7 +186,7 @@ class WorldProtocol:
             # when its estimate was lost (the drop fault).
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
         elif ev.kind == "meas":
-            if self.links is not None:
+            if self.links is not None and (ev.msg.k, ev.msg.observer) not in self._aired:  # not a copy sent again
                 self.batches.setdefault(ev.msg.k, {})[ev.msg.observer] = (ev.msg, radio_bytes(ev.msg))
                 self._new_batch = True
         elif ev.kind == "select":
@@ -199,6 +214,9 @@ class WorldProtocol:
 
     # -- the run ---------------------------------------------------------------------
     def run(self):
+        return self.outbox.wrap(self._run())
+
+    def _run(self):
         sc, em = self.sc, self.sc.emulator
         yield from self._startup()
         self.started = True
@@ -206,6 +224,7 @@ class WorldProtocol:
         gyro = None
         for k in range(sc.steps):
             self.k = k
+            self.outbox.clear()
             yield from self._apply_scheduled_faults(k)
             if k > 0:
                 self.truth, gyro = step_truth(self.wp, self.truth)
@@ -229,8 +248,9 @@ class WorldProtocol:
             if self.links is not None and em.time_mode == "lockstep":
                 yield from self._radio(k, t, live)
             if em.time_mode == "lockstep":
-                ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live),
-                                em.step_timeout_s)
+                # Not on while some role is only out of reach (the recorder would miss the step).
+                ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live)
+                                and not self.limbo, em.step_timeout_s)
                 if not ok:
                     missing = [i for i in live if i not in self.est_seen.get(k, set())]
                     log.warning("step %d: no estimate from %s within %.1f s", k, missing, em.step_timeout_s)
@@ -280,13 +300,12 @@ class WorldProtocol:
         em = self.sc.emulator
         for spec in [f for f in self.sc.faults if f.at_step == k]:
             cmd = Fault(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s, phase="command", action=spec.action, target=spec.target,
-                        camera=spec.camera, state=spec.state, rate=spec.rate, detail="scheduled")
+                        camera=spec.camera, state=spec.state, rate=spec.rate, down_s=spec.down_s, detail="scheduled")
             log.info("step %d: fault %s target=%s", k, spec.action, spec.target)
             yield Send(self.keys.fault(), cmd)
             t = spec.target
             if spec.action == "camera":
-                for s in self._on_fault(cmd):
-                    yield s
+                yield from self._on_fault(cmd)
             elif spec.action in AGENT_PROCESS_FAULTS and spec.action != "restart-agent":
                 yield Wait(lambda: t not in self.alive_agents, em.step_timeout_s)
             elif spec.action == "restart-agent":
@@ -303,6 +322,10 @@ class WorldProtocol:
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
                 yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
+            elif spec.action in ROUTER_FAULTS:
+                # The bus goes down under us (this wait, like every wait, pauses while it is
+                # down); a restart is over once its executor says so.
+                yield Wait(lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done), em.startup_timeout_s)
             elif spec.action == "drop":
                 yield Wait(lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done)
                            or t not in self.alive_agents, em.step_timeout_s)
@@ -354,6 +377,8 @@ class WorldProtocol:
         for s in sorted(x for x in self.batches if x <= k):
             for i, (msg, size) in sorted(self.batches.pop(s).items()):
                 lm.send(i, live, msg, size, t, key=msg.k)
+                self._aired.add((s, i))
+        self._aired = {(s, i) for s, i in self._aired if s >= k - 50}
         return lm.due(t)
 
     def _radio_free(self, k: int, live: list[int], t_wall0: float, deadline: float):
@@ -378,6 +403,7 @@ class WorldProtocol:
                 for s in sorted(self.batches):
                     for i, (msg, size) in sorted(self.batches.pop(s).items()):
                         lm.send(i, [j for j in live if j in self.alive_agents], msg, size, max(now_s, msg.t_s), key=msg.k)
+                        self._aired.add((s, i))
                 self._new_batch = False
                 arrived = lm.due(now_s)
             for d in arrived:

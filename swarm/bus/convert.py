@@ -6,6 +6,8 @@ time as message handling (:func:`swarm.bus.messages.codec_cpu_ms`)."""
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from swarmcore.agent import Detections
@@ -91,7 +93,7 @@ def _rows(field, width: int) -> np.ndarray:
 
 @counted
 def estimate_msg(est: SwarmEstimate, *, run: str, sender: str, own: int, phase: str = "posterior", report: UpdateReport | None = None, **extra) -> Estimate:
-    fields = dict(
+    fields: dict[str, Any] = dict(
         run=run,
         sender=sender,
         k=est.step,

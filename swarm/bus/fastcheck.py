@@ -63,7 +63,7 @@ try:  # pragma: no cover - whichever is installed
 
     HAVE_NUMBA = True
 except ImportError:  # pragma: no cover
-    numba = None
+    numba = None  # type: ignore[assignment]
     HAVE_NUMBA = False
 
 if HAVE_NUMBA:

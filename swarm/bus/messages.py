@@ -56,9 +56,7 @@ import threading
 import time
 
 import numpy as np
-from google.protobuf.message import DecodeError
-
-from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
+from google.protobuf.message import DecodeError, Message
 
 from swarm.v1.claim_pb2 import Claim
 from swarm.v1.clock_pb2 import Clock
@@ -69,10 +67,11 @@ from swarm.v1.health_pb2 import Health
 from swarm.v1.images_pb2 import CameraView, Images
 from swarm.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
 from swarm.v1.measurements_pb2 import MeasBatch
-from swarm.v1.recording_pb2 import Liveliness, Malformed
+from swarm.v1.recording_pb2 import BusGap, Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
 from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
 from swarm.v1.truth_pb2 import Truth
+from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
 
 SCHEMA_VERSION = 1
 MAX_SAT_ID = 10_000
@@ -111,6 +110,7 @@ __all__ = [
     "LinkStats",
     "RejoinFate",
     "Liveliness",
+    "BusGap",
     "Malformed",
     "Keys",
     "MODELS",
@@ -136,7 +136,7 @@ class MessageError(ValueError):
     """A payload that is not a valid message of the expected kind."""
 
 
-MODELS: dict[str, type] = {
+MODELS: dict[str, type[Message]] = {
     "clock": Clock,
     "sensors": Sensors,
     "cam": CameraOutput,
@@ -547,6 +547,8 @@ def _fault(m: Fault, top: int) -> None:
         raise MessageError(f"rate: {m.rate} is not in [0, 1]")
     if m.action == "drop" and not m.HasField("rate"):
         raise MessageError("rate: a drop fault needs a rate")
+    if m.HasField("down_s") and not 0.0 <= m.down_s <= 3600.0:
+        raise MessageError(f"down_s: {m.down_s} is not in [0, 3600] s")
     if m.HasField("netem") and not 1 <= len(m.netem) <= 200:
         raise MessageError(f"netem: {len(m.netem)} characters (1-200 allowed)")
     if m.action == "netem" and not m.HasField("netem"):
@@ -690,6 +692,7 @@ def check_key(key: str, kind: str, sat: int | None, msg) -> None:
     field = _OWNER_FIELD.get(kind)
     if sat is not None and field is not None and getattr(msg, field) != sat:
         raise MessageError(f"key says satellite {sat}, message {field} says {getattr(msg, field)}")
+    want: tuple[str, ...]
     if kind in _WORLD_KEYS or (kind == "full_est" and "/init/" in key):
         want = ("world",)
     elif kind in ("meas", "est", "health", "full_est"):

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarm/v1/recording.proto\x12\x08swarm.v1\"B\n\nLiveliness\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\x0c\n\x04role\x18\x02 \x01(\t\x12\n\n\x02id\x18\x03 \x01(\t\x12\r\n\x05\x61live\x18\x04 \x01(\x08\"8\n\tMalformed\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05\x65rror\x18\x02 \x01(\t\x12\x0f\n\x07payload\x18\x03 \x01(\x0c\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x18swarm/v1/recording.proto\x12\x08swarm.v1\"B\n\nLiveliness\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\x0c\n\x04role\x18\x02 \x01(\t\x12\n\n\x02id\x18\x03 \x01(\t\x12\r\n\x05\x61live\x18\x04 \x01(\x08\"8\n\tMalformed\x12\x0b\n\x03key\x18\x01 \x01(\t\x12\r\n\x05\x65rror\x18\x02 \x01(\t\x12\x0f\n\x07payload\x18\x03 \x01(\x0c\"x\n\x06\x42usGap\x12\x10\n\x08observer\x18\x01 \x01(\t\x12\x14\n\x0c\x64own_unix_ns\x18\x02 \x01(\x03\x12\x12\n\nup_unix_ns\x18\x03 \x01(\x03\x12\x18\n\x10last_step_before\x18\x04 \x01(\x03\x12\x18\n\x10\x66irst_step_after\x18\x05 \x01(\x03\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -35,4 +35,6 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_LIVELINESS']._serialized_end=104
   _globals['_MALFORMED']._serialized_start=106
   _globals['_MALFORMED']._serialized_end=162
+  _globals['_BUSGAP']._serialized_start=164
+  _globals['_BUSGAP']._serialized_end=284
 # @@protoc_insertion_point(module_scope)

@@ -1,0 +1,34 @@
+from swarm.v1 import common_pb2 as _common_pb2
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class MeasBatch(_message.Message):
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "observer", "target", "camera", "q_BjBi", "r_ij_Bi_m", "R_Bi")
+    SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
+    RUN_FIELD_NUMBER: _ClassVar[int]
+    SENDER_FIELD_NUMBER: _ClassVar[int]
+    K_FIELD_NUMBER: _ClassVar[int]
+    T_S_FIELD_NUMBER: _ClassVar[int]
+    OBSERVER_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_FIELD_NUMBER: _ClassVar[int]
+    Q_BJBI_FIELD_NUMBER: _ClassVar[int]
+    R_IJ_BI_M_FIELD_NUMBER: _ClassVar[int]
+    R_BI_FIELD_NUMBER: _ClassVar[int]
+    schema_version: int
+    run: str
+    sender: str
+    k: int
+    t_s: float
+    observer: int
+    target: _containers.RepeatedScalarFieldContainer[int]
+    camera: _containers.RepeatedScalarFieldContainer[int]
+    q_BjBi: _containers.RepeatedScalarFieldContainer[float]
+    r_ij_Bi_m: _containers.RepeatedScalarFieldContainer[float]
+    R_Bi: _common_pb2.Matrix
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., observer: _Optional[int] = ..., target: _Optional[_Iterable[int]] = ..., camera: _Optional[_Iterable[int]] = ..., q_BjBi: _Optional[_Iterable[float]] = ..., r_ij_Bi_m: _Optional[_Iterable[float]] = ..., R_Bi: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ...) -> None: ...

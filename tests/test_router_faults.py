@@ -1,0 +1,171 @@
+"""The bus can fail too (issue 16): a Zenoh router killed and restarted mid-run, killed for
+good, two meshed routers with one killed, and a world that dies.
+
+Real processes on real loopback routers (``swarm run``'s supervisor, or `swarm run` itself
+as a subprocess); waits are on bus events (the world's clock) or on processes ending, each
+with a bound.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import psutil
+import pytest
+import yaml
+import zenoh
+from swarm_harness import scenario
+from test_run_signals import _gone, _read_json, wait_until
+
+from swarm.bus.messages import Clock, Keys
+from swarm.bus.session import BusConfig
+from swarm.faults import send_fault
+from swarm.launch import LocalSwarm
+from swarm.recording import load_recording
+from swarmcore.sim import simulate
+
+pytestmark = pytest.mark.integration
+
+EQUAL_KEYS = ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean")
+
+
+def _wait_step(endpoints: list[str], run: str, k: int, timeout: float = 180.0) -> None:
+    reached = threading.Event()
+    with zenoh.open(BusConfig(mode="client", connect=endpoints).zenoh_config()) as s:
+        sub = s.declare_subscriber(Keys(run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= k and reached.set())
+        try:
+            assert reached.wait(timeout), f"the run did not reach step {k} within {timeout:.0f} s"
+        finally:
+            sub.undeclare()
+
+
+def _run_with_router_fault(tmp_path, routers: int, action: str, target: int, scheduled: bool = False, **fields):
+    """A 4-satellite swarm with a greedy selector; at step 8 ``swarm fault`` (the same
+    function) sends ``action`` — or the scenario schedules it there. Returns (recording,
+    summary, world exit code, the fault command's answer, the scenario)."""
+    faults = [{"at_step": 8, "action": action, "target": target, **fields}] if scheduled else []
+    sc = scenario(duration_s=20, selection={"strategy": "greedy", "budget": 4}, faults=faults)
+    out = tmp_path / "run"
+    sw = LocalSwarm(sc, out, log=lambda s: None, routers=routers)
+    answer = {}
+
+    def during():
+        _wait_step(sw.endpoints, sw.run, 8)
+        answer["fault"] = send_fault(run_dir=out, action=action, target=target, **fields)
+
+    th = threading.Thread(target=during, daemon=True)
+    try:
+        sw.start()
+        if not scheduled:
+            th.start()
+        code = sw.run_to_end(timeout=300)
+    finally:
+        sw.stop()
+        if th.is_alive():
+            th.join(60)
+    rec = load_recording(out / "run.mcap", sc.n_sats, sc.steps)
+    return rec, rec.summary(sc), code, answer.get("fault", ""), sc
+
+
+def _assert_same_numbers_as_without_the_fault(rec, summary, sc):
+    res = simulate(sc)  # the distributed run without faults equals this bit for bit (test_integration_swarm)
+    np.testing.assert_array_equal(rec.schedule, res.schedule)
+    ref = res.summary()
+    for key in EQUAL_KEYS:
+        assert summary[key] == ref[key], key
+    assert summary["steps"] == sc.steps and rec.alive.all() and summary["selector_fallback_steps"] == []
+
+
+def test_router_restarted_mid_run_same_numbers_gap_recorded(tmp_path):
+    """The router is SIGKILLed at step 8 and a new one starts on the same endpoint 1.5 s
+    later: every role reconnects, the world waits, what was in flight is sent again — the
+    run's numbers equal the fault-free run's, and the recording holds the fault and the gap."""
+    rec, summary, code, answer, sc = _run_with_router_fault(tmp_path, 1, "restart-router", 0, down_s=1.5)
+    print(answer, summary.get("bus_gaps"), summary["messages"].get("resent_after_gap"))
+    assert code == 0 and "done by supervisor" in answer, answer
+    _assert_same_numbers_as_without_the_fault(rec, summary, sc)
+    [gap] = summary["bus_gaps"]
+    assert gap["observer"] == "recorder" and 1.5 <= gap["duration_s"] < 15.0, gap
+    assert 8 <= gap["last_step_before"] <= gap["first_step_after"] < sc.steps, gap
+    done = [f for f in summary["faults"] if f["action"] == "restart-router" and f["phase"] == "done"]
+    assert len(done) == 1 and done[0]["sender"] == "supervisor" and "new router pid" in done[0]["detail"], summary["faults"]
+
+
+def test_two_meshed_routers_one_killed_the_run_goes_on(tmp_path):
+    """`swarm run --routers 2`: router 0 (the one every role connected to first) is killed
+    for good at step 8, as the scenario schedules; every role fails over to router 1 and the
+    run completes, its numbers equal to the fault-free run's."""
+    rec, summary, code, _answer, sc = _run_with_router_fault(tmp_path, 2, "kill-router", 0, scheduled=True)
+    print(summary.get("bus_gaps"), summary["faults"])
+    assert code == 0
+    _assert_same_numbers_as_without_the_fault(rec, summary, sc)
+    assert any(f["action"] == "kill-router" and f["phase"] == "done" for f in summary["faults"]), summary["faults"]
+
+
+BOUND_S = 5.0  # emulator.bus_lost_after_s of the broken runs
+BROKEN = {
+    "name": "broken",
+    "seed": 4,
+    "n_sats": 3,
+    "duration_s": 600,
+    "selection": {"strategy": "greedy", "budget": 3},
+    "emulator": {"lockstep_max_realtime_factor": 10.0, "bus_lost_after_s": BOUND_S},
+}
+
+
+def _break_run(tmp_path, victim: str):
+    """`swarm run` as a subprocess; at step 8 SIGKILL ``victim`` (router or world); wait
+    until every process of the run is gone. Returns (exit status, seconds until every
+    process was gone, summary, output)."""
+    scn = tmp_path / "broken.yaml"
+    scn.write_text(yaml.safe_dump(BROKEN))
+    out = tmp_path / "run"
+    log_path = tmp_path / "swarm-run.log"
+    with open(log_path, "wb") as log:
+        sup = subprocess.Popen([sys.executable, "-m", "swarm.cli", "run", str(scn), "--out", str(out)], stdout=log,
+                               stderr=subprocess.STDOUT, env=dict(os.environ, COLUMNS="200"))
+        procs = []
+        try:
+            info = wait_until(lambda: _read_json(out / "run.json"), 180, "run.json written")
+            procs = [psutil.Process(pid) for pid in info["pids"].values()]
+            _wait_step(info["endpoints"], info["run"], 8)
+            t0 = time.monotonic()
+            os.kill(info["pids"][victim], signal.SIGKILL)
+            wait_until(lambda: all(_gone(p) for p in procs), BOUND_S + 20.0, "every process of the run gone")
+            gone_s = time.monotonic() - t0
+            code = sup.wait(timeout=60)
+        finally:
+            for p in [*procs, psutil.Process(sup.pid) if sup.poll() is None else None]:
+                if p is not None and not _gone(p):
+                    p.kill()
+            sup.wait(timeout=30)
+    text = log_path.read_text()
+    print(f"\n{victim} killed: every process gone after {gone_s:.2f} s, `swarm run` exited {code}")
+    return code, gone_s, json.loads((out / "summary.json").read_text()), text
+
+
+def test_router_killed_for_good_the_run_ends_broken(tmp_path):
+    code, gone_s, summary, text = _break_run(tmp_path, "router")
+    assert code == 3, text[-2000:]
+    assert gone_s < BOUND_S + 10.0
+    intr = summary["interrupted"]
+    assert intr["reason"].startswith("bus lost") and 8 <= intr["last_step"] < 600 and intr["steps_planned"] == 601, intr
+    assert summary["steps"] == intr["last_step"] + 1
+    assert summary["bus_gaps"][-1]["up_unix_ns"] is None  # marked: it never came back
+    assert "BROKEN RUN" in text and "bus lost" in text
+
+
+def test_world_killed_the_run_ends_broken(tmp_path):
+    code, gone_s, summary, text = _break_run(tmp_path, "world")
+    assert code == 4, text[-2000:]
+    assert gone_s < 10.0
+    intr = summary["interrupted"]
+    assert intr["reason"] == "the world died (SIGKILL)" and 8 <= intr["last_step"] < 600, intr
+    assert "BROKEN RUN" in text and "the world died" in text
