@@ -931,12 +931,12 @@ def fit_noise(
     table: Path = typer.Argument(..., help="a characterization JSON (or .json.gz) with its samples (swarm characterize "
                                  "--out DIR; shipped: swarmvision/data/*-samples.json.gz)"),
     out: Path = typer.Option(..., "--out", "-o", help="error-model JSON to write (vision.covariance.model)"),
-    residuals: Optional[List[Path]] = typer.Option(
+    residuals: list[Path] | None = typer.Option(
         None, "--residuals", help="measurements.npz of runs (swarm sim --measurements): the temporal inflation τ "
         "per axis from their normalised errors' autocorrelation (repeatable)"),
-    illumination: Optional[str] = typer.Option(None, help="the samples' illumination to fit (default: the first)"),
+    illumination: str | None = typer.Option(None, help="the samples' illumination to fit (default: the first)"),
     max_lag: int = typer.Option(10, min=1, help="longest lag of the autocorrelation (steps)"),
-    window: Optional[int] = typer.Option(
+    window: int | None = typer.Option(
         None, min=2, help="the filter's memory W (steps): τ is the variance factor of a W-step mean "
         "(Bartlett weights) instead of the sum of the positive autocorrelations"),
     scale_from_residuals: bool = typer.Option(
