@@ -299,7 +299,7 @@ def main(argv=None) -> int:
         from .node import load_role_scenario
 
         sc = load_role_scenario(a.scenario, a.sets)
-    r = Recorder(a.run, a.out, bus_config_from_args(a), a.flush_every_s, derive_foxglove=not a.no_foxglove, scenario=sc)
+    r = Recorder(a.run, a.out, bus_config_from_args(a, sc), a.flush_every_s, derive_foxglove=not a.no_foxglove, scenario=sc)
     freeze_startup_objects()
     install_term_handler(r.stop)
     try:
