@@ -227,7 +227,7 @@ def test_agent_on_another_site_joins_through_the_router(image, tmp_path):
     assert f"{c.project}_site_b" in nets and f"{c.project}_bus" in nets
     assert "initialised from the world's prior" in logs and "done at step 15" in logs, logs[-2000:]
     # Over TLS with the claimant's credential, then as its satellite's agent.
-    assert "on the bus at ['tls/router:7448'] as claimant" in logs and "on the bus at ['tls/router:7448'] as agent-" in logs, logs[-2000:]
+    assert "on the bus at ['tls/router:7449'] as claimant" in logs and "on the bus at ['tls/router:7449'] as agent-" in logs, logs[-2000:]
     assert "with its credential" in logs, logs[-2000:]
     s = _summary(c.out)
     assert s["steps"] == 16
