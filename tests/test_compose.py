@@ -107,7 +107,8 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
 
     rec = load_recording(c.out / "run.mcap", 4, 21)
     assert np.isfinite(rec.t).all() and rec.alive.all()
-    assert rec.counts["truth"] == 21 and rec.counts["meas"] == 4 * 21 and rec.counts["sensors"] == 4 * 21, rec.counts
+    # (+ 1 batch: the forgeries' control, agent 3's own batch at a step no run reaches)
+    assert rec.counts["truth"] == 21 and rec.counts["meas"] == 4 * 21 + 1 and rec.counts["sensors"] == 4 * 21, rec.counts
     ref = _sim(4, sets.split())
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: containers and in-process differ"
