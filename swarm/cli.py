@@ -879,16 +879,16 @@ def fit_noise(
     table: Path = typer.Argument(..., help="a characterization JSON (or .json.gz) with its samples (swarm characterize "
                                  "--out DIR; shipped: swarmvision/data/*-samples.json.gz)"),
     out: Path = typer.Option(..., "--out", "-o", help="error-model JSON to write (vision.covariance.model)"),
-    residuals: Optional[List[Path]] = typer.Option(
+    residuals: list[Path] | None = typer.Option(
         None, "--residuals", help="measurements.npz of runs (swarm sim --measurements): the temporal inflation τ "
         "per axis from their normalised errors' autocorrelation (repeatable)"),
-    illumination: Optional[str] = typer.Option(None, help="the samples' illumination to fit (default: the first)"),
+    illumination: str | None = typer.Option(None, help="the samples' illumination to fit (default: the first)"),
     max_lag: int = typer.Option(10, min=1, help="longest lag of the autocorrelation (steps)"),
-    window: Optional[int] = typer.Option(
+    window: int | None = typer.Option(
         None, min=2, help="the filter's memory W (steps): τ is the variance factor of a W-step mean "
         "(Bartlett weights) instead of the sum of the positive autocorrelations"),
-    scale_from_residuals: bool = typer.Option(
-        False, help="also re-centre each axis's σ on the runs' errors (median (e/σ)² = χ²₁ median), keeping the "
+    flight_scale: bool = typer.Option(
+        False, "--flight-scale", help="also re-centre each axis's σ on the runs' errors (median (e/σ)² = χ²₁ median), keeping the "
         "characterisation's dependence on the features"),
 ):
     """Fit the log-linear measurement-noise model of a pose pipeline from characterisation
@@ -924,7 +924,7 @@ def fit_noise(
         from swarmvision.residuals import normalised_series
 
         runs = [read_residuals(p) for p in residuals]
-        if scale_from_residuals:
+        if flight_scale:
             from swarmvision.error_model import CHI2_1_MEDIAN
 
             E = np.concatenate([rr["err"] for rr in runs])
