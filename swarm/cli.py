@@ -939,8 +939,8 @@ def fit_noise(
     window: int | None = typer.Option(
         None, min=2, help="the filter's memory W (steps): τ is the variance factor of a W-step mean "
         "(Bartlett weights) instead of the sum of the positive autocorrelations"),
-    scale_from_residuals: bool = typer.Option(
-        False, help="also re-centre each axis's σ on the runs' errors (median (e/σ)² = χ²₁ median), keeping the "
+    flight_scale: bool = typer.Option(
+        False, "--flight-scale", help="also re-centre each axis's σ on the runs' errors (median (e/σ)² = χ²₁ median), keeping the "
         "characterisation's dependence on the features"),
 ):
     """Fit the log-linear measurement-noise model of a pose pipeline from characterisation
@@ -976,7 +976,7 @@ def fit_noise(
         from swarmvision.residuals import normalised_series
 
         runs = [read_residuals(p) for p in residuals]
-        if scale_from_residuals:
+        if flight_scale:
             from swarmvision.error_model import CHI2_1_MEDIAN
 
             E = np.concatenate([rr["err"] for rr in runs])
