@@ -107,7 +107,8 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
 
     rec = load_recording(c.out / "run.mcap", 4, 21)
     assert np.isfinite(rec.t).all() and rec.alive.all()
-    assert rec.counts["truth"] == 21 and rec.counts["meas"] == 4 * 21 and rec.counts["sensors"] == 4 * 21, rec.counts
+    # (+ 1 batch: the forgeries' control, agent 3's own batch at a step no run reaches)
+    assert rec.counts["truth"] == 21 and rec.counts["meas"] == 4 * 21 + 1 and rec.counts["sensors"] == 4 * 21, rec.counts
     ref = _sim(4, sets.split())
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: containers and in-process differ"
@@ -227,7 +228,7 @@ def test_agent_on_another_site_joins_through_the_router(image, tmp_path):
     assert f"{c.project}_site_b" in nets and f"{c.project}_bus" in nets
     assert "initialised from the world's prior" in logs and "done at step 15" in logs, logs[-2000:]
     # Over TLS with the claimant's credential, then as its satellite's agent.
-    assert "on the bus at ['tls/router:7448'] as claimant" in logs and "on the bus at ['tls/router:7448'] as agent-" in logs, logs[-2000:]
+    assert "on the bus at ['tls/router:7449'] as claimant" in logs and "on the bus at ['tls/router:7449'] as agent-" in logs, logs[-2000:]
     assert "with its credential" in logs, logs[-2000:]
     s = _summary(c.out)
     assert s["steps"] == 16
