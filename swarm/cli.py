@@ -147,6 +147,10 @@ def sim(
     seed: int | None = typer.Option(None, help="override the scenario seed"),
     sets: list[str] | None = SetOpt,
     arrays: bool = typer.Option(True, help="write truth.npz and estimates.npz"),
+    measurements: bool = typer.Option(
+        False, "--measurements", help="rendered scenarios: also write OUT/measurements.npz (every vision "
+        "measurement's camera-frame error, the variances attached, what the error model read) and their "
+        "normalised statistics and autocorrelation in summary.json (measurement_residuals)"),
 ):
     """Run every satellite's filter in this process (fast, no bus).
 
@@ -156,10 +160,26 @@ def sim(
     from .outputs import write_run
 
     sc = _load(scenario, sets, seed)
+    records: list | None = [] if measurements and sc.vision.pipeline != "none" else None
     with _progress() as prog:
         task = prog.add_task(f"sim {sc.name} n={sc.n_sats}", total=sc.steps)
-        res = simulate_scenario(sc, progress=lambda k, K: prog.update(task, completed=k))
-    summary = write_run(res, out, arrays=arrays)
+        res = simulate_scenario(sc, progress=lambda k, K: prog.update(task, completed=k), measurements=records)
+    extra = None
+    if records is not None:
+        from swarmvision.residuals import residuals, summarize_residuals, write_residuals
+
+        rr = residuals(records, res.truth, res.t, sc.orbit.mean_motion_rad_s)
+        out.mkdir(parents=True, exist_ok=True)
+        write_residuals(rr, out / "measurements.npz")
+        extra = {"measurement_residuals": summarize_residuals(rr)}
+        mr = extra["measurement_residuals"]
+        if mr["n"]:
+            console.print(
+                f"{mr['n']} vision measurements: mean (e/σ)² att {_fmt3(mr['mean_z2'][:3])} pos {_fmt3(mr['mean_z2'][3:])}, "
+                f"clipped at 5σ att {_fmt3(mr['mean_z2_clipped'][:3])} pos {_fmt3(mr['mean_z2_clipped'][3:])}; "
+                f"lag-1 autocorrelation att {_fmt3(mr['lag1'][:3])} pos {_fmt3(mr['lag1'][3:])}",
+                highlight=False)
+    summary = write_run(res, out, arrays=arrays, extra_summary=extra)
     console.print(_summary_table(summary, f"{sc.name}: n={sc.n_sats}, {summary['steps']} steps, seed {sc.seed}"))
     if (lt := _links_table(summary)) is not None:
         console.print(lt)
@@ -168,6 +188,10 @@ def sim(
         f"rejected {summary['gate']['rejected']} · filter step median "
         f"{summary['timing']['filter_step_ms_median']:.3f} ms · wrote {out}"
     )
+
+
+def _fmt3(v) -> str:
+    return "/".join(f"{x:.2f}" for x in v)
 
 
 @app.command()
@@ -870,7 +894,15 @@ def characterize(
     def log(m):
         console.print(m, highlight=False)
 
-    vision = None if scenario is None else _load(scenario, sets).vision
+    vision = None
+    if scenario is not None:
+        from swarmvision.characterize import flown_geometry
+
+        sc = _load(scenario, sets)
+        vision = sc.vision
+        fg = flown_geometry(sc)
+        log(f"{sc.name} flies ranges {fg['range_m'][0]:.1f}–{fg['range_m'][2]:.1f} m (median {fg['range_m'][1]:.1f}), "
+            f"Sun angles {fg['sun_deg'][0]:.0f}–{fg['sun_deg'][2]:.0f}°: the design should cover them")
     store = ResultStore(out / "results.jsonl", resume=resume)
     try:
         with _study(open_executor, workers, cluster) as ex, _progress() as prog:
@@ -892,6 +924,93 @@ def characterize(
     finally:
         store.close()
     _report_failed(sorted(mapper.result.errors.items()), "cells", out, "illumination@range index")
+
+
+@app.command("fit-noise")
+def fit_noise(
+    table: Path = typer.Argument(..., help="a characterization JSON (or .json.gz) with its samples (swarm characterize "
+                                 "--out DIR; shipped: swarmvision/data/*-samples.json.gz)"),
+    out: Path = typer.Option(..., "--out", "-o", help="error-model JSON to write (vision.covariance.model)"),
+    residuals: list[Path] | None = typer.Option(
+        None, "--residuals", help="measurements.npz of runs (swarm sim --measurements): the temporal inflation τ "
+        "per axis from their normalised errors' autocorrelation (repeatable)"),
+    illumination: str | None = typer.Option(None, help="the samples' illumination to fit (default: the first)"),
+    max_lag: int = typer.Option(10, min=1, help="longest lag of the autocorrelation (steps)"),
+    window: int | None = typer.Option(
+        None, min=2, help="the filter's memory W (steps): τ is the variance factor of a W-step mean "
+        "(Bartlett weights) instead of the sum of the positive autocorrelations"),
+    flight_scale: bool = typer.Option(
+        False, "--flight-scale", help="also re-centre each axis's σ on the runs' errors (median (e/σ)² = χ²₁ median), keeping the "
+        "characterisation's dependence on the features"),
+):
+    """Fit the log-linear measurement-noise model of a pose pipeline from characterisation
+    samples (and its temporal inflation from runs' residuals); write it and its plots."""
+    import json
+
+    import numpy as np
+
+    from swarmvision.characterize import fit_error_model, plot_error_model
+    from swarmvision.residuals import read_residuals, summarize_residuals
+
+    def log(m):
+        console.print(m, highlight=False)
+
+    try:
+        raw = Path(table).read_bytes()
+        if Path(table).suffix == ".gz":
+            import gzip
+
+            raw = gzip.decompress(raw)
+        res = json.loads(raw)
+        if "samples" not in res:
+            raise ValueError(f"{table}: no samples (a shipped statistics-only table?): run swarm characterize")
+        m = fit_error_model(res, illumination, log=log)
+    except (OSError, ValueError, KeyError, EOFError) as e:
+        console.print(f"[red]error:[/red] {table}: {e}")
+        raise typer.Exit(2) from e
+    ss = [s for s in res["samples"] if s.get("ok") and s.get("q") and s["illumination"] == m.meta["illumination"]]
+    plots = [plot_error_model(m, [s["q"] for s in ss], np.array([s["err"] for s in ss]), out.with_name(out.stem + "-fit.png"),
+                              f"{m.pipeline}: fitted error model vs characterisation errors ({len(ss)} samples)")]
+    if residuals:
+        from swarmvision.error_model import autocorrelation
+        from swarmvision.residuals import normalised_series
+
+        runs = [read_residuals(p) for p in residuals]
+        if flight_scale:
+            from swarmvision.error_model import CHI2_1_MEDIAN
+
+            E = np.concatenate([rr["err"] for rr in runs])
+            V = np.concatenate([m.var_C_single(rr["q"]) for rr in runs])
+            z2 = E**2 / V
+            ok = np.all(np.isfinite(z2), axis=1)
+            shift = np.log(np.median(z2[ok], axis=0) / CHI2_1_MEDIAN)
+            m.coef[:, 0] += shift
+            m.min_var = m.min_var * np.exp(shift)
+            m.max_var = m.max_var * np.exp(shift)
+            m.meta["flight_scale"] = {"runs": [str(p) for p in residuals], "var_factor": np.exp(shift).tolist()}
+            log(f"re-centred on the runs' errors: variance × {'/'.join(f'{x:.3g}' for x in np.exp(shift))}")
+        series, per_run, allq, allE, allV = [], [], [], [], []
+        for p, rr in zip(residuals, runs, strict=True):
+            v = m.var_C_single(rr["q"])
+            series += normalised_series(rr, v)
+            st = summarize_residuals(rr, v, max_lag)
+            per_run.append({"run": str(p), "n": st["n"], "mean_z2": st["mean_z2"], "median_z2": st["median_z2"],
+                            "lag1": st["lag1"], "tau": st["tau"]})
+            allq += rr["q"]
+            allE.append(rr["err"])
+            allV.append(v)
+        ac = autocorrelation(series, max_lag, window)
+        m.temporal_inflation = np.maximum(np.asarray(ac["tau"]), 1.0)
+        m.meta["temporal"] = {"runs": per_run, "lag1": ac["lag1"], "tau": ac["tau"], "max_lag": max_lag, "window": window,
+                              "rho": ac["rho"]}
+        log("in flight, normalised by the fitted σ (one measurement alone): " + "; ".join(
+            f"{r['run']}: n {r['n']}, mean (e/σ)² {'/'.join(f'{x:.2f}' for x in r['mean_z2'])}" for r in per_run))
+        log(f"lag-1 autocorrelation {'/'.join(f'{x:.2f}' for x in ac['lag1'])} → temporal inflation τ "
+            f"{'/'.join(f'{x:.2f}' for x in m.temporal_inflation)}")
+        plots.append(plot_error_model(m, allq, np.concatenate(allE), out.with_name(out.stem + "-flight.png"),
+                                      f"{m.pipeline}: fitted error model (one measurement) vs errors in flight", var=np.concatenate(allV)))
+    m.write(out)
+    log(f"wrote {out} and {', '.join(map(str, plots))}")
 
 
 @bench_app.command("vision")

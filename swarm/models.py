@@ -35,10 +35,16 @@ def batch_wire_size(run: str = "sim"):
 SIM_RUN_ID = "sim"
 
 
-def simulate_scenario(sc: Scenario, progress=None, run: str = SIM_RUN_ID):
+def simulate_scenario(sc: Scenario, progress=None, run: str = SIM_RUN_ID, measurements: list | None = None):
     """``swarmcore.sim.simulate`` with everything a scenario may need from outside the core:
     its measurement model (rendered cameras when it renders) and, with links, the size of
-    each batch on the bus."""
+    each batch on the bus. ``measurements`` (a list; rendered scenarios): receives one
+    record per vision measurement (:attr:`swarmvision.pose_estimator.VisionPoseEstimator.record`)."""
     from swarmcore.sim import simulate
 
-    return simulate(sc, measurement_model(sc), progress=progress, wire_size=batch_wire_size(run) if sc.links.enabled else None)
+    model = measurement_model(sc)
+    if measurements is not None and sc.vision.pipeline != "none":
+        est = model.estimator()
+        est.record = measurements  # type: ignore[attr-defined]
+        model = MeasurementModel(cameras=model.cameras, estimator=lambda: est)
+    return simulate(sc, model, progress=progress, wire_size=batch_wire_size(run) if sc.links.enabled else None)

@@ -183,8 +183,8 @@ class Recorder:
             if kind == "est" and self.final is not None and msg.k == self.final[0]:
                 self.final[1].discard(msg.own)
             if kind == "clock":
-                if self.gaps and not msg.done:
-                    self._write_gaps(msg.k)
+                if self.gaps and not msg.done and msg.k >= max(g.last_step_before for g in self.gaps):
+                    self._write_gaps(msg.k)  # (not a clock of an earlier step sent again)
                 self.last_k = max(self.last_k, msg.k)
                 if msg.done:
                     self.done = True

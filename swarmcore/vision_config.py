@@ -159,10 +159,18 @@ class CovarianceConfig(_Model):
       times ``inflation``; falls back to ``fixed`` for stereo.
     * ``characterized``: variances per camera axis versus range and Sun angle from a
       ``swarm characterize`` JSON (``table``; the package ships defaults).
+    * ``fitted``: variances per camera axis log-linear in what the agent knows when it
+      measures (range, Sun angle, the target's apparent attitude, the pipeline's quality
+      numbers), times the errors' autocorrelation time, fitted from a characterisation
+      (``model``; ``swarm fit-noise`` refits, the package ships defaults).
     """
 
-    source: Literal["fixed", "pnp", "characterized"] = "characterized"
+    source: Literal["fixed", "pnp", "characterized", "fitted"] = "characterized"
     table: str | None = Field(None, description="characterization JSON (default: the one shipped for the pipeline)")
+    model: str | None = Field(
+        None, description="fitted: error-model JSON (`swarm fit-noise`); a bare file name is looked up in "
+        "swarmvision/data; default: the one shipped for the pipeline and camera"
+    )
     sigma_pos_camera_m: list[PosFloat] = Field([0.02, 0.02, 0.06], description="fixed: σ along camera x, y, z")
     sigma_att_camera_rad: list[PosFloat] = Field([0.02, 0.02, 0.01], description="fixed: σ about camera x, y, z")
     reference_range_m: PosFloat = 5.0

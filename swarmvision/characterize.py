@@ -22,6 +22,7 @@ from __future__ import annotations
 import itertools
 import json
 import time
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -30,7 +31,7 @@ from swarmcore import quat
 from swarmcore.streams import stream
 from swarmcore.vision_config import VisionConfig
 
-__all__ = ["characterize", "characterize_cell", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
+__all__ = ["fit_error_model", "plot_error_model", "flown_geometry", "characterize", "characterize_cell", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
 
 AXES = ["att_x", "att_y", "att_z", "pos_x", "pos_y", "pos_z"]
 
@@ -99,6 +100,7 @@ def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir:
     task: plain values in (``cfg_data`` is a :class:`VisionConfig` as a dict), the samples
     out. Every draw comes from ``stream(seed, "characterize", ir, io, isn, illumination)``,
     so a cell gives the same samples in any process and in any order."""
+    from .error_model import quantities
     from .mono import MonoPipeline
     from .noise import apply_noise
     from .render import SceneRenderer
@@ -148,14 +150,17 @@ def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir:
                     if 0 in poses:
                         P = poses[0]
                         ok, err = True, _camera_error(P.R_CBj, P.p_C, R_true, p_true)
-                        extra = {"tags": P.n_tags, "rms_px": P.reproj_rms_px, "ambiguous": P.ambiguous}
+                        extra = {"tags": P.n_tags, "rms_px": P.reproj_rms_px, "ambiguous": P.ambiguous,
+                                 "q": quantities(P.R_CBj, P.p_C, sun, rms_px=P.reproj_rms_px, n_tags=P.n_tags)}
                 else:
                     left = apply_noise(rend.render(np.eye(3), np.zeros(3), intr), cfg.noise, rng)
                     right = apply_noise(rend.render(np.eye(3), np.array([cfg.stereo_camera.baseline_m, 0, 0]), intr), cfg.noise, rng)
                     res = sp.measure(left, right, R_pred, p_pred, rng)
                     if res is not None:
                         ok, err = True, _camera_error(res.R_CBj, res.p_C, R_true, p_true)
-                        extra = {"fitness": res.fitness, "points": res.n_points}
+                        extra = {"fitness": res.fitness, "points": res.n_points, "rmse_m": res.rmse_m,
+                                 "q": quantities(res.R_CBj, res.p_C, sun, fitness=res.fitness, rmse_m=res.rmse_m,
+                                                 n_points=res.n_points)}
                 sun_deg = float(np.degrees(np.arccos(np.clip(sun[2], -1, 1))))  # LOS is +z
                 samples.append({"illumination": illum, "range_m": float(rng_m), "orientation": io, "sun": isn,
                                 "sun_deg": sun_deg, "ok": ok, "err": [float(x) for x in err], **extra})
@@ -366,6 +371,17 @@ def run_cli(pipeline: str, out: Path, vision: VisionConfig | None = None, ranges
     res = characterize(pipeline, cfg, ranges, orientations, suns, tuple(illuminations), amb, seed, log=log, progress=progress,
                        mapper=mapper)
     files = write(res, out)
+    if any(s_.get("q") for s_ in res["samples"]):
+        from .error_model import model_name
+
+        m = fit_error_model(res, log=log)
+        ss = [s_ for s_ in res["samples"] if s_.get("ok") and s_.get("q") and s_["illumination"] == m.meta["illumination"]]
+        files["model"] = str(m.write(Path(out) / model_name(pipeline, res["camera"])))
+        files["plots"].append(str(plot_error_model(m, [s_["q"] for s_ in ss], np.array([s_["err"] for s_ in ss]),
+                                                   Path(out) / f"fit_{pipeline}.png",
+                                                   f"{pipeline}: fitted error model vs characterisation errors "
+                                                   f"({m.meta['illumination']}, {len(ss)} samples)")))
+        log(f"wrote {files['model']} (refit: swarm fit-noise {files['json']} --out MODEL.json)")
     for illum, st in res["illuminations"].items():
         rb = st["by_range"]
         log(f"{pipeline} [{illum}] range → success, σ_pos camera x/y/z (m), σ_att x/y/z (rad), trimmed:")
@@ -374,3 +390,128 @@ def run_cli(pipeline: str, out: Path, vision: VisionConfig | None = None, ranges
             log(f"  {r:5.1f} m  {ok:4.0%}  pos {sd[3]:.4f} {sd[4]:.4f} {sd[5]:.4f}  att {sd[0]:.4f} {sd[1]:.4f} {sd[2]:.4f}")
     log(f"wrote {files['json']} and {', '.join(files['plots'])}")
     return files
+
+
+def flown_geometry(sc) -> dict:
+    """The ranges and Sun angles a scenario's pairs fly (truth only, no rendering): what a
+    characterisation must cover. Pairs of the scenario's graph, every step."""
+    from swarmcore.graphs import scenario_graph
+    from swarmcore.sensors import relative_pose
+    from swarmcore.world import initial_truth, step_truth, world_params
+
+    from .covariance import sun_angle_deg
+    from .views import sun_direction_I
+
+    wp = world_params(sc)
+    G = scenario_graph(sc)
+    obs, tgt = np.nonzero(G & ~np.eye(sc.n_sats, dtype=bool))
+    truth = initial_truth(sc)
+    rngs, suns = [], []
+    for k in range(sc.steps):
+        if k > 0:
+            truth, _ = step_truth(wp, truth)
+        _q, r = relative_pose(sc.orbit.mean_motion_rad_s, truth.t, truth.q_BI, truth.r_H, obs, tgt)
+        s_I = sun_direction_I(sc.vision, sc.orbit.mean_motion_rad_s, truth.t)
+        T = quat.attitude_matrix(truth.q_BI[obs])
+        for m in range(obs.size):
+            rngs.append(float(np.linalg.norm(r[m])))
+            suns.append(sun_angle_deg(r[m], T[m] @ s_I))
+    rngs, suns = np.array(rngs), np.array(suns)
+    return {"scenario": sc.name, "range_m": [float(rngs.min()), float(np.percentile(rngs, 50)), float(rngs.max())],
+            "sun_deg": [float(suns.min()), float(np.percentile(suns, 50)), float(suns.max())],
+            "range_hist": np.histogram(rngs, bins=np.arange(0, 45, 3))[0].tolist(),
+            "sun_hist": np.histogram(suns, bins=np.arange(0, 181, 30))[0].tolist()}
+
+
+def fit_error_model(result: dict, illumination: str | None = None, log=None):
+    """The log-linear error model (:mod:`swarmvision.error_model`) of a characterisation's
+    samples (one illumination: the one named, else the first)."""
+    from .error_model import fit_from_samples
+
+    ill = illumination or result["design"]["illuminations"][0]
+    m = fit_from_samples(result["samples"], result["pipeline"], result["camera"], illumination=ill)
+    m.meta["characterization"] = {"design": result["design"], "pipeline": result["pipeline"]}
+    if log:
+        d = m.meta["fit"]
+        log(f"{result['pipeline']} [{ill}] error model: {m.meta['samples']} samples, {m.meta['outliers']} outliers "
+            f"(z² > {m.meta['gate_z2']:g}); per axis mean/median (e/σ)² of the rest: "
+            + ", ".join(f"{k} {v['mean_z2']:.2f}/{v['median_z2']:.2f}" for k, v in d["axes"].items()))
+    return m
+
+
+def plot_error_model(model, qs: list[dict], E: np.ndarray, out_path: Path, title: str, var: np.ndarray | None = None) -> Path:
+    """The fitted model against measured errors: per axis, |e| against the predicted σ with
+    the binned RMS (a calibration plot: on the diagonal when the model fits); the binned RMS
+    and the model's σ against range and against the Sun angle."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from .error_model import AXES
+
+    E = np.asarray(E, float)
+    V = model.var_C_single(qs) if var is None else np.asarray(var, float)
+    S = np.sqrt(V)
+    rng_m = np.array([q["range_m"] for q in qs])
+    sun = np.degrees(np.arccos(np.clip([0.0 if q.get("cos_sun") is None else q["cos_sun"] for q in qs], -1, 1)))
+    units = ["rad"] * 3 + ["m"] * 3
+    fig, axs = plt.subplots(3, 6, figsize=(22, 10))
+    for k in range(6):
+        ax = axs[0, k]
+        ok = np.isfinite(E[:, k])
+        ax.loglog(S[ok, k], np.abs(E[ok, k]) + 1e-9, ".", ms=2, alpha=0.4, color="tab:gray", label="|e| per sample")
+        lo, hi = np.percentile(S[ok, k], [1, 99]) if ok.any() else (1e-4, 1.0)
+        xs = np.geomspace(lo, hi, 10)
+        ax.loglog(xs, xs, "k-", lw=1, label="1σ (model)")
+        ax.loglog(xs, 3 * xs, "k:", lw=1, label="3σ")
+        edges = np.quantile(S[ok, k], np.linspace(0, 1, 9)) if ok.sum() > 16 else np.array([lo, hi])
+        cx, cy = [], []
+        for a, b in pairwise(edges):
+            m = ok & (S[:, k] >= a) & (S[:, k] <= b)
+            e = E[m, k]
+            e = e[e**2 <= 10.83 * V[m, k]] if m.any() else e
+            if e.size >= 3:
+                cx.append(np.sqrt(np.mean(V[m, k])))
+                cy.append(np.sqrt(np.mean(e**2)))
+        ax.loglog(cx, cy, "o-", color="tab:red", label="RMS per bin (gate-trimmed)")
+        ax.set_title(f"{AXES[k]}: measured vs predicted")
+        ax.set_xlabel(f"predicted σ ({units[k]})")
+        ax.set_ylabel(f"|error| ({units[k]})")
+        ax.grid(alpha=0.3, which="both")
+        if k == 0:
+            ax.legend(fontsize=7)
+        for row, x, xl, edges_x in ((1, rng_m, "range (m)", np.unique(np.round(rng_m / 3.0) * 3.0)),
+                                    (2, sun, "Sun angle to line of sight (deg)", np.arange(0, 181, 20))):
+            ax = axs[row, k]
+            if row == 1:
+                centers = edges_x
+                idx = [ok & (np.abs(x - c) <= 1.5) for c in centers]
+            else:
+                centers = 0.5 * (edges_x[1:] + edges_x[:-1])
+                idx = [ok & (x >= a) & (x < b) for a, b in pairwise(edges_x)]
+            meas, pred, cc = [], [], []
+            for c, m in zip(centers, idx):
+                if m.sum() < 3:
+                    continue
+                e = E[m, k]
+                e = e[e**2 <= 10.83 * V[m, k]]
+                if e.size < 3:
+                    continue
+                cc.append(c)
+                meas.append(np.sqrt(np.mean(e**2)))
+                pred.append(np.sqrt(np.mean(V[m, k])))
+            ax.semilogy(cc, meas, "o", color="tab:red", label="measured RMS (gate-trimmed)")
+            ax.semilogy(cc, pred, "-", color="k", label="model RMS σ")
+            ax.set_xlabel(xl)
+            ax.set_ylabel(f"{AXES[k]} ({units[k]})")
+            ax.grid(alpha=0.3, which="both")
+            if k == 0:
+                ax.legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_path, dpi=90)
+    plt.close(fig)
+    return out_path

@@ -13,7 +13,9 @@ Sources (``CovarianceConfig.source``):
 * ``fixed`` — per-axis σ at a reference range, ∝ ``(range / ref) ** exponent``;
 * ``pnp`` — the PnP solution's own first-order covariance (mono only);
 * ``characterized`` — variance per camera axis versus range (interpolated) times a
-  Sun-angle factor, from a ``swarm characterize`` JSON.
+  Sun-angle factor, from a ``swarm characterize`` JSON;
+* ``fitted`` — the log-linear error model of :mod:`swarmvision.error_model` (range, Sun
+  angle, apparent attitude, pipeline quality numbers; times the autocorrelation time).
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ import numpy as np
 from swarmcore.sensors import camera_axis_variances, camera_to_body
 from swarmcore.vision_config import CovarianceConfig
 
-__all__ = ["camera_to_body", "floor_cov", "fixed_cov_C", "CharacterizedNoise", "load_table", "default_table_path", "sun_angle_deg"]
+__all__ = ["resolve_model_path", "camera_to_body", "floor_cov", "fixed_cov_C", "CharacterizedNoise", "load_table", "default_table_path", "sun_angle_deg"]
 
 DATA = Path(__file__).parent / "data"
 
@@ -37,6 +39,26 @@ def default_table_path(pipeline: str, camera: dict) -> Path:
     from .characterize import table_name
 
     return DATA / table_name(pipeline, camera)
+
+
+def resolve_model_path(model: str | None, pipeline: str, camera: dict) -> Path:
+    """The fitted error model a scenario names (``vision.covariance.model``): a path, a bare
+    file name in ``swarmvision/data``, or (None) the one shipped for this pipeline and camera."""
+    from .error_model import model_name
+
+    if model is None:
+        p = DATA / model_name(pipeline, camera)
+    else:
+        p = Path(model)
+        if not p.is_file() and (DATA / p.name).is_file() and p.name == str(model):
+            p = DATA / p.name
+    if not p.is_file():
+        raise ValueError(
+            f"vision.covariance.model: no error model {p} for this camera {camera}. Run `swarm characterize "
+            f"--pipeline {pipeline} --scenario <file> --out DIR` (it fits one) or `swarm fit-noise`, or use "
+            "covariance.source characterized|fixed|pnp"
+        )
+    return p
 
 
 def sun_angle_deg(los_I: np.ndarray, sun_I: np.ndarray) -> float:

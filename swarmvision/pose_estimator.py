@@ -21,6 +21,7 @@ from swarmcore.streams import stream
 from swarmcore.vision_config import VisionConfig
 
 from .covariance import CharacterizedNoise, default_table_path, fixed_cov_C, floor_cov, load_table, sun_angle_deg
+from .error_model import quantities
 from .views import STEREO_BASE, Observation, body_radius, face_intrinsics, sun_direction_I
 
 __all__ = ["VisionPoseEstimator", "MeasureReport"]
@@ -64,10 +65,17 @@ class VisionPoseEstimator:
         self._mono = None
         self._stereo = None
         self._char = None
+        self._fitted = None
+        #: When a list: one dict per measurement (step, observer, target, camera pose, the
+        #: quantities the error model reads, the variances attached) — ``swarm sim
+        #: --measurements`` turns them into residuals against the truth.
+        self.record: list | None = None
         self.last_reports: dict[int, MeasureReport] = {}
         self.timing: dict[str, list[float]] = {"mono_ms": [], "stereo_ms": []}
         if cfg.covariance.source == "characterized":
             self._cov_C(5.0, None, None)  # load the table now: a missing or mismatched one fails early
+        if cfg.covariance.source == "fitted":
+            _ = self.fitted  # likewise the error model
 
     @property
     def mono(self):
@@ -114,8 +122,27 @@ class VisionPoseEstimator:
         q, r = relative_pose(self.mean_motion, predicted.t, predicted.q_BI, predicted.r_H, np.full(tg.size, observer), tg)
         return {int(j): (q[k], r[k]) for k, j in enumerate(tg)}
 
-    def _cov_C(self, range_m: float, sun_deg: float | None, pnp_cov_C: np.ndarray | None) -> np.ndarray:
+    @property
+    def fitted(self):
+        """The fitted error model (``covariance.source: fitted``), loaded once."""
+        if self._fitted is None:
+            from .characterize import camera_signature
+            from .covariance import resolve_model_path
+            from .error_model import load_model
+
+            cam = camera_signature(self.cfg, self.cfg.pipeline)
+            path = resolve_model_path(self.cfg.covariance.model, self.cfg.pipeline, cam)
+            m = load_model(path)
+            if m.pipeline != self.cfg.pipeline or any(abs(float(m.camera[k]) - float(cam[k])) > 1e-6 for k in cam if k in m.camera):
+                raise ValueError(f"vision.covariance.model {path}: fitted for {m.pipeline} camera {m.camera}, the scenario's "
+                                 f"is {self.cfg.pipeline} {cam}: run `swarm characterize` for this camera")
+            self._fitted = m
+        return self._fitted
+
+    def _cov_C(self, range_m: float, sun_deg: float | None, pnp_cov_C: np.ndarray | None, q: dict | None = None) -> np.ndarray:
         cc = self.cfg.covariance
+        if cc.source == "fitted" and q is not None:
+            return floor_cov(self.fitted.cov_C(q), cc)
         if cc.source == "pnp" and pnp_cov_C is not None:
             return floor_cov(pnp_cov_C, cc)
         if cc.source == "characterized":
@@ -179,6 +206,12 @@ class VisionPoseEstimator:
         )
         return meas.canonical()
 
+    def _record(self, step, observer, target, view, R_CBj, p_C, qty, cov_C) -> None:
+        if self.record is not None:
+            self.record.append({"step": int(step), "observer": int(observer), "target": int(target), "camera": int(view.camera),
+                                "R_CBj": np.array(R_CBj, float), "p_C": np.array(p_C, float), "T_CB": np.array(view.T_CB, float),
+                                "r_C_B": np.array(view.r_C_B, float), "q": qty, "var_C": np.diag(cov_C).copy()})
+
     def _sun_deg(self, sun_B, r_B):
         return None if sun_B is None else sun_angle_deg(r_B, sun_B)
 
@@ -206,8 +239,11 @@ class VisionPoseEstimator:
         rows, seen = [], {}
         for j, (P, v) in best.items():
             q, r = to_body(P.R_CBj, P.p_C, v.T_CB, v.r_C_B)
-            cov_C = self._cov_C(float(np.linalg.norm(P.p_C)), self._sun_deg(sun_B, r), P.cov_C)
+            qty = quantities(P.R_CBj, P.p_C, None if sun_B is None else v.T_CB @ sun_B, rms_px=P.reproj_rms_px,
+                             n_tags=P.n_tags)
+            cov_C = self._cov_C(float(np.linalg.norm(P.p_C)), self._sun_deg(sun_B, r), P.cov_C, qty)
             rows.append((j, q, r, camera_to_body(cov_C, v.T_CB)))
+            self._record(step, observer, j, v, P.R_CBj, P.p_C, qty, cov_C)
             seen[j] = (q, r)
             rep.details[j] = {"camera": P.camera, "tags": P.n_tags, "rms_px": P.reproj_rms_px, "ambiguous": P.ambiguous,
                               "chosen_by": P.info.get("chosen_by")}
@@ -238,8 +274,11 @@ class VisionPoseEstimator:
                 rep.missed.append(j)
                 continue
             q, r = to_body(res.R_CBj, res.p_C, v.T_CB, v.r_C_B)
-            cov_C = self._cov_C(float(np.linalg.norm(res.p_C)), self._sun_deg(sun_B, r), None)
+            qty = quantities(res.R_CBj, res.p_C, None if sun_B is None else v.T_CB @ sun_B, fitness=res.fitness,
+                             rmse_m=res.rmse_m, n_points=res.n_points)
+            cov_C = self._cov_C(float(np.linalg.norm(res.p_C)), self._sun_deg(sun_B, r), None, qty)
             rows.append((j, q, r, camera_to_body(cov_C, v.T_CB)))
+            self._record(step, observer, j, v, res.R_CBj, res.p_C, qty, cov_C)
             rep.decoded.append(j)
             rep.details[j] = {"fitness": res.fitness, "rmse_m": res.rmse_m, "points": res.n_points}
         return rows

@@ -37,9 +37,8 @@ EQUAL_KEYS = ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "meas
 
 
 def _wait_step(endpoints: list[str], run: str, k: int, keys: str | None, timeout: float = 180.0) -> None:
-    """Watch the clock as the run's read-only identity (``keys``: its keys directory)."""
     reached = threading.Event()
-    cred = f"{keys}/observer.json" if keys else None
+    cred = f"{keys}/observer.json" if keys else None  # the run's read-only identity (security on)
     with zenoh.open(BusConfig(mode="client", connect=endpoints, credential_file=cred).zenoh_config()) as s:
         sub = s.declare_subscriber(Keys(run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= k and reached.set())
         try:
@@ -59,7 +58,7 @@ def _run_with_router_fault(tmp_path, routers: int, action: str, target: int, sch
     answer = {}
 
     def during():
-        _wait_step(sw.endpoints, sw.run, 8, sw.keys_dir)
+        _wait_step(sw.endpoints, sw.run, 8, str(sw.keys_dir) if sw.keys_dir else None)
         answer["fault"] = send_fault(run_dir=out, action=action, target=target, **fields)
 
     th = threading.Thread(target=during, daemon=True)
