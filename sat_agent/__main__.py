@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 from swarm.node import RunBroken, bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
@@ -15,12 +16,20 @@ def main(argv=None) -> int:
     sc = load_role_scenario(a.scenario, a.sets)
     from .node import Agent, claim_id
 
-    bus = bus_config_from_args(a)
+    bus = bus_config_from_args(a, sc)
     restart = a.restart
     if a.id == "auto":
         setup_logging("agent-?", a.verbose)
-        sat, running = claim_id(sc, a.run, bus)
+        sat, running, password = claim_id(sc, a.run, bus)
         restart = restart or running
+        if password and sc.emulator.security:
+            # Reconnect as agent-<sat>: the claimant's credential may do nothing but claim.
+            from swarm.security import Credential
+
+            base = bus.identity()
+            bus = dataclasses.replace(bus, credential_file=None,
+                                      credential=base.with_identity(f"agent-{sat}", password) if base is not None
+                                      else Credential(f"agent-{sat}", password))
     else:
         try:
             sat = int(a.id)

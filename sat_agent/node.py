@@ -27,7 +27,8 @@ class Agent(Node):
             raise SystemExit(f"sat_agent: --id {sat} is not a satellite of this {sc.n_sats}-satellite swarm")
         super().__init__("agent", sat, run, sc.n_sats, bus, announce=False)
         estimator = measurement_model(sc).estimator()  # vision libraries only when the scenario renders
-        self.machine = AgentProtocol(sc, sat, run, estimator, restart=restart, malformed=lambda: self.malformed)
+        self.machine = AgentProtocol(sc, sat, run, estimator, restart=restart, malformed=lambda: self.malformed,
+                                    key_mismatch=lambda: self.key_mismatch)
         # With links, peers' batches reach us only through the radio (the world's rx/<i>).
         peers = self.keys.rx(sat) if sc.links.enabled else self.keys.meas()
         # Peers are followed through their health reports (a few scalars), not their
@@ -54,8 +55,9 @@ class Agent(Node):
         self.drive(self.machine)
 
 
-def claim_id(sc: Scenario, run: str, bus, timeout: float | None = None) -> tuple[int, bool]:
-    """Ask the world for a satellite id (``--id auto``); returns (id, run already under way)."""
+def claim_id(sc: Scenario, run: str, bus, timeout: float | None = None) -> tuple[int, bool, str]:
+    """Ask the world for a satellite id (``--id auto``); returns (id, run already under way,
+    the satellite's bus password or "" when the world has none to give)."""
     node = Node("claimant", uuid.uuid4().hex[:12], run, sc.n_sats, bus)
     token = str(node.ident)
     limit = timeout or sc.emulator.startup_timeout_s
@@ -64,8 +66,9 @@ def claim_id(sc: Scenario, run: str, bus, timeout: float | None = None) -> tuple
         while time.monotonic() < deadline:
             msg = node.query(node.keys.claim(token), "claim", timeout=2.0)
             if msg is not None:
-                node.log.info("world gave satellite %d (run under way: %s)", msg.sat, msg.running)
-                return msg.sat, msg.running
+                node.log.info("world gave satellite %d (run under way: %s%s)", msg.sat, msg.running,
+                              "; with its credential" if msg.password else "")
+                return msg.sat, msg.running, msg.password
         raise SystemExit(f"no satellite id from the world within {limit:.0f} s")
     finally:
         node.close()

@@ -56,7 +56,8 @@ class AgentProtocol:
     """Satellite ``sat``'s flight software on the bus (see the module docstring)."""
 
     def __init__(self, sc: Scenario, sat: int, run: str, estimator: PoseEstimator, restart: bool = False,
-                 clock: Callable[[], float] = time.monotonic, malformed: Callable[[], int] = lambda: 0):
+                 clock: Callable[[], float] = time.monotonic, malformed: Callable[[], int] = lambda: 0,
+                 key_mismatch: Callable[[], int] = lambda: 0):
         if not 0 <= sat < sc.n_sats:
             raise ValueError(f"satellite {sat} is not one of this {sc.n_sats}-satellite swarm (0..{sc.n_sats - 1})")
         self.sc = sc
@@ -85,6 +86,7 @@ class AgentProtocol:
         self.batches_missing = 0
         self.batches_late = 0
         self.malformed = malformed  # the shell's count of malformed messages, reported in health
+        self.key_mismatch = key_mismatch  # of those, messages on a key their sender may not use
         self.linked = sc.links.enabled  # peers' batches come through the radio (rx/<i>), not straight off the bus
         self.rx_steps: set[int] = set()  # steps whose delivery (lockstep) has come
         self.rx_items: list[MeasBatch] = []  # delivered peer batches not yet used
@@ -178,7 +180,7 @@ class AgentProtocol:
             self.drop_rate = float(f.rate or 0.0)
             self.log.info("dropping %.0f%% of outgoing messages", 100 * self.drop_rate)
             k = -1 if self.est is None else self.est.step
-            return [Send(self.keys.fault(), replace(f, phase="done", sender=self.name, k=max(k, 0)))]
+            return [Send(self.keys.fault_report(self.name), replace(f, phase="done", sender=self.name, k=max(k, 0)))]
         return []
 
     # -- start ------------------------------------------------------------------
@@ -390,7 +392,7 @@ class AgentProtocol:
         return Health(
             run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in self.camera_ok],
             malformed=self.malformed(), batches_missing=self.batches_missing, batches_late=self.batches_late,
-            drop_rate=self.drop_rate, host=_HOST,
+            drop_rate=self.drop_rate, host=_HOST, key_mismatch=self.key_mismatch(),
         )
 
     def run(self):
@@ -410,7 +412,8 @@ class AgentProtocol:
                 yield from self.step(k)
                 continue
             yield Wait(lambda: self.done or any(s > self.last_step for s in self.clocks), 0.5)
-        self.log.info("done at step %d; %d malformed, %d missing, %d late batches", self.est.step, self.malformed(),
+        self.log.info("done at step %d; %d malformed (%d on a key not their sender's), %d missing, %d late batches",
+                      self.est.step, self.malformed(), self.key_mismatch(),
                       self.batches_missing, self.batches_late)
 
 

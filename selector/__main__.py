@@ -13,7 +13,7 @@ def main(argv=None) -> int:
     sc = load_role_scenario(a.scenario, a.sets)
     from .node import Selector
 
-    s = Selector(sc, a.run, bus_config_from_args(a))
+    s = Selector(sc, a.run, bus_config_from_args(a, sc))
     install_term_handler(s.stop)
     try:
         s.run_loop()

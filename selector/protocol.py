@@ -46,7 +46,7 @@ class SelectorProtocol:
         self.clock_seen = False  # the run has started
         self._asked_first: int | None = None  # the agent last asked for its step-0 prior
         self.world_seen = False
-        self.outbox = Outbox()  # the latest selection, sent again when the bus comes back
+        self.outbox = Outbox()  # the latest two selections, sent again when the bus comes back
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
@@ -81,8 +81,15 @@ class SelectorProtocol:
         t0 = time.perf_counter()
         est = None
         if sc.selection.strategy in NEEDS_STATE:
-            if msg is None:
-                msg = yield Query(self.keys.cov(ref), "full_est", sc.emulator.step_timeout_s)
+            # Asked again after a short timeout rather than once for long: a query whose way
+            # went with a router (killed, a client failing over) never gets its reply, and the
+            # world takes the selection only select_timeout_s after the bus is back.
+            em = sc.emulator
+            deadline = self.clock() + em.step_timeout_s
+            while msg is None:
+                msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
+                if msg is None and (self.clock() >= deadline or self.done):
+                    break
             if msg is None:
                 log.warning("step %d: agent %d did not serve its estimate", k, ref)
                 return

@@ -4,6 +4,12 @@ Latency: a ping process and an echo process, each a Zenoh client of a router pro
 loopback (the topology of ``swarm run``); one-way latency is half the measured round trip.
 Real-time factor: simulated seconds per wall second of ``swarm run`` in lockstep, from the
 recorded clock messages (start-up excluded).
+
+Both measure with the bus's security on (the default of every run: each client
+authenticated, the router checking every message against the run's access rules) and,
+given ``security=(True, False)``, off, side by side: the cost of authentication and access
+control. The latency bench then runs on swarm keys (agent 0 pings on ``meas/0``, agent 1
+echoes on ``meas/1``), so the router checks exactly the rules a run's batches meet.
 """
 
 from __future__ import annotations
@@ -22,23 +28,29 @@ __all__ = ["bench_latency", "bench_realtime"]
 
 _ECHO = """
 import sys, json, threading, zenoh
+from swarm.security import load_credential
 cfg = zenoh.Config()
 cfg.insert_json5("mode", json.dumps("client"))
 cfg.insert_json5("connect/endpoints", json.dumps([sys.argv[1]]))
 cfg.insert_json5("scouting/multicast/enabled", "false")
 cfg.insert_json5("transport/shared_memory/enabled", sys.argv[2])
+if sys.argv[3]:
+    load_credential(sys.argv[3]).apply(cfg)
 stop = threading.Event()
 with zenoh.open(cfg) as s:
-    pub = s.declare_publisher("bench/pong", congestion_control=zenoh.CongestionControl.BLOCK)
+    pub = s.declare_publisher(_PONG, congestion_control=zenoh.CongestionControl.BLOCK)
     def cb(sample):
         if sample.payload.to_bytes() == b"stop":
             stop.set()
         else:
             pub.put(sample.payload)
-    sub = s.declare_subscriber("bench/ping", cb)
+    sub = s.declare_subscriber(_PING, cb)
     print("READY", flush=True)
     stop.wait()
 """
+_RUN = "bench"
+_PING, _PONG = f"swarm/{_RUN}/meas/0", f"swarm/{_RUN}/meas/1"  # agent 0's and agent 1's batches
+_ECHO = f"_PING, _PONG = {_PING!r}, {_PONG!r}\n" + _ECHO
 
 
 def _percentiles(x):
@@ -100,25 +112,44 @@ def _batch_payload(n: int = 10) -> bytes:
     return encode(batch_msg(rel, cams, run="bench", sender="agent-0", k=1, t_s=1.0, observer=0))
 
 
-def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_sizes=(10, 40)) -> list[dict]:
+def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_sizes=(10, 40), security=(True,)) -> list[dict]:
+    """Rows of every payload for each security setting in ``security`` (True: on)."""
+    rows = []
+    for on in security:
+        log(f"security {'on' if on else 'off'}:")
+        with tempfile.TemporaryDirectory(prefix="swarm-bench-keys-") as tmp:
+            rows += _bench_latency(samples, big_samples, log, batch_sizes, Path(tmp) if on else None)
+    return rows
+
+
+def _bench_latency(samples: int, big_samples: int, log, batch_sizes, keys_dir: Path | None) -> list[dict]:
     import zenoh
 
     from .bus.session import shared_memory_enabled
     from .launch import free_port
+    from .security import load_credential, make_keys
 
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    router = subprocess.Popen([sys.executable, "-m", "swarm.router", "--listen", endpoint], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    secure = []
+    if keys_dir is not None:
+        make_keys(keys_dir, 2)
+        secure = ["--keys", str(keys_dir), "--run", _RUN, "--n-sats", "2"]
+    router = subprocess.Popen([sys.executable, "-m", "swarm.router", "--listen", endpoint, *secure], stdout=subprocess.PIPE,
+                              stderr=subprocess.DEVNULL)
     echo = None
     try:
         assert b"READY" in router.stdout.readline()
         shm = json.dumps(shared_memory_enabled())  # as the swarm's processes have it
-        echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint, shm], stdout=subprocess.PIPE)
+        echo_cred = str(keys_dir / "agent-1.json") if keys_dir is not None else ""
+        echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint, shm, echo_cred], stdout=subprocess.PIPE)
         assert b"READY" in echo.stdout.readline()
         cfg = zenoh.Config()
         cfg.insert_json5("mode", json.dumps("client"))
         cfg.insert_json5("connect/endpoints", json.dumps([endpoint]))
         cfg.insert_json5("scouting/multicast/enabled", "false")
         cfg.insert_json5("transport/shared_memory/enabled", shm)
+        if keys_dir is not None:
+            load_credential(keys_dir / "agent-0.json").apply(cfg)
         rows = []
         with zenoh.open(cfg) as s:
             got = threading.Event()
@@ -129,8 +160,8 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_si
                 if int.from_bytes(smp.payload.to_bytes()[:8], "little") == want["seq"]:
                     got.set()
 
-            sub = s.declare_subscriber("bench/pong", on_pong)
-            pub = s.declare_publisher("bench/ping", congestion_control=zenoh.CongestionControl.BLOCK)
+            sub = s.declare_subscriber(_PONG, on_pong)
+            pub = s.declare_publisher(_PING, congestion_control=zenoh.CongestionControl.BLOCK)
             # Wait until the echo's subscription has reached us through the router.
             seq = 0
             for _ in range(200):
@@ -156,7 +187,8 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_si
                     rtt.append(time.perf_counter() - t0)
                 rtt = rtt[5:]
                 one_way = [r / 2 for r in rtt]
-                row = {"payload": name, "bytes": len(payload), "path": "client → router → client (loopback)", "one_way": _percentiles(one_way), "round_trip": _percentiles(rtt)}
+                row = {"payload": name, "bytes": len(payload), "path": "client → router → client (loopback)", "one_way": _percentiles(one_way), "round_trip": _percentiles(rtt),
+                       "security": "on" if keys_dir is not None else "off"}
                 line = f"{name:26s} {len(payload):8d} B  one-way p50 {row['one_way']['p50_ms']:.3f} ms  p99 {row['one_way']['p99_ms']:.3f} ms"
                 if n_batch is not None:
                     row["n"] = n_batch
@@ -178,8 +210,13 @@ def bench_latency(samples: int = 400, big_samples: int = 60, log=print, batch_si
                     p.kill()
 
 
-def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir: Path | None = None) -> list[dict]:
-    """Real-time factor of ``swarm run`` (lockstep, synthetic measurements, complete graph)."""
+def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir: Path | None = None, security=(True,)) -> list[dict]:
+    """Real-time factor of ``swarm run`` (lockstep, synthetic measurements, complete graph),
+    for each swarm size and each security setting (True: on)."""
+    return [row for n in sats for on in security for row in _bench_realtime([n], duration_s, log, workdir, on)]
+
+
+def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | None, security: bool) -> list[dict]:
     from swarmcore.scenario import Scenario
 
     from .launch import LocalSwarm
@@ -188,8 +225,8 @@ def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir
     rows = []
     base = Path(workdir) if workdir else Path(tempfile.mkdtemp(prefix="swarm-bench-"))
     for n in sats:
-        sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=duration_s)
-        out = base / f"n{n}"
+        sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=duration_s, emulator={"security": security})
+        out = base / f"n{n}-security-{'on' if security else 'off'}"
         sw = LocalSwarm(sc, out, log=lambda s: None)
         t_start, t_start_ns = time.perf_counter(), time.time_ns()
         try:
@@ -219,6 +256,7 @@ def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir
         codec_cpu = float(np.median(e[:, 2])) if len(e) else None
         row = {
             "n": n,
+            "security": "on" if security else "off",
             "time_mode": "lockstep",
             "sim_seconds": duration_s,
             "stepping_wall_s": wall,
@@ -234,7 +272,7 @@ def bench_realtime(sats: list[int], duration_s: float = 60.0, log=print, workdir
             "world_exit_code": code,
         }
         log(
-            f"n={n:3d}: {duration_s:.0f} sim s in {wall:.1f} wall s → real-time factor {row['realtime_factor']:.1f}×, "
+            f"n={n:3d} security {row['security']:3s}: {duration_s:.0f} sim s in {wall:.1f} wall s → real-time factor {row['realtime_factor']:.1f}×, "
             f"start-up {startup:.1f} s (total {total:.1f} s); agent per step: filter {filt_cpu:.2f} ms CPU, "
             f"messages {codec_cpu:.2f} ms CPU ({100 * row['codec_share_of_filter']:.0f} % of the filter)"
         )

@@ -59,7 +59,6 @@ def _one(case: str, i: int, workdir: Path, down_s: float) -> dict:
     from swarmcore.scenario import Scenario
 
     from .bus.messages import Clock, Keys
-    from .bus.session import BusConfig
     from .faults import send_fault
     from .launch import LocalSwarm
     from .mcaplog import iter_messages
@@ -71,7 +70,7 @@ def _one(case: str, i: int, workdir: Path, down_s: float) -> dict:
 
     def during():
         reached = threading.Event()
-        with zenoh.open(BusConfig(mode="client", connect=sw.endpoints).zenoh_config()) as s:
+        with zenoh.open(sw.bus_as("observer").zenoh_config()) as s:
             sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= 8 and reached.set())
             reached.wait(120)
             sub.undeclare()

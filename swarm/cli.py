@@ -371,9 +371,12 @@ def fault_target(
     run_id: str | None = typer.Option(None, "--run", help="run id (default with --compose: $SWARM_RUN or 'compose')"),
     project: str | None = typer.Option(None, "--project", help="compose project name (default: any)"),
     network: str | None = typer.Option(None, "--network", help="compose bus network for partition/heal (default: *_bus)"),
+    credential: str | None = typer.Option(None, "--credential", help="the fault CLI's credential (default: the run's keys with "
+                                          "--run-dir, else $SWARM_KEYS/cli.json, SWARM_KEYS defaulting to ./keys)"),
 ):
     """Where the swarm is."""
-    ctx.obj = dict(run_dir=run_dir, compose=compose, connect=connect, run_id=run_id, project=project, network=network)
+    ctx.obj = dict(run_dir=run_dir, compose=compose, connect=connect, run_id=run_id, project=project, network=network,
+                   credential=credential)
 
 
 def _send_fault(ctx: typer.Context, **fields):
@@ -497,6 +500,43 @@ def fault_netem(
 
 
 @app.command()
+def keys(
+    out: Path = typer.Option(Path("keys"), "--out", "-o", help="keys directory to make (owner-only; keep it out of version control)"),
+    n_sats: int = typer.Option(100, "--n-sats", min=1, max=10_000, help="make agent credentials agent-0 .. agent-(N-1)"),
+    tls: list[str] | None = typer.Option(None, "--tls", help="host name or address agents use to reach the router: the "
+                                         "router's certificate is valid for these (repeatable; default: router, localhost, "
+                                         "127.0.0.1, what compose and compose.remote.yaml use)"),
+    no_tls: bool = typer.Option(False, "--no-tls", help="no CA and router certificate (one host, no compose)"),
+    rules: str | None = typer.Option(None, "--rules", metavar="RUN", help="print the router's access rules for run RUN "
+                                     "(of --n-sats satellites) as JSON, and make nothing"),
+    force: bool = typer.Option(False, "--force", help="replace the credentials of an existing keys directory"),
+):
+    """Credentials for a swarm on several hosts or under compose: one per identity (world,
+    selector, recorder, cli, supervisor, observer, claimant, agent-0..N-1), the router's
+    password dictionary and, with --tls, certificates. `swarm run` makes its own per run.
+
+    docker compose reads ./keys (SWARM_KEYS moves it): `swarm keys` once (TLS for router,
+    localhost, 127.0.0.1), then `docker compose up`."""
+    from .security import acl_config, make_keys
+
+    if rules is not None:
+        typer.echo(json.dumps(acl_config(rules, n_sats), indent=1))
+        return
+    if (out / "passwords").exists() and not force:
+        console.print(f"[red]error:[/red] {out} already holds keys (--force replaces them; running swarms keep the old ones)",
+                      highlight=False)
+        raise typer.Exit(2)
+    hosts = [] if no_tls else list(tls or ["router", "localhost", "127.0.0.1"])
+    try:
+        make_keys(out, n_sats, tls_hosts=hosts)
+    except RuntimeError as exc:
+        console.print(f"[red]error:[/red] {exc}", highlight=False)
+        raise typer.Exit(2) from None
+    console.print(f"wrote {out}: credentials of {n_sats} agents and the other roles"
+                  + (f", a CA and a router certificate for {', '.join(hosts)}" if hosts else ""), highlight=False)
+
+
+@app.command()
 def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), out: Path | None = typer.Option(None, "--out")):
     """Salvage every complete message of a damaged recording into a clean MCAP."""
     from .mcaplog import recover as _recover
@@ -563,6 +603,7 @@ def bench_bus_cmd(
     out: Path = typer.Option(Path("bench-bus.json"), "--out", "-o", help="JSON file to write"),
     samples: int = typer.Option(400, help="round trips of each measurement batch"),
     batch_sats: str = typer.Option("10,40", "--batch-sats", help="swarm sizes whose measurement batch to send"),
+    security: str = typer.Option("on,off", "--security", help="bus security settings to measure, side by side (on, off)"),
 ):
     """Bus latency p50/p99 of measurement batches and of a 1 MB payload (loopback, via a router),
     and the CPU cost of encoding and decoding a batch."""
@@ -571,7 +612,8 @@ def bench_bus_cmd(
     from .outputs import write_json
 
     sizes = [int(x) for x in batch_sats.split(",") if x.strip()]
-    rows = bench_latency(samples=samples, log=lambda s: console.print(s, highlight=False), batch_sizes=sizes)
+    rows = bench_latency(samples=samples, log=lambda s: console.print(s, highlight=False), batch_sizes=sizes,
+                         security=_security_modes(security))
     write_json(out, {"machine": machine_info(), "rows": rows})
     console.print(f"wrote {out}")
 
@@ -601,11 +643,20 @@ def bench_router_cmd(
     console.print(f"wrote {out}")
 
 
+def _security_modes(text: str) -> tuple[bool, ...]:
+    modes = [m.strip() for m in text.split(",") if m.strip()]
+    if not modes or any(m not in ("on", "off") for m in modes):
+        console.print(f"[red]error:[/red] --security {text!r}: a comma-separated list of on and off", highlight=False)
+        raise typer.Exit(2)
+    return tuple(m == "on" for m in modes)
+
+
 @bench_app.command("run")
 def bench_run_cmd(
     sats: str = typer.Option("5,10", help="comma-separated swarm sizes"),
     duration: float = typer.Option(60.0, help="simulated seconds per run"),
     out: Path = typer.Option(Path("bench-run.json"), "--out", "-o", help="JSON file to write"),
+    security: str = typer.Option("on,off", "--security", help="bus security settings to measure, side by side (on, off)"),
 ):
     """Real-time factor of `swarm run` in lockstep (synthetic measurements, complete graph)."""
     from .bench import machine_info
@@ -613,7 +664,8 @@ def bench_run_cmd(
     from .outputs import write_json
 
     sizes = [int(s) for s in sats.split(",") if s.strip()]
-    rows = bench_realtime(sizes, duration, log=lambda s: console.print(s, highlight=False), workdir=out.parent / (out.stem + "-runs"))
+    rows = bench_realtime(sizes, duration, log=lambda s: console.print(s, highlight=False), workdir=out.parent / (out.stem + "-runs"),
+                          security=_security_modes(security))
     write_json(out, {"machine": machine_info(), "rows": rows})
     console.print(f"wrote {out}")
 

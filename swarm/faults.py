@@ -34,19 +34,24 @@ __all__ = ["send_fault", "compose_containers", "netem_state", "netem_helper_name
 
 
 
-def _target(run_dir, connect, run_id, compose) -> tuple[list[str], str, int]:
+def _target(run_dir, connect, run_id, compose) -> tuple[list[str], str, int, str | None]:
+    """(endpoints, run id, swarm size, the fault CLI's credential file or None)."""
     if run_dir is not None:
         info_file = Path(run_dir) / "run.json"
         if not info_file.is_file():
             raise FileNotFoundError(f"{info_file}: not found (is `swarm run --out {run_dir}` running?)")
         info = json.loads(info_file.read_text())
-        return info.get("endpoints") or [info["endpoint"]], info["run"], int(info["n_sats"])
+        keys = info.get("keys")
+        cred = str(Path(keys) / "cli.json") if keys else None
+        return info.get("endpoints") or [info["endpoint"]], info["run"], int(info["n_sats"]), cred
+    cred = str(Path(os.environ.get("SWARM_KEYS", "keys")) / "cli.json")
+    cred = cred if Path(cred).is_file() else None
     if compose:
         ports = [os.environ.get("SWARM_BUS_PORT", "7447"), *([p] if (p := os.environ.get("SWARM_BUS_PORT2")) else [])]
         eps = connect.split(",") if connect else [f"tcp/127.0.0.1:{p}" for p in ports]
-        return eps, run_id or os.environ.get("SWARM_RUN", "compose"), 10_000
+        return eps, run_id or os.environ.get("SWARM_RUN", "compose"), 10_000, cred
     if connect and run_id:
-        return connect.split(","), run_id, 10_000
+        return connect.split(","), run_id, 10_000, cred
     raise ValueError("give --run-dir, or --connect and --run, or --compose")
 
 
@@ -252,19 +257,30 @@ def _bus_network(project: str | None) -> str:
     return cands[0]
 
 
-def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0, **fields) -> str:
-    endpoints, run, n = _target(run_dir, connect, run_id, compose)
+def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0,
+               credential: str | None = None, **fields) -> str:
+    """Send one fault command as the ``cli`` identity (``credential``, or the run's or
+    ``$SWARM_KEYS``' cli.json) and wait for whoever carries it out to report."""
+    endpoints, run, n, cred = _target(run_dir, connect, run_id, compose)
+    cred = credential or cred
     endpoint = ",".join(endpoints)
     timeout += float(fields.get("down_s") or 0.0)
     if not compose and fields.get("action") in NETWORK_FAULTS:
         raise ValueError(f"{fields['action']} needs --compose (local processes share one network)")
     try:
-        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=endpoints, connect_timeout_ms=5000))
+        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=endpoints, connect_timeout_ms=5000, credential_file=cred))
     except zenoh.ZError as exc:
-        raise RuntimeError(f"cannot reach the swarm's bus at {endpoint}: {exc}") from None
+        if cred is None:
+            raise RuntimeError(f"cannot reach the swarm's bus at {endpoint}: {exc}") from None
+        # A router with security off refuses a session that offers a credential.
+        try:
+            node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=endpoints, connect_timeout_ms=5000))
+        except zenoh.ZError:
+            raise RuntimeError(f"cannot reach the swarm's bus at {endpoint} with the credential {cred} (nor without): {exc}") from None
+        node.log.warning("the swarm's router admitted this session only without a credential: its security is off")
     keys = Keys(run)
     try:
-        node.subscribe(keys.fault())
+        node.subscribe(keys.faults())
         node.subscribe(keys.clock())
         node.subscribe(keys.health())
         k, t = 0, 0.0
@@ -283,9 +299,9 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
             try:
                 detail = _compose_action(node, cmd, project, network)
             except RuntimeError as exc:
-                node.put(keys.fault(), replace(cmd, phase="failed", sender="cli", detail=str(exc)[:200]))
+                node.put(keys.fault_report("cli"), replace(cmd, phase="failed", sender="cli", detail=str(exc)[:200]))
                 raise
-            node.put(keys.fault(), replace(cmd, phase="done", sender="cli", detail=detail))
+            node.put(keys.fault_report("cli"), replace(cmd, phase="done", sender="cli", detail=detail))
             return f"{cmd.action} {cmd.target if cmd.HasField('target') else ''}: done ({detail})"
         if not compose and cmd.action in NETWORK_FAULTS:
             raise ValueError(f"{cmd.action} needs --compose (local processes share one network)")

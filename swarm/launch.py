@@ -21,6 +21,13 @@ Ownership: whatever ends the supervisor ends its processes within seconds.
 - Every child runs in its own session (its own process group): a Ctrl-C typed in the
   terminal reaches only the supervisor, which stops the roles in the order above rather
   than all at once; and a fault (``kill-agent 2``) signals one process, its target.
+
+Security (``emulator.security``, on by default): the run's credentials are made afresh in
+a private temporary directory named in ``run.json`` (owner-only; :mod:`swarm.security`),
+every process connects with its own
+(agent i as ``agent-<i>``), the router enforces the run's access rules, and ``swarm fault
+--run-dir OUT`` uses its ``cli.json``. The keys are deleted when the run ends. Off, the
+bus is open to anyone on this machine, and the supervisor and the router say so loudly.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import uuid
@@ -98,6 +106,7 @@ class LocalSwarm:
         self.bus = None
         self.node: Node | None = None
         self.faults: list[dict] = []
+        self.keys_dir: Path | None = None  # the run's credentials (emulator.security)
         self.k = 0
         self._lock = threading.Lock()
         self.interrupted: signal.Signals | None = None  # the signal that interrupted the run
@@ -124,14 +133,20 @@ class LocalSwarm:
             self.procs[name] = p
         return p
 
-    def _role_args(self) -> list[str]:
-        return ["--scenario", str(self.scenario_file), "--run", self.run, *self.bus.as_args()]
+    def bus_as(self, identity: str) -> BusConfig:
+        """The bus configuration of a process connecting as ``identity`` (its credential
+        file when security is on)."""
+        cred = str(self.keys_dir / f"{identity}.json") if self.keys_dir is not None else None
+        return BusConfig(mode="client", connect=list(self.endpoints), credential_file=cred)
+
+    def _role_args(self, identity: str) -> list[str]:
+        return ["--scenario", str(self.scenario_file), "--run", self.run, *self.bus_as(identity).as_args()]
 
     def spawn_agent(self, i: int, restart: bool = False) -> None:
-        self._spawn(f"agent-{i}", ["sat_agent", "--id", str(i), *(["--restart"] if restart else []), *self._role_args()])
+        self._spawn(f"agent-{i}", ["sat_agent", "--id", str(i), *(["--restart"] if restart else []), *self._role_args(f"agent-{i}")])
 
     def spawn_selector(self) -> None:
-        self._spawn("selector", ["selector", *self._role_args()])
+        self._spawn("selector", ["selector", *self._role_args("selector")])
 
     def start(self) -> None:
         """Start every process. Raises :class:`Interrupted` if a signal (see
@@ -144,13 +159,22 @@ class LocalSwarm:
         warm = subprocess.Popen([self.python, "-c", _WARM], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(self.n_routers)]
         self.endpoint = self.endpoints[0]
+        if self.sc.emulator.security:
+            from .security import make_keys
+
+            # A private temporary directory (0700), never the run folder (which may be in a
+            # repository); run.json says where, for `swarm fault --run-dir` and tools.
+            self.keys_dir = make_keys(tempfile.mkdtemp(prefix=f"swarm-keys-{self.run}-"), self.sc.n_sats)
+        else:
+            self.say("[bold red]SECURITY OFF[/bold red] (emulator.security: off): no credentials, no access rules; "
+                     "any process on this machine can publish anything on this run's bus, fault commands included")
         for i in range(self.n_routers):
             self._start_router(i, timeout=30.0)
-        self.bus = BusConfig(mode="client", connect=list(self.endpoints))
+        self.bus = self.bus_as("supervisor")
         self.node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
         self.node.hold_s = self.sc.emulator.liveliness_hold_s
         self.node.bus_grace_s = self.sc.emulator.bus_grace_s  # never gives up on the bus: it owns the router
-        self.node.subscribe(self.keys.fault())
+        self.node.subscribe(self.keys.faults())  # commands to carry out, and every report
         self.node.subscribe(self.keys.clock())
         self.node.watch_liveliness()
         self._spawn(
@@ -165,7 +189,7 @@ class LocalSwarm:
                 str(self.scenario_file),
                 "--flush-every-s",
                 str(self.sc.emulator.flush_every_s),
-                *self.bus.as_args(),
+                *self.bus_as("recorder").as_args(),
             ],
         )
         self._wait_alive("recorder", 60.0)
@@ -177,7 +201,7 @@ class LocalSwarm:
             self.spawn_agent(i)
         if self.sc.selection.strategy != "none":
             self.spawn_selector()
-        self._spawn("world", ["world_sim", *self._role_args()])
+        self._spawn("world", ["world_sim", *self._role_args("world")])
         self._write_run_json()
         self._check_interrupted()
 
@@ -186,8 +210,12 @@ class LocalSwarm:
         the others, and wait until it says READY."""
         name = self.router_names[i]
         mesh = [a for e in self.endpoints[:i] for a in ("--connect", e)]
+        # Security on: the run's keys and rules; a router meshing with another connects as
+        # the "mesh" identity (swarm/security.py).
+        secure = (["--keys", str(self.keys_dir), "--run", self.run, "--scenario", str(self.scenario_file)]
+                  if self.keys_dir is not None else [])
         with open(self.out / "logs" / f"{name}.log", "ab" if name in self.procs else "wb") as logf:
-            router = self._popen(name, ["swarm.router", "--listen", self.endpoints[i], *mesh], stdout=subprocess.PIPE, stderr=logf)
+            router = self._popen(name, ["swarm.router", "--listen", self.endpoints[i], *mesh, *secure], stdout=subprocess.PIPE, stderr=logf)
         with self._lock:
             self.procs[name] = router
         line = _readline(router.stdout, timeout=timeout, cancelled=lambda: self.interrupted is not None)
@@ -205,6 +233,8 @@ class LocalSwarm:
             "pids": {k: p.pid for k, p in self.procs.items()},
             "scenario": str(self.scenario_file),
             "recording": str(self.out / "run.mcap"),
+            "security": "on" if self.keys_dir is not None else "off",
+            "keys": str(self.keys_dir) if self.keys_dir is not None else None,
         }
         (self.out / "run.json").write_text(json.dumps(info, indent=2) + "\n")
 
@@ -229,14 +259,14 @@ class LocalSwarm:
         # yet: report at that step, not at the last clock seen here.
         k = max(self.k, f.k)
         done = replace(f, phase=phase, sender="supervisor", k=k, t_s=k * self.sc.dt_s, detail=detail)
-        self.node.put(self.keys.fault(), done)
+        self.node.put(self.keys.fault_report("supervisor"), done)
         return done
 
     def _handle(self, ev) -> None:
         if ev.kind == "resync" and self._router_report is not None and time.monotonic() < self._router_report[1]:
             # A session reconnecting after the report went out may have missed it: again (the
             # same bytes; a recording reads it once).
-            self.node.put(self.keys.fault(), self._router_report[0])
+            self.node.put(self.keys.fault_report("supervisor"), self._router_report[0])
         if ev.kind == "clock":
             self.k = ev.msg.k
         elif ev.kind == "fault" and ev.msg.phase == "command":
@@ -404,6 +434,11 @@ class LocalSwarm:
             self.node.close()
             self.node = None
         self._terminate(self.router_names, _INTERRUPT_GRACE_S)
+        if self.keys_dir is not None:
+            # A run's credentials live as long as the run.
+            import shutil
+
+            shutil.rmtree(self.keys_dir, ignore_errors=True)
         if self._lifeline is not None:
             for fd in self._lifeline:
                 os.close(fd)

@@ -16,7 +16,7 @@ import zenoh
 
 from swarmcore.scenario import Scenario
 
-from .bus.messages import Keys, MessageError, check_key, counted, decode, encode, parse_key, prepare
+from .bus.messages import KeyMismatch, Keys, MessageError, check_key, counted, decode, encode, parse_key, prepare
 from .bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
 from .protocol import BusLost, Event, Query, RunBroken, Send, Wait
 
@@ -40,6 +40,7 @@ class Node:
         self._handles: list = []
         self._shallow: set[str] = set()  # key prefixes decoded shallowly
         self.malformed = 0
+        self.key_mismatch = 0  # of the malformed: a message on a key its sender may not use
         self._malformed_logged = 0
         self._malformed_lock = threading.Lock()
         self.stop = threading.Event()
@@ -56,6 +57,8 @@ class Node:
         self._routers: set[str] = set()
         self._routers_lock = threading.Lock()
         self.session = open_session(bus)
+        cred = bus.identity()
+        self.log.info("on the bus at %s as %s", bus.connect or bus.listen, cred.user if cred is not None else "(no credential)")
         self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
         self.token: zenoh.LivelinessToken | None = None
         if announce:
@@ -214,6 +217,8 @@ class Node:
         """Count and log a dropped message (from any thread: subscribers decode on theirs)."""
         with self._malformed_lock:
             self.malformed += 1
+            if isinstance(err, KeyMismatch):
+                self.key_mismatch += 1
             count = self.malformed
             # Log the first few in full, then one line in a hundred: a flood must not become a log flood.
             log = self._malformed_logged < 20 or count % 100 == 0

@@ -90,7 +90,7 @@ Action = Send | Query | Wait
 
 
 class Outbox:
-    """What a machine has published since its current step began, to publish again when
+    """What a machine has published in its current and previous steps, to publish again when
     the bus comes back (events ``bus`` with ``alive=True``: this role's link to a router
     is up again; ``resync``: a peer's liveliness came back before it counted as gone).
 
@@ -102,10 +102,12 @@ class Outbox:
 
     def __init__(self, skip_keys: tuple[str, ...] = ()):
         self.sends: list[Send] = []
+        self.previous: list[Send] = []  # the step before: a role that came back late may not have it either
         self.skip = skip_keys
 
     def clear(self) -> None:
-        self.sends.clear()
+        """A new step begins (the last one's sends are kept one step more)."""
+        self.previous, self.sends = self.sends, []
 
     def wrap(self, gen):
         """Run generator ``gen`` (a machine's ``run``), keeping each Send it yields."""
@@ -122,7 +124,7 @@ class Outbox:
     def again(self, ev: Event) -> list[Send]:
         """The sends to repeat for event ``ev`` (none unless the bus came back)."""
         if ev.kind == "resync" or (ev.kind == "bus" and ev.alive):
-            return list(self.sends)
+            return [*self.previous, *self.sends]
         return []
 
 

@@ -183,8 +183,8 @@ class Recorder:
             if kind == "est" and self.final is not None and msg.k == self.final[0]:
                 self.final[1].discard(msg.own)
             if kind == "clock":
-                if self.gaps and not msg.done:
-                    self._write_gaps(msg.k)
+                if self.gaps and not msg.done and msg.k >= max(g.last_step_before for g in self.gaps):
+                    self._write_gaps(msg.k)  # (not a clock of an earlier step sent again)
                 self.last_k = max(self.last_k, msg.k)
                 if msg.done:
                     self.done = True
@@ -299,7 +299,7 @@ def main(argv=None) -> int:
         from .node import load_role_scenario
 
         sc = load_role_scenario(a.scenario, a.sets)
-    r = Recorder(a.run, a.out, bus_config_from_args(a), a.flush_every_s, derive_foxglove=not a.no_foxglove, scenario=sc)
+    r = Recorder(a.run, a.out, bus_config_from_args(a, sc), a.flush_every_s, derive_foxglove=not a.no_foxglove, scenario=sc)
     freeze_startup_objects()
     install_term_handler(r.stop)
     try:

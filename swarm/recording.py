@@ -54,6 +54,7 @@ class Recording:
     link_latencies: list = field(default_factory=list)  # (sender, receiver, sent step, latency s)
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
     rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
+    dropped: dict = field(default_factory=dict)  # agent -> (malformed, of which key mismatch): its last health report's counts
     bus: BusTimes | None = None  # every bus message's sender, kind, step, publish and receive time
     gaps: list = field(default_factory=list)  # the recorder's bus gaps (no router reachable)
     resent: int = 0  # messages recorded twice (sent again after a bus gap; read once)
@@ -101,6 +102,7 @@ class Recording:
                 "faults": self.faults,
                 "selector_fallback_steps": self.fallback_steps,
                 "messages": self.counts,
+                "security": security_summary(sc.emulator.security, self.dropped),
                 **({"bus_gaps": self.gaps} if self.gaps else {}),
             },
         )
@@ -109,6 +111,20 @@ class Recording:
         """The cumulative per-link counters of the last step recorded."""
         m = self.links
         return LinkCounters(**{name: np.rint(array(getattr(m, name))).astype(int) for name in LinkCounters.__dataclass_fields__})
+
+
+def security_summary(on: bool, dropped: dict) -> dict:
+    """``summary.json``'s ``security``: on or off (off says so in words), and what each
+    agent dropped: malformed messages, and of those the ones on a key their sender field
+    may not use (someone speaking for another, whatever the router let through)."""
+    out: dict = {"state": "on" if on else "off"}
+    if not on:
+        out["warning"] = ("emulator.security was off: no authentication and no access rules on the bus; "
+                          "any process that reached the router could publish anything")
+    names = sorted(dropped, key=lambda a: int(a.split("-")[1]))
+    out["malformed_dropped"] = {a: int(dropped[a][0]) for a in names}
+    out["key_mismatch_dropped"] = {a: int(dropped[a][1]) for a in names}
+    return out
 
 
 @dataclass
@@ -220,6 +236,12 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
         counts[kind] = counts.get(kind, 0) + 1
         if kind == "alive":
             rec.liveliness.append({**as_dict(Liveliness.FromString(data)), "log_time_ns": log_ns})
+        if kind == "health":
+            try:
+                h = decode("health", data)
+                rec.dropped[f"agent-{h.sat}"] = (h.malformed, h.key_mismatch)
+            except MessageError:
+                pass
         if kind == "_gap":
             g = BusGap.FromString(data)
             rec.gaps.append({"observer": g.observer, "down_unix_ns": g.down_unix_ns, "up_unix_ns": g.up_unix_ns or None,

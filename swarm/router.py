@@ -1,6 +1,12 @@
 """A Zenoh router in Python (the bus of a swarm; no plugins needed).
 
-python -m swarm.router --listen tcp/0.0.0.0:7447
+python -m swarm.router --listen tcp/0.0.0.0:7447 --keys DIR --run RUN --scenario FILE
+
+With ``--keys`` (a keys directory of ``swarm keys``, or the one ``swarm run`` makes) the
+router authenticates every session and enforces run RUN's access rules, generated from
+the key space (:mod:`swarm.security`); the scenario says how many satellites and whether
+the radio is on (``emulator.security: off`` there, or no ``--keys``, leaves the bus open,
+with a warning).
 """
 
 from __future__ import annotations
@@ -22,6 +28,11 @@ def main(argv=None) -> int:
                    help="another router's endpoint to mesh with (repeatable): clients given both endpoints fail over")
     p.add_argument("--config", default=None, help="a Zenoh JSON5 configuration file")
     p.add_argument("--exit-when-done", metavar="RUN", default=None, help="exit once run RUN's world reports its last step (and the recorder has left)")
+    p.add_argument("--keys", default=None, help="keys directory (swarm keys): authenticate every session, enforce the run's access rules")
+    p.add_argument("--run", default=None, help="the run whose access rules to enforce (default: --exit-when-done's)")
+    p.add_argument("--scenario", default=None, help="the run's scenario (its size, radio and emulator.security; SWARM_SET applies)")
+    p.add_argument("--n-sats", type=int, default=None, help="the swarm's size, without --scenario")
+    p.add_argument("--links", action="store_true", help="the radio is on (without --scenario)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s router %(levelname)s %(message)s", stream=sys.stderr)
     cfg = zenoh.Config.from_file(a.config) if a.config else zenoh.Config()
@@ -36,6 +47,7 @@ def main(argv=None) -> int:
     from .bus.session import apply_shared_memory
 
     apply_shared_memory(cfg)
+    _secure(cfg, a, p)
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
@@ -49,6 +61,28 @@ def main(argv=None) -> int:
         for h in handles:
             h.undeclare()
     return 0
+
+
+def _secure(cfg, a, p) -> None:
+    n, links, on = a.n_sats, a.links, True
+    if a.scenario:
+        from .node import load_role_scenario
+
+        sc = load_role_scenario(a.scenario)
+        n, links, on = sc.n_sats, sc.links.enabled, sc.emulator.security
+    run = a.run or a.exit_when_done
+    if not on or not a.keys:
+        why = "emulator.security is off in the scenario" if not on else "no --keys given"
+        logging.warning("SECURITY OFF (%s): no authentication, no access control; any process that reaches this "
+                        "router may publish anything, fault commands included", why)
+        return
+    if run is None or n is None:
+        p.error("--keys needs the run (--run) and the swarm's size (--scenario or --n-sats)")
+    from .security import apply_router_security
+
+    tls = apply_router_security(cfg, a.keys, run, n, links)
+    logging.info("security on: user/password authentication, access rules of run %s (%d satellites%s)%s",
+                 run, n, ", radio" if links else "", ", TLS certificate loaded" if tls else "")
 
 
 _WORLD_GONE_S = 5.0  # the world's token gone this long (not a client failing over): the run is over

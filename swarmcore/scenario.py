@@ -427,6 +427,11 @@ class Emulator(_Model):
         30.0, description="after the last step: how long the recorder waits for every live agent's final estimate, "
         "and the world and agents keep their bus sessions open until the recorder has them"
     )
+    security: bool = Field(
+        True, description="on (default): every process authenticates to the router with its own credential and "
+        "the router's access rules say who may put, subscribe and query what (swarm/security.py); "
+        "off: anyone reaching the router may publish anything (debugging, measuring the cost; loud in logs and summary)"
+    )
 
 
 class Scenario(_Model):

@@ -41,10 +41,16 @@ def image():
 
 class Compose:
     def __init__(self, out: Path, env: dict, files=("compose.yaml",)):
+        from swarm.launch import free_port
+        from swarm.security import make_keys
+
         self.cmd = _compose_cmd()
         self.project = f"swt{uuid.uuid4().hex[:8]}"
         self.files = [a for f in files for a in ("-f", str(ROOT / f))]
-        self.env = dict(os.environ, SWARM_OUT=str(out), COMPOSE_PROJECT_NAME=self.project, **env)
+        # The swarm's credentials, as `swarm keys` makes them (TLS for router, localhost, 127.0.0.1).
+        self.keys = make_keys(out.parent / "keys", 16, tls_hosts=["router", "localhost", "127.0.0.1"])
+        env = {"SWARM_TLS_PORT": str(free_port()), **env}
+        self.env = dict(os.environ, SWARM_OUT=str(out), COMPOSE_PROJECT_NAME=self.project, SWARM_KEYS=str(self.keys), **env)
         self.out = out
         out.mkdir(parents=True, exist_ok=True)
 
@@ -72,12 +78,28 @@ def _sim(n, sets):
 
 
 def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
-    c = Compose(tmp_path / "out", {"SWARM_N": "4", "SWARM_SET_EXTRA": "duration_s=20"})
+    """...with every role on its own credential, and forgeries mid-run (tests/forgery.py:
+    a stranger, agent 3's and the recorder's credentials) changing nothing."""
+    from forgery import check_forgeries, forge
+
+    from swarm.launch import free_port
+    from swarm.scenario_files import load_scenario
+
+    port = str(free_port())
+    sets = "duration_s=20 emulator.lockstep_max_realtime_factor=2"
+    c = Compose(tmp_path / "out", {"SWARM_N": "4", "SWARM_SET_EXTRA": sets, "SWARM_BUS_PORT": port})
+    done: dict = {}
     try:
-        c("up", timeout=900)
+        c("up", "-d", timeout=900)
+        forge(f"tcp/127.0.0.1:{port}", "compose", c.keys, done, from_step=2)
+        rid = c("ps", "-q", "recorder").stdout.split()
+        r = subprocess.run(["docker", "wait", *rid], capture_output=True, text=True, timeout=900)
+        assert r.returncode == 0, r.stderr
     finally:
+        (tmp_path / "compose.log").write_text(c("logs", "--no-color", "-t", check=False).stdout)
         c.down()
     s = _summary(c.out)
+    check_forgeries(done, s, load_scenario(ROOT / "scenarios" / "demo.yaml", ["n_sats=4", *sets.split()]), "compose")
     assert s["n_sats"] == 4 and s["steps"] == 21
     # The recording holds the run, not just bytes: truth and every agent's posterior at
     # every step, one measurement batch per satellite and step.
@@ -85,8 +107,9 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
 
     rec = load_recording(c.out / "run.mcap", 4, 21)
     assert np.isfinite(rec.t).all() and rec.alive.all()
-    assert rec.counts["truth"] == 21 and rec.counts["meas"] == 4 * 21 and rec.counts["sensors"] == 4 * 21, rec.counts
-    ref = _sim(4, ["duration_s=20"])
+    # (+ 1 batch: the forgeries' control, agent 3's own batch at a step no run reaches)
+    assert rec.counts["truth"] == 21 and rec.counts["meas"] == 4 * 21 + 1 and rec.counts["sensors"] == 4 * 21, rec.counts
+    ref = _sim(4, sets.split())
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: containers and in-process differ"
 
@@ -98,7 +121,7 @@ def _fault(c: Compose, *args):
     p = subprocess.run(
         [sys.executable, "-m", "swarm.cli", "fault", "--compose", "--project", c.project, *args],
         cwd=ROOT,
-        env=dict(os.environ, SWARM_BUS_PORT=c.env["SWARM_BUS_PORT"]),
+        env=dict(os.environ, SWARM_BUS_PORT=c.env["SWARM_BUS_PORT"], SWARM_KEYS=c.env["SWARM_KEYS"]),
         capture_output=True,
         text=True,
         timeout=300,
@@ -116,7 +139,8 @@ def _wait_step(c: Compose, k: int, timeout=300):
     from swarm.bus.session import BusConfig
 
     seen = threading.Event()
-    cfg = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{c.env['SWARM_BUS_PORT']}"], connect_timeout_ms=60_000)
+    cfg = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{c.env['SWARM_BUS_PORT']}"], connect_timeout_ms=60_000,
+                    credential_file=str(c.keys / "observer.json"))
     with zenoh.open(cfg.zenoh_config()) as s:
         sub = s.declare_subscriber("swarm/compose/clock", lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= k and seen.set())
         ok = seen.wait(timeout)
@@ -203,6 +227,9 @@ def test_agent_on_another_site_joins_through_the_router(image, tmp_path):
         c.down()
     assert f"{c.project}_site_b" in nets and f"{c.project}_bus" in nets
     assert "initialised from the world's prior" in logs and "done at step 15" in logs, logs[-2000:]
+    # Over TLS with the claimant's credential, then as its satellite's agent.
+    assert "on the bus at ['tls/router:7449'] as claimant" in logs and "on the bus at ['tls/router:7449'] as agent-" in logs, logs[-2000:]
+    assert "with its credential" in logs, logs[-2000:]
     s = _summary(c.out)
     assert s["steps"] == 16
     ref = _sim(4, ["duration_s=15"])

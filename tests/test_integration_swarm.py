@@ -18,7 +18,6 @@ from swarm_harness import run_swarm, scenario, within_3sigma_fraction
 from swarm.bus import messages as M
 from swarm.bus.convert import batch_msg
 from swarm.bus.messages import Clock, Keys
-from swarm.bus.session import BusConfig
 from swarmcore.cameras import best_camera
 from swarmcore.mekf import RelativeMeasurements
 from swarmcore.sensors import relative_pose
@@ -247,7 +246,9 @@ def _garbage(keys: Keys, n: int):
 
 
 def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
-    sc = scenario(n_sats=3, duration_s=20)
+    # Security off: the router's access rules would stop this garbage before any receiver
+    # (tests/test_security.py); what is tested here is the receivers' own checks.
+    sc = scenario(n_sats=3, duration_s=20, emulator={"security": False})
     sent = {"n": 0}
     stop = threading.Event()
 
@@ -257,7 +258,7 @@ def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
         # Well-formed messages that name satellites this swarm does not have.
         payloads.append(M.encode(M.MeasBatch(**{**hdr, "sender": "agent-7"}, observer=7, R_Bi=M.Matrix(shape=[0, 6, 6]))))
         payloads.append(M.encode(M.Clock(**{**hdr, "sender": "world"}, live_agents=[0, 1, 2, 50], mode="lockstep")))
-        with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
+        with zenoh.open(sw.bus_as("observer").zenoh_config()) as s:
             rounds = 0
             while not stop.is_set() and sw.procs["world"].poll() is None:
                 for key in targets:
@@ -298,7 +299,7 @@ def test_recorder_sigkill_leaves_a_readable_file(tmp_path):
     killed = {}
 
     def kill_recorder(sw):
-        with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
+        with zenoh.open(sw.bus_as("observer").zenoh_config()) as s:
             seen = threading.Event()
             sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= 12 and seen.set())
             assert seen.wait(120)
@@ -332,7 +333,7 @@ def test_cli_faults_against_a_running_swarm_and_dropped_messages(tmp_path):
     results = {}
 
     def inject(sw):
-        with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
+        with zenoh.open(sw.bus_as("observer").zenoh_config()) as s:
             seen = threading.Event()
             sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= 10 and seen.set())
             assert seen.wait(120)
@@ -379,8 +380,10 @@ def test_bench_bus_prints_and_writes_json(tmp_path):
     p = subprocess.run([sys.executable, "-m", "swarm.cli", "bench", "bus", "--samples", "30", "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert p.returncode == 0, p.stderr
     rows = json.loads(out.read_text())["rows"]
-    assert [r["bytes"] > 1_000_000 for r in rows] == [False, False, True]
-    assert [r.get("n") for r in rows] == [10, 40, None]
+    # Security on (authenticated clients, the router's access rules), then off, side by side.
+    assert [r["security"] for r in rows] == ["on"] * 3 + ["off"] * 3
+    assert [r["bytes"] > 1_000_000 for r in rows] == [False, False, True] * 2
+    assert [r.get("n") for r in rows] == [10, 40, None] * 2
     for r in rows:
         assert 0 < r["one_way"]["p50_ms"] <= r["one_way"]["p99_ms"]
     for r in rows[:2]:

@@ -227,9 +227,18 @@ def test_keys_and_senders():
     M.check_key(k.init(1), "full_est", 1, prior)
     with pytest.raises(M.MessageError, match="may not publish"):
         M.check_key(k.cov(1), "full_est", 1, prior)
-    M.check_key(k.fault(), "fault", None, M.replace(EXAMPLES["fault"], sender="agent-7"))
-    with pytest.raises(M.MessageError, match="may not publish"):
-        M.check_key(k.fault(), "fault", None, M.replace(EXAMPLES["fault"], sender="evil"))
+    cmd = M.replace(EXAMPLES["fault"], phase="command", sender="cli")
+    M.check_key(k.fault(), "fault", None, cmd)
+    M.check_key(k.fault(), "fault", None, M.replace(cmd, sender="world"))  # the scenario's schedule
+    done = M.replace(cmd, phase="done", sender="agent-7")
+    M.check_key(k.fault_report("agent-7"), "fault", None, done)
+    # An agent may not command, nor report as another; a report is not a command.
+    for key, msg in ((k.fault(), M.replace(cmd, sender="agent-7")), (k.fault(), M.replace(cmd, sender="evil")),
+                     (k.fault_report("agent-7"), M.replace(done, sender="agent-2")),
+                     (k.fault_report("agent-7"), cmd), (k.fault(), done), (k.fault_report("evil"), M.replace(done, sender="evil"))):
+        with pytest.raises(M.KeyMismatch):
+            M.check_key(key, "fault", None, msg)
+    assert M.parse_key(k.fault_report("supervisor")) == (RUN, "fault", None)
 
 
 def test_images_carry_pixels_exactly():

@@ -107,7 +107,7 @@ def test_scheduled_camera_fault_is_announced_and_silences_that_camera():
     d, w, _ = started_world(sc)
     d.take()
     d.feed(est(0, 0), est(1, 0), est(2, 0))
-    faults = d.sent_on(K.fault())
+    faults = d.sent_on(K.fault()) + d.sent_on(K.fault_report("world"))  # the command, then the world's report
     assert [(f.phase, f.action, f.target, f.camera) for f in faults] == [("command", "camera", 0, 0), ("done", "camera", 0, 0)]
     (cam,) = d.sent_on(K.cam(0))
     assert list(cam.cameras_off) == [0] and all(x.camera != 0 for x in cam.detections)

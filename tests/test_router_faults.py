@@ -36,9 +36,10 @@ pytestmark = pytest.mark.integration
 EQUAL_KEYS = ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean")
 
 
-def _wait_step(endpoints: list[str], run: str, k: int, timeout: float = 180.0) -> None:
+def _wait_step(endpoints: list[str], run: str, k: int, keys: str | None, timeout: float = 180.0) -> None:
     reached = threading.Event()
-    with zenoh.open(BusConfig(mode="client", connect=endpoints).zenoh_config()) as s:
+    cred = f"{keys}/observer.json" if keys else None  # the run's read-only identity (security on)
+    with zenoh.open(BusConfig(mode="client", connect=endpoints, credential_file=cred).zenoh_config()) as s:
         sub = s.declare_subscriber(Keys(run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= k and reached.set())
         try:
             assert reached.wait(timeout), f"the run did not reach step {k} within {timeout:.0f} s"
@@ -57,7 +58,7 @@ def _run_with_router_fault(tmp_path, routers: int, action: str, target: int, sch
     answer = {}
 
     def during():
-        _wait_step(sw.endpoints, sw.run, 8)
+        _wait_step(sw.endpoints, sw.run, 8, str(sw.keys_dir) if sw.keys_dir else None)
         answer["fault"] = send_fault(run_dir=out, action=action, target=target, **fields)
 
     th = threading.Thread(target=during, daemon=True)
@@ -135,7 +136,7 @@ def _break_run(tmp_path, victim: str):
         try:
             info = wait_until(lambda: _read_json(out / "run.json"), 180, "run.json written")
             procs = [psutil.Process(pid) for pid in info["pids"].values()]
-            _wait_step(info["endpoints"], info["run"], 8)
+            _wait_step(info["endpoints"], info["run"], 8, info.get("keys"))
             t0 = time.monotonic()
             os.kill(info["pids"][victim], signal.SIGKILL)
             wait_until(lambda: all(_gone(p) for p in procs), BOUND_S + 20.0, "every process of the run gone")

@@ -72,7 +72,7 @@ def _gone(p: psutil.Process) -> bool:
         return True
 
 
-def _wait_for_step(endpoint: str, run: str, k: int, timeout: float) -> None:
+def _wait_for_step(endpoint: str, run: str, k: int, timeout: float, keys: str | None = None) -> None:
     """Block until the world's clock reaches step ``k`` (an event on the bus)."""
     reached = threading.Event()
 
@@ -80,7 +80,8 @@ def _wait_for_step(endpoint: str, run: str, k: int, timeout: float) -> None:
         if Clock.FromString(bytes(sample.payload.to_bytes())).k >= k:
             reached.set()
 
-    with zenoh.open(BusConfig(mode="client", connect=[endpoint]).zenoh_config()) as s:
+    cred = f"{keys}/observer.json" if keys else None  # the run's read-only identity
+    with zenoh.open(BusConfig(mode="client", connect=[endpoint], credential_file=cred).zenoh_config()) as s:
         sub = s.declare_subscriber(Keys(run).clock(), on_clock)
         try:
             assert reached.wait(timeout), f"the run did not reach step {k} within {timeout:.0f} s"
@@ -102,7 +103,7 @@ def _run_and_signal(tmp_path, sig: int):
         procs = [psutil.Process(pid) for pid in info["pids"].values()]
         assert info.get("supervisor_pid") == sup.pid
         assert set(info["pids"]) == {"router", "recorder", "world", "selector", "agent-0", "agent-1", "agent-2"}
-        _wait_for_step(info["endpoint"], info["run"], K_SIGNAL, 180)
+        _wait_for_step(info["endpoint"], info["run"], K_SIGNAL, 180, info.get("keys"))
         assert not any(_gone(p) for p in procs), "a process had ended before the signal: the test would prove nothing"
         t0 = time.monotonic()
         sup.send_signal(sig)

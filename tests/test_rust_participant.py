@@ -17,7 +17,6 @@ import zenoh
 from swarm_harness import run_swarm, scenario
 
 from swarm.bus import messages as M
-from swarm.bus.session import BusConfig
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -54,16 +53,18 @@ def test_rust_participant_prints_every_agents_estimate_as_recorded(watcher, tmp_
 
     def _watch(sw):
         p = subprocess.Popen(
-            [str(watcher), "--connect", sw.endpoint, "--run", sw.run, "--sat", str(sat), "--json", "--timeout-s", "300"],
+            [str(watcher), "--connect", sw.endpoint, "--run", sw.run, "--sat", str(sat), "--json", "--timeout-s", "300",
+             "--credential", str(sw.keys_dir / "observer.json")],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
         )
         state["proc"] = p
         ready = p.stderr.readline()
         assert "READY" in ready, ready
-        # Forged estimates: another agent's name on agent 0's key, and bytes that are no Estimate.
+        # Forged estimates, with agent 0's own credential (the router lets agent 0 put on
+        # est/0): another agent's name on agent 0's key, and bytes that are no Estimate.
         good = M.Estimate(run=sw.run, sender="agent-1", own=0, phase="posterior", q_BI=[0, 0, 0, 1.0] * 4,
                           omega_BI_B_rad_s=[0.0] * 12, r_H_m=[0.0] * 12, v_H_m_s=[0.0] * 12, bias_B_rad_s=[0.0] * 3)
-        with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
+        with zenoh.open(sw.bus_as("agent-0").zenoh_config()) as s:
             s.put(M.Keys(sw.run).est(0), M.encode(good))
             s.put(M.Keys(sw.run).est(0), b"\xff\x00 not protobuf")
         out, err = p.communicate(timeout=600)

@@ -10,7 +10,6 @@ import pytest
 from swarm_harness import run_swarm, scenario
 
 from swarm.bus.messages import Clock, Keys
-from swarm.bus.session import BusConfig
 
 VISION = ("cv2", "open3d", "pyrender", "trimesh", "OpenGL", "pyglet")
 
@@ -35,7 +34,7 @@ def test_running_roles_of_a_scenario_without_rendering_map_no_vision_library(tmp
 
     def look(sw):
         seen = threading.Event()
-        with zenoh.open(BusConfig(mode="client", connect=[sw.endpoint]).zenoh_config()) as s:
+        with zenoh.open(sw.bus_as("observer").zenoh_config()) as s:
             sub = s.declare_subscriber(Keys(sw.run).clock(), lambda smp: Clock.FromString(smp.payload.to_bytes()).k >= 2 and seen.set())
             assert seen.wait(120)
             sub.undeclare()

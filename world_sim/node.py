@@ -18,17 +18,18 @@ __all__ = ["World"]
 
 
 class World(Node):
-    def __init__(self, sc: Scenario, run: str, bus, expect_recorder: bool = True, expect_selector: bool | None = None):
+    def __init__(self, sc: Scenario, run: str, bus, expect_recorder: bool = True, expect_selector: bool | None = None,
+                 agent_passwords: dict[int, str] | None = None):
         if (why := sc.vision.distributed_refusal()) is not None:
             raise SystemExit(f"world_sim: {why}")
         super().__init__("world", 0, run, sc.n_sats, bus, announce=False)
         self.sc = sc
         self.cameras = measurement_model(sc).cameras()  # rendering only when the scenario renders
-        self.machine = WorldProtocol(sc, run, self.cameras, expect_recorder, expect_selector)
+        self.machine = WorldProtocol(sc, run, self.cameras, expect_recorder, expect_selector, agent_passwords=agent_passwords)
         self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())
-        self.subscribe(self.keys.fault())
+        self.subscribe(self.keys.faults())  # commands, and what others carried out
         if sc.links.enabled:
             self.subscribe(self.keys.meas())  # the radio channel carries the agents' batches
         self.watch_liveliness()

@@ -71,8 +71,12 @@ class WorldProtocol:
     """Truth, time, sensors and cameras of the swarm (see the module docstring)."""
 
     def __init__(self, sc: Scenario, run: str, cameras: CameraModel, expect_recorder: bool = True,
-                 expect_selector: bool | None = None, clock: Callable[[], float] = time.monotonic):
+                 expect_selector: bool | None = None, clock: Callable[[], float] = time.monotonic,
+                 agent_passwords: dict[int, str] | None = None):
         self.sc = sc
+        # Security on, agents started with --id auto: satellite i's bus password, handed to
+        # the claimant given satellite i (swarm.security says why this is safe).
+        self.agent_passwords = agent_passwords or {}
         self.run_id = run
         self.n = sc.n_sats
         self.keys = Keys(run)
@@ -152,7 +156,8 @@ class WorldProtocol:
             sat = free[0]
             self._claims[token] = sat
             self._claimed_at[sat] = now
-        return Claim(run=self.run_id, sender="world", k=self.k, t_s=self.k * self.sc.dt_s, sat=sat, token=token, running=self.started)
+        return Claim(run=self.run_id, sender="world", k=self.k, t_s=self.k * self.sc.dt_s, sat=sat, token=token, running=self.started,
+                     password=self.agent_passwords.get(sat, ""))
 
     # -- events -------------------------------------------------------------------
     def handle(self, ev: Event) -> list[Send]:
@@ -206,7 +211,7 @@ class WorldProtocol:
             self.camera_ok[f.target, f.camera] = f.state == "on"
             log.info("camera %d of satellite %d %s", f.camera, f.target, f.state)
             done = replace(f, phase="done", sender="world", k=self.k, t_s=self.k * self.sc.dt_s)
-            return [Send(self.keys.fault(), done)]
+            return [Send(self.keys.fault_report("world"), done)]
         return []
 
     def live(self) -> list[int]:

@@ -37,13 +37,18 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/init/<i>             world (queryable)     FullEstimate (the prior)
     swarm/<run>/claim/<token>        world (queryable)     Claim (a satellite id for --id auto)
     swarm/<run>/select               selector → all        Select
-    swarm/<run>/fault                CLI / roles → all     Fault
+    swarm/<run>/fault                CLI / world → all     Fault (commands: the CLI's, the world's schedule)
+    swarm/<run>/fault/<reporter>     that role → all       Fault (what <reporter> carried out: done / failed)
     swarm/<run>/health/<i>           agent i → all         Health
     swarm/<run>/truth                world → recorder      Truth   (agents never subscribe)
     swarm/<run>/rx/<i>               world → agent i       Delivery (links.enabled: what the radio delivered)
     swarm/<run>/links                world → recorder      LinkStats (links.enabled: per-link counters)
     swarm/<run>/rejoin/<i>[/<j>/<B>] world (queryable)     RejoinFate (links.enabled: a restart's state transfer)
     swarm/<run>/alive/<role>/<id>    liveliness tokens
+
+Who may use which key is defined here too (:func:`grants`): the router's access rules are
+generated from it (:mod:`swarm.security`), and :func:`check_key` holds every receiver to
+the same table whatever the router let through.
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ import math
 import re
 import threading
 import time
+from typing import NamedTuple
 
 import numpy as np
 from google.protobuf.message import DecodeError, Message
@@ -88,6 +94,10 @@ __all__ = [
     "MAX_PAYLOAD_BYTES",
     "SHALLOW_KINDS",
     "MessageError",
+    "KeyMismatch",
+    "Grants",
+    "grants",
+    "IDENTITIES",
     "Header",
     "Matrix",
     "Clock",
@@ -134,6 +144,12 @@ __all__ = [
 
 class MessageError(ValueError):
     """A payload that is not a valid message of the expected kind."""
+
+
+class KeyMismatch(MessageError):
+    """A valid message on a key its sender, observer or satellite field says it may not
+    use (someone speaking for another): dropped and counted apart from other malformed
+    messages, whatever the router let through."""
 
 
 MODELS: dict[str, type[Message]] = {
@@ -580,6 +596,8 @@ def _claim(m: Claim, top: int) -> None:
     _id(top, "sat", m.sat)
     if not 1 <= len(m.token) <= 128:
         raise MessageError(f"token: {len(m.token)} characters (1-128 allowed)")
+    if len(m.password) > 128:
+        raise MessageError(f"password: {len(m.password)} characters (at most 128)")
 
 
 def _truth(m: Truth, top: int) -> None:
@@ -686,12 +704,16 @@ _WORLD_KEYS = ("clock", "sensors", "cam", "img", "truth", "claim", "rx", "links"
 _OWNER_FIELD = {"sensors": "sat", "cam": "sat", "img": "sat", "health": "sat", "meas": "observer", "est": "own", "full_est": "own", "rx": "sat", "rejoin": "sat"}
 
 
+_REPORTER_RE = re.compile(r"world|selector|supervisor|cli|agent-\d+")
+
+
 def check_key(key: str, kind: str, sat: int | None, msg) -> None:
     """The message agrees with the key it came on: the satellite the key names is the one
-    the message is about, and the sender is the role that publishes on that key."""
+    the message is about, and the sender is the role that publishes on that key
+    (:class:`KeyMismatch` otherwise)."""
     field = _OWNER_FIELD.get(kind)
     if sat is not None and field is not None and getattr(msg, field) != sat:
-        raise MessageError(f"key says satellite {sat}, message {field} says {getattr(msg, field)}")
+        raise KeyMismatch(f"key says satellite {sat}, message {field} says {getattr(msg, field)}")
     want: tuple[str, ...]
     if kind in _WORLD_KEYS or (kind == "full_est" and "/init/" in key):
         want = ("world",)
@@ -699,12 +721,20 @@ def check_key(key: str, kind: str, sat: int | None, msg) -> None:
         want = (f"agent-{sat}",)
     elif kind == "select":
         want = ("selector", "world")
-    else:  # fault: commands from the CLI, the world's schedule, outcomes from any role
-        if msg.sender in ("world", "selector", "supervisor", "cli") or re.fullmatch(r"agent-\d+", msg.sender):
-            return
-        want = ("world", "selector", "supervisor", "cli", "agent-<i>")
+    else:  # fault: commands on fault (the CLI's, the world's schedule); outcomes on fault/<reporter>
+        tail = key.rsplit("/", 1)[1]
+        if tail == "fault":
+            if msg.phase != "command":
+                raise KeyMismatch(f"a fault {msg.phase!r} report on {key} (reports go on fault/<reporter>)")
+            want = ("cli", "world")
+        else:
+            if msg.phase == "command":
+                raise KeyMismatch(f"a fault command on {key} (commands go on fault)")
+            if not _REPORTER_RE.fullmatch(tail):
+                raise KeyMismatch(f"{tail[:64]!r} is not a role that carries out faults")
+            want = (tail,)
     if msg.sender not in want:
-        raise MessageError(f"sender {msg.sender[:64]!r} may not publish on {key} (expected {' or '.join(want)})")
+        raise KeyMismatch(f"sender {msg.sender[:64]!r} may not publish on {key} (expected {' or '.join(want)})")
 
 
 # -- helpers in place of pydantic's -------------------------------------------------------
@@ -798,10 +828,10 @@ class Keys:
     def clock(self) -> str:
         return f"{self.root}/clock"
 
-    def sensors(self, i: int) -> str:
+    def sensors(self, i: int | str) -> str:
         return f"{self.root}/sat/{i}/sensors"
 
-    def cam(self, i: int) -> str:
+    def cam(self, i: int | str) -> str:
         return f"{self.root}/sat/{i}/cam"
 
     def img(self, i: int | str) -> str:
@@ -823,7 +853,16 @@ class Keys:
         return f"{self.root}/select"
 
     def fault(self) -> str:
+        """Fault commands (the CLI's, and the world's from the scenario's schedule)."""
         return f"{self.root}/fault"
+
+    def fault_report(self, reporter: str = "*") -> str:
+        """What ``reporter`` (``world``, ``supervisor``, ``agent-3``...) carried out."""
+        return f"{self.root}/fault/{reporter}"
+
+    def faults(self) -> str:
+        """Commands and every report."""
+        return f"{self.root}/fault/**"
 
     def health(self, i: int | str = "*") -> str:
         return f"{self.root}/health/{i}"
@@ -837,7 +876,7 @@ class Keys:
     def links(self) -> str:
         return f"{self.root}/links"
 
-    def rejoin(self, i: int | str = "*", peer: int | str | None = None, size: int | None = None) -> str:
+    def rejoin(self, i: int | str = "*", peer: int | str | None = None, size: int | str | None = None) -> str:
         """``rejoin/<i>``: the fates the world gives agent i's rejoin transfers (recorded);
         ``rejoin/<i>/<peer>/<bytes>``: agent i's question about one (a query)."""
         tail = "" if peer is None else f"/{peer}/{size}"
@@ -855,7 +894,7 @@ class Keys:
 
 _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
-    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)|(?P<truth>truth)|(?P<links>links)"
+    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)(?:/[A-Za-z0-9_.-]+)?|(?P<truth>truth)|(?P<links>links)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
     r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin)/(?P<id>\d+)(?:/\d+/\d+)?"
     r"|claim/(?P<token>[^/]+)"
@@ -886,3 +925,61 @@ def _parse_key(key: str) -> tuple[str, str, int | None]:
         return run, "claim", None
     ident = m["ident"]
     return run, "alive", int(ident) if ident.isdigit() else None
+
+
+# -- who may use which key ------------------------------------------------------------------
+#: The identities of a swarm other than the agents (``agent-<i>``, bound to satellite i).
+IDENTITIES = ("world", "selector", "recorder", "cli", "supervisor", "observer", "claimant", "mesh")
+
+
+class Grants(NamedTuple):
+    """What one identity may do on the bus, as key expressions (the router allows nothing
+    else: :mod:`swarm.security` turns this into Zenoh access-control rules)."""
+
+    put: tuple[str, ...] = ()  # put (and delete)
+    sub: tuple[str, ...] = ()  # declare a subscriber (and be sent what matches)
+    query: tuple[str, ...] = ()  # get (and be sent the replies)
+    serve: tuple[str, ...] = ()  # declare a queryable and reply (and be sent the queries)
+    token: tuple[str, ...] = ()  # declare a liveliness token
+    watch: tuple[str, ...] = ()  # liveliness subscribers and queries
+
+
+def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
+    """The single table of who may say what. ``links``: the scenario's radio is on (agents
+    then hear peers' batches only through the world's ``rx/<i>``, never ``meas/*``)."""
+    k = keys
+    alive = f"{k.root}/alive/**"
+    if identity == "world":
+        return Grants(
+            put=(k.clock(), k.sensors("*"), k.cam("*"), k.img("*"), k.truth(), k.links(), k.rx("*"), k.rejoin("*"),
+                 k.select(), k.fault(), k.fault_report("world")),
+            sub=(k.est(), k.health(), k.select(), k.faults(), k.meas()),
+            serve=(k.init(), k.claim(), k.rejoin("*") + "/*/*"),
+            token=(k.alive("world"),), watch=(alive,))
+    if m := re.fullmatch(r"agent-(\d+)", identity):
+        i = int(m[1])
+        return Grants(
+            put=(k.meas(i), k.est(i), k.health(i), k.fault_report(identity)),
+            sub=(k.clock(), k.sensors(i), k.cam(i), k.img(i), k.rx(i) if links else k.meas(), k.fault(), k.health()),
+            query=(k.init(i), k.cov(), k.rejoin(i, "*", "*")),
+            serve=(k.cov(i),), token=(k.alive("agent", i),), watch=(alive,))
+    if identity == "selector":
+        return Grants(put=(k.select(), k.fault_report("selector")), sub=(k.est(), k.fault(), k.health(), k.clock()),
+                      query=(k.cov(),), token=(k.alive("selector"),), watch=(alive,))
+    if identity == "recorder":
+        return Grants(sub=(k.everything(),), token=(k.alive("recorder"),), watch=(alive,))
+    if identity == "cli":  # swarm fault: commands; under compose it carries out process faults and reports them
+        return Grants(put=(k.fault(), k.fault_report("cli")), sub=(k.faults(), k.clock(), k.health()),
+                      token=(k.alive("cli"),), watch=(alive,))
+    if identity == "supervisor":  # swarm run: carries out process faults and reports them
+        return Grants(put=(k.fault_report("supervisor"),), sub=(k.faults(), k.clock()), token=(k.alive("supervisor"),),
+                      watch=(alive,))
+    if identity == "observer":  # read-only telemetry for tools and participants (never the truth)
+        return Grants(sub=(k.clock(), k.est(), k.health(), k.select(), k.faults(), k.links()),
+                      token=(k.alive("observer"),), watch=(alive,))
+    if identity == "claimant":  # an agent started with --id auto, before it has a satellite
+        return Grants(query=(k.claim(),), token=(k.alive("claimant"),))
+    if identity == "mesh":  # a router meshed with this one (swarm run --routers 2): it forwards everyone's traffic
+        every = (k.everything(),)
+        return Grants(put=every, sub=every, query=every, serve=every, token=every, watch=every)
+    raise ValueError(f"unknown identity {identity!r} (expected agent-<i> or one of {', '.join(IDENTITIES)})")

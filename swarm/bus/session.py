@@ -33,6 +33,18 @@ class BusConfig:
     config_file: str | None = None
     multicast_scouting: bool = False
     connect_timeout_ms: int = 10_000
+    # This process's identity on the bus (swarm.security): a credential file, or one in
+    # hand (an --id auto agent's, once the world has given it its satellite).
+    credential_file: str | None = None
+    credential: object | None = None  # a swarm.security.Credential
+
+    def identity(self):
+        """The credential this configuration connects with (None: none)."""
+        if self.credential is None and self.credential_file:
+            from ..security import load_credential
+
+            self.credential = load_credential(self.credential_file)
+        return self.credential
 
     def zenoh_config(self) -> zenoh.Config:
         cfg = zenoh.Config.from_file(self.config_file) if self.config_file else zenoh.Config()
@@ -51,6 +63,8 @@ class BusConfig:
         # it includes their clock offset).
         cfg.insert_json5("timestamping/enabled", "true")
         apply_shared_memory(cfg)
+        if (cred := self.identity()) is not None:
+            cred.apply(cfg)
         return cfg
 
     def as_args(self) -> list[str]:
@@ -64,6 +78,8 @@ class BusConfig:
             out += ["--config", self.config_file]
         if self.multicast_scouting:
             out.append("--multicast-scouting")
+        if self.credential_file:
+            out += ["--credential", self.credential_file]
         return out
 
 
@@ -90,11 +106,22 @@ def add_bus_args(p: argparse.ArgumentParser) -> None:
     g.add_argument("--config", default=None, help="a Zenoh JSON5 configuration file")
     g.add_argument("--multicast-scouting", action="store_true", help="enable multicast scouting (off by default)")
     g.add_argument("--no-multicast-scouting", dest="multicast_scouting", action="store_false")
+    g.add_argument("--credential", default=os.environ.get("SWARM_CREDENTIAL") or None,
+                   help="this process's credential on the bus (a <identity>.json of `swarm keys`; env SWARM_CREDENTIAL)")
 
 
-def bus_config_from_args(a: argparse.Namespace) -> BusConfig:
+def bus_config_from_args(a: argparse.Namespace, sc=None) -> BusConfig:
+    """The bus flags as a configuration. ``sc``: the role's scenario; with
+    ``emulator.security: off`` the credential is left out (a router without a password
+    dictionary refuses a session that offers one), loudly."""
     connect = a.connect if a.connect is not None else [e for e in os.environ.get("SWARM_ZENOH_CONNECT", "").split(",") if e]
-    return BusConfig(mode=a.mode, connect=connect, listen=a.listen or [], config_file=a.config, multicast_scouting=a.multicast_scouting)
+    cred = a.credential
+    if sc is not None and not sc.emulator.security:
+        log.warning("SECURITY OFF (emulator.security: off): connecting without a credential%s",
+                    f" (ignoring {cred})" if cred else "")
+        cred = None
+    return BusConfig(mode=a.mode, connect=connect, listen=a.listen or [], config_file=a.config, multicast_scouting=a.multicast_scouting,
+                     credential_file=cred)
 
 
 def open_session(cfg: BusConfig) -> zenoh.Session:

@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14swarm/v1/claim.proto\x12\x08swarm.v1\"\x81\x01\n\x05\x43laim\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x0b\n\x03run\x18\x02 \x01(\t\x12\x0e\n\x06sender\x18\x03 \x01(\t\x12\t\n\x01k\x18\x04 \x01(\x04\x12\x0b\n\x03t_s\x18\x05 \x01(\x01\x12\x0b\n\x03sat\x18\x06 \x01(\r\x12\r\n\x05token\x18\x07 \x01(\t\x12\x0f\n\x07running\x18\x08 \x01(\x08\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14swarm/v1/claim.proto\x12\x08swarm.v1\"\x93\x01\n\x05\x43laim\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x0b\n\x03run\x18\x02 \x01(\t\x12\x0e\n\x06sender\x18\x03 \x01(\t\x12\t\n\x01k\x18\x04 \x01(\x04\x12\x0b\n\x03t_s\x18\x05 \x01(\x01\x12\x0b\n\x03sat\x18\x06 \x01(\r\x12\r\n\x05token\x18\x07 \x01(\t\x12\x0f\n\x07running\x18\x08 \x01(\x08\x12\x10\n\x08password\x18\t \x01(\tb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,5 +32,5 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'swarm.v1.claim_pb2', _globa
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_CLAIM']._serialized_start=35
-  _globals['_CLAIM']._serialized_end=164
+  _globals['_CLAIM']._serialized_end=182
 # @@protoc_insertion_point(module_scope)

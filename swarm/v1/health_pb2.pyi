@@ -7,7 +7,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class Health(_message.Message):
-    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "sat", "camera_ok", "malformed", "batches_missing", "batches_late", "drop_rate", "host")
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "sat", "camera_ok", "malformed", "batches_missing", "batches_late", "drop_rate", "host", "key_mismatch")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_FIELD_NUMBER: _ClassVar[int]
     SENDER_FIELD_NUMBER: _ClassVar[int]
@@ -20,6 +20,7 @@ class Health(_message.Message):
     BATCHES_LATE_FIELD_NUMBER: _ClassVar[int]
     DROP_RATE_FIELD_NUMBER: _ClassVar[int]
     HOST_FIELD_NUMBER: _ClassVar[int]
+    KEY_MISMATCH_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     run: str
     sender: str
@@ -32,4 +33,5 @@ class Health(_message.Message):
     batches_late: int
     drop_rate: float
     host: str
-    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., sat: _Optional[int] = ..., camera_ok: _Optional[_Iterable[bool]] = ..., malformed: _Optional[int] = ..., batches_missing: _Optional[int] = ..., batches_late: _Optional[int] = ..., drop_rate: _Optional[float] = ..., host: _Optional[str] = ...) -> None: ...
+    key_mismatch: int
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., sat: _Optional[int] = ..., camera_ok: _Optional[_Iterable[bool]] = ..., malformed: _Optional[int] = ..., batches_missing: _Optional[int] = ..., batches_late: _Optional[int] = ..., drop_rate: _Optional[float] = ..., host: _Optional[str] = ..., key_mismatch: _Optional[int] = ...) -> None: ...

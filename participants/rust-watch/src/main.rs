@@ -4,6 +4,12 @@
 //! of the Python emulator's code.
 //!
 //!     swarm-watch --connect tcp/127.0.0.1:7447 --run RUN --sat 2 [--json] [--timeout-s 600]
+//!                 [--credential observer.json]
+//!
+//! With security on (the default), the router admits only sessions with a credential: give
+//! the `observer` one (read-only: clock, estimates, health; a `swarm keys` directory, or
+//! `observer.json` in the `keys` directory that a local `swarm run` names in its run.json),
+//! a JSON object {"user", "password"}.
 //!
 //! Each estimate is checked as the schema's README asks of every receiver (schema version,
 //! run, sender against the key, finite numbers, unit quaternions, array lengths against
@@ -37,16 +43,17 @@ struct Args {
     sat: usize,
     json: bool,
     timeout_s: f64,
+    credential: Option<String>,
 }
 
 fn usage(msg: &str) -> ! {
     eprintln!("swarm-watch: {msg}");
-    eprintln!("usage: swarm-watch --connect tcp/HOST:PORT --run RUN --sat J [--json] [--timeout-s S]");
+    eprintln!("usage: swarm-watch --connect tcp/HOST:PORT --run RUN --sat J [--json] [--timeout-s S] [--credential FILE]");
     std::process::exit(2)
 }
 
 fn parse_args() -> Args {
-    let mut a = Args { connect: vec![], run: String::new(), sat: usize::MAX, json: false, timeout_s: 600.0 };
+    let mut a = Args { connect: vec![], run: String::new(), sat: usize::MAX, json: false, timeout_s: 600.0, credential: None };
     let mut it = std::env::args().skip(1);
     while let Some(arg) = it.next() {
         let mut val = |name: &str| it.next().unwrap_or_else(|| usage(&format!("{name} needs a value")));
@@ -55,6 +62,7 @@ fn parse_args() -> Args {
             "--run" => a.run = val("--run"),
             "--sat" => a.sat = val("--sat").parse().unwrap_or_else(|_| usage("--sat: expected a satellite number")),
             "--timeout-s" => a.timeout_s = val("--timeout-s").parse().unwrap_or_else(|_| usage("--timeout-s: expected seconds")),
+            "--credential" => a.credential = Some(val("--credential")),
             "--json" => a.json = true,
             "-h" | "--help" => usage("watch every agent's estimate of one satellite"),
             other => usage(&format!("unknown argument {other:?}")),
@@ -167,6 +175,14 @@ async fn main() {
     set(&mut config, "connect/endpoints", serde_json::to_string(&a.connect).unwrap());
     set(&mut config, "connect/timeout_ms", "10000".into());
     set(&mut config, "scouting/multicast/enabled", "false".into());
+    if let Some(path) = &a.credential {
+        let text = std::fs::read_to_string(path).unwrap_or_else(|e| usage(&format!("--credential {path}: {e}")));
+        let cred: serde_json::Value = serde_json::from_str(&text).unwrap_or_else(|e| usage(&format!("--credential {path}: {e}")));
+        for field in ["user", "password"] {
+            let v = cred.get(field).and_then(|v| v.as_str()).unwrap_or_else(|| usage(&format!("--credential {path}: no \"{field}\"")));
+            set(&mut config, &format!("transport/auth/usrpwd/{field}"), serde_json::to_string(v).unwrap());
+        }
+    }
     let session = match zenoh::open(config).await {
         Ok(s) => s,
         Err(e) => {
