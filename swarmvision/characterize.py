@@ -371,10 +371,17 @@ def run_cli(pipeline: str, out: Path, vision: VisionConfig | None = None, ranges
     res = characterize(pipeline, cfg, ranges, orientations, suns, tuple(illuminations), amb, seed, log=log, progress=progress,
                        mapper=mapper)
     files = write(res, out)
+    m = None
     if any(s_.get("q") for s_ in res["samples"]):
+        from .error_model import TooFewSamples
+
+        try:
+            m = fit_error_model(res, log=log)
+        except TooFewSamples as exc:
+            log(f"no error model fitted: {exc} (characterise more ranges, orientations or Sun angles)")
+    if m is not None:
         from .error_model import model_name
 
-        m = fit_error_model(res, log=log)
         ss = [s_ for s_ in res["samples"] if s_.get("ok") and s_.get("q") and s_["illumination"] == m.meta["illumination"]]
         files["model"] = str(m.write(Path(out) / model_name(pipeline, res["camera"])))
         files["plots"].append(str(plot_error_model(m, [s_["q"] for s_ in ss], np.array([s_["err"] for s_ in ss]),

@@ -57,6 +57,10 @@ FEATURES = {
 }
 
 
+
+class TooFewSamples(ValueError):
+    """A characterisation too small to fit the model's coefficients."""
+
 def model_name(pipeline: str, cam: dict) -> str:
     """File name of a fitted error model: pipeline and camera (size, focal length)."""
     return f"error-model-{pipeline}-{cam['width_px']}x{cam['height_px']}-f{cam['focal_px']:g}.json"
@@ -183,7 +187,7 @@ def fit(X: np.ndarray, E: np.ndarray, ridge: float = 1e-3, calibrate: str = "med
     X, E = X[ok], E[ok]
     n, p = X.shape
     if n < p + 2:
-        raise ValueError(f"error model: {n} usable samples for {p} features")
+        raise TooFewSamples(f"error model: {n} usable samples for {p} features")
     coef = np.zeros((E.shape[1], p))
     diag: dict = {"n": int(n), "axes": {}}
     L = np.sqrt(ridge * n) * np.eye(p)
