@@ -121,7 +121,10 @@ class LocalSwarm:
             self._lifeline = os.pipe()
         r = self._lifeline[0]
         grace = _ORPHAN_RECORDER_GRACE_S if name == "recorder" else _ORPHAN_GRACE_S
-        cmd = [self.python, "-m", "swarm.lifeline", "--fd", str(r), "--grace-s", str(grace), *args]
+        # The run's credentials go with it, even when the supervisor is SIGKILLed and cannot
+        # delete them itself: its orphaned children do.
+        cleanup = ["--remove-when-orphaned", str(self.keys_dir)] if self.keys_dir is not None else []
+        cmd = [self.python, "-m", "swarm.lifeline", "--fd", str(r), "--grace-s", str(grace), *cleanup, *args]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, env=env, pass_fds=(r,), start_new_session=True, **kw)
 

@@ -26,6 +26,7 @@ from __future__ import annotations
 import argparse
 import os
 import runpy
+import shutil
 import signal
 import sys
 import threading
@@ -33,8 +34,10 @@ import threading
 __all__ = ["watch", "main"]
 
 
-def watch(fd: int, grace_s: float) -> threading.Thread:
-    """Start the watcher thread on ``fd`` (see the module docstring)."""
+def watch(fd: int, grace_s: float, remove: tuple[str, ...] = ()) -> threading.Thread:
+    """Start the watcher thread on ``fd`` (see the module docstring). ``remove``: paths the
+    parent would have deleted at its end (the run's credentials), deleted here when it
+    cannot (it was SIGKILLed)."""
 
     def run() -> None:
         try:
@@ -44,6 +47,8 @@ def watch(fd: int, grace_s: float) -> threading.Thread:
             pass  # a broken descriptor means the same as EOF: no parent to answer to
         sys.stderr.write(f"lifeline: the parent process is gone; stopping (hard exit in {grace_s:g} s)\n")
         sys.stderr.flush()
+        for path in remove:  # every child may try; the first one wins, the others find nothing
+            shutil.rmtree(path, ignore_errors=True)
         os.kill(os.getpid(), signal.SIGTERM)
         # A deadline, not a synchronisation: the clean stop above either finishes within it
         # (and the process is gone before this wakes) or is cut short here.
@@ -59,10 +64,12 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description="run `python -m MODULE ARGS` until the parent that holds the pipe's write end goes")
     p.add_argument("--fd", type=int, required=True, help="read end of the parent's lifeline pipe")
     p.add_argument("--grace-s", type=float, default=5.0, help="after the parent is gone, how long a clean stop may take")
+    p.add_argument("--remove-when-orphaned", action="append", default=[], metavar="PATH",
+                   help="a directory to delete when the parent is gone (repeatable)")
     p.add_argument("module", help="the module to run as __main__, as `python -m MODULE`")
     p.add_argument("args", nargs=argparse.REMAINDER, help="its arguments")
     a = p.parse_args(argv)
-    watch(a.fd, a.grace_s)
+    watch(a.fd, a.grace_s, tuple(a.remove_when_orphaned))
     sys.argv = [a.module, *a.args]
     runpy.run_module(a.module, run_name="__main__", alter_sys=True)
 

@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import psutil
 import pytest
@@ -100,6 +101,8 @@ def _run_and_signal(tmp_path, sig: int):
     procs: list[psutil.Process] = []
     try:
         info = wait_until(lambda: _read_json(out / "run.json"), 180, "run.json written (every process started)")
+        keys = info.get("keys")
+        assert keys and Path(keys).is_dir(), "the run's credentials (security on by default)"
         procs = [psutil.Process(pid) for pid in info["pids"].values()]
         assert info.get("supervisor_pid") == sup.pid
         assert set(info["pids"]) == {"router", "recorder", "world", "selector", "agent-0", "agent-1", "agent-2"}
@@ -115,6 +118,9 @@ def _run_and_signal(tmp_path, sig: int):
         left = [p.info for p in psutil.process_iter(["pid", "cmdline"]) if info["run"] in " ".join(p.info["cmdline"] or ())
                 and not _gone(p)]
         assert not left, left
+        # The run's credentials are gone too, whichever signal (after SIGKILL, its orphaned
+        # children delete them).
+        wait_until(lambda: not Path(keys).exists(), 10, f"the run's keys {keys} deleted")
         print(f"\n{signal.Signals(sig).name}: every process of the run gone {cleared_s:.2f} s after the signal; "
               f"`swarm run` exited {code}")
         return code, cleared_s, out
