@@ -21,7 +21,7 @@ from swarm.protocol import Event, Outbox, Query, Send, Wait, WorldLost
 from swarmcore.agent import filter_params
 from swarmcore.graphs import scenario_graph
 from swarmcore.scenario import Scenario
-from swarmcore.selection import NEEDS_STATE, choose_pairs, mask_dead
+from swarmcore.selection import choose_pairs, mask_dead
 
 __all__ = ["SelectorProtocol"]
 
@@ -80,20 +80,22 @@ class SelectorProtocol:
         sc = self.sc
         t0 = time.perf_counter()
         est = None
-        if sc.selection.strategy in NEEDS_STATE:
-            # Asked again after a short timeout rather than once for long: a query whose way
-            # went with a router (killed, a client failing over) never gets its reply, and the
-            # world takes the selection only select_timeout_s after the bus is back.
-            em = sc.emulator
-            deadline = self.clock() + em.step_timeout_s
-            while msg is None:
-                msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
-                if msg is None and (self.clock() >= deadline or self.done):
-                    break
-            if msg is None:
-                log.warning("step %d: agent %d did not serve its estimate", k, ref)
-                return
-            est = estimate_from_full(msg, self.n)
+        # Every strategy plans from the reference estimate when there is one, as in the
+        # simulator: a state-free one (random, random_tree) still uses it to keep only the
+        # pairs the estimate says are visible. Only the world's fallback plans without.
+        # Asked again after a short timeout rather than once for long: a query whose way
+        # went with a router (killed, a client failing over) never gets its reply, and the
+        # world takes the selection only select_timeout_s after the bus is back.
+        em = sc.emulator
+        deadline = self.clock() + em.step_timeout_s
+        while msg is None:
+            msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
+            if msg is None and (self.clock() >= deadline or self.done):
+                break
+        if msg is None:
+            log.warning("step %d: agent %d did not serve its estimate", k, ref)
+            return
+        est = estimate_from_full(msg, self.n)
         obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(self.camera_ok, self.alive))
         ms = (time.perf_counter() - t0) * 1e3
         self.outbox.clear()

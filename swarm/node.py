@@ -232,7 +232,8 @@ class Node:
         counted, logged and skipped (the wait continues within the same deadline).
         Liveliness losses come through :meth:`_filter`. Raises :class:`BusLost` once no
         router has been reachable for ``bus_lost_after_s``."""
-        deadline = None if timeout is None else time.monotonic() + timeout
+        # An infinite timeout blocks (queue.get refuses one: "timestamp too large").
+        deadline = None if timeout is None or timeout == float("inf") else time.monotonic() + timeout
         while True:
             now = time.monotonic()
             if (due := self._due(now)) is not None:

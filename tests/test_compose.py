@@ -310,7 +310,8 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
 def _fault_both(c: Compose, *args) -> str:
     """`swarm fault --compose ...` from the host, given both routers' ports."""
     p = subprocess.run([sys.executable, "-m", "swarm.cli", "fault", "--compose", "--project", c.project, *args], cwd=ROOT,
-                       env=dict(os.environ, SWARM_BUS_PORT=c.env["SWARM_BUS_PORT"], SWARM_BUS_PORT2=c.env.get("SWARM_BUS_PORT2", "")),
+                       env=dict(os.environ, SWARM_BUS_PORT=c.env["SWARM_BUS_PORT"], SWARM_BUS_PORT2=c.env.get("SWARM_BUS_PORT2", ""),
+                                SWARM_KEYS=c.env["SWARM_KEYS"]),
                        capture_output=True, text=True, timeout=300)
     print(f"fault {args}: {p.stdout.strip()} {p.stderr.strip()[-300:]}", flush=True)
     assert p.returncode == 0 and "done" in p.stdout, p.stdout + p.stderr

@@ -102,11 +102,14 @@ def _check_complete_recording(path, sc):
     assert not fox, f"unexpected channels {sorted(fox)}"
 
 
-def test_distributed_selection_equals_in_process_selection(tmp_path):
-    """With a selector (greedy, planned from satellite 0's filter), every step's schedule
-    and every estimate equal the in-process run's: the selector plans step 0 only once
-    every agent is up, from agent 0's prior, whichever agent came up first."""
-    sc = scenario(n_sats=6, duration_s=10, selection={"strategy": "greedy", "budget": 4})
+@pytest.mark.parametrize("strategy", ["greedy", "random"])
+def test_distributed_selection_equals_in_process_selection(tmp_path, strategy):
+    """With a selector (planned from satellite 0's filter), every step's schedule and every
+    estimate equal the in-process run's: the selector plans step 0 only once every agent is
+    up, from agent 0's prior, whichever agent came up first; a state-free strategy (random)
+    also plans from the estimate, which keeps only the pairs it says are visible, as
+    in-process."""
+    sc = scenario(n_sats=6, duration_s=10, selection={"strategy": strategy, "budget": 4})
     rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0 and summary["selector_fallback_steps"] == []
     res = simulate(sc)

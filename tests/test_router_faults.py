@@ -170,3 +170,20 @@ def test_world_killed_the_run_ends_broken(tmp_path):
     intr = summary["interrupted"]
     assert intr["reason"] == "the world died (SIGKILL)" and 8 <= intr["last_step"] < 600, intr
     assert "BROKEN RUN" in text and "the world died" in text
+
+
+def test_a_wait_without_a_timeout_blocks_until_its_event():
+    """`Wait(until, inf)` (the selector when there is nothing to select) waits for its event
+    instead of failing: an infinite timeout is no deadline."""
+    from swarm.node import Node
+    from swarm.protocol import Event
+
+    n = Node("selector", 0, "t", 3, BusConfig(mode="peer"), announce=False)
+    got = []
+    try:
+        t = threading.Timer(0.3, lambda: n.inbox.put_event(Event("", "clock", None)))
+        t.start()
+        assert n.wait_for(lambda: bool(got), float("inf"), got.append)
+        assert got[0].kind == "clock"
+    finally:
+        n.close()
