@@ -12,9 +12,10 @@ numba is missing or disabled (``SWARM_NO_NUMBA``).
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
+
+# Whether numba is there (and not disabled by SWARM_NO_NUMBA) is decided once, by the core.
+from swarmcore.kernels import HAVE_NUMBA
 
 __all__ = ["check_batch", "check_batch_numpy", "warm_up", "REASONS", "HAVE_NUMBA"]
 
@@ -56,17 +57,8 @@ def check_batch_numpy(q: np.ndarray, r: np.ndarray, R: np.ndarray, quat_tol2: fl
     return 0
 
 
-try:  # pragma: no cover - whichever is installed
-    if os.environ.get("SWARM_NO_NUMBA"):
-        raise ImportError("disabled by SWARM_NO_NUMBA")
-    import numba
-
-    HAVE_NUMBA = True
-except ImportError:  # pragma: no cover
-    numba = None  # type: ignore[assignment]
-    HAVE_NUMBA = False
-
 if HAVE_NUMBA:
+    import numba
 
     @numba.njit(cache=True, fastmath=False)
     def _check_batch(q, r, R, quat_tol2, sym_tol):  # pragma: no cover - compiled
