@@ -10,3 +10,32 @@ import os as _os
 
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
+
+
+def _keep_freed_memory() -> None:
+    """Let glibc's malloc keep the filter's freed arrays for reuse instead of handing them
+    back to the kernel after every step.
+
+    At n = 40 the filter's covariance and its temporaries are 1-2 MB each: above glibc's
+    initial mmap threshold, so each one was mapped and unmapped every step and its pages
+    faulted in again (perf: a third of an agent's CPU in the kernel, ~420,000 page faults
+    in a 10 s in-process run). With the thresholds raised (mallopt: no library offers
+    this), the same run takes 41,000 faults and 14 % less CPU; the peak RSS is unchanged.
+    Arithmetic is untouched. Skipped when the user tunes malloc themselves
+    (``GLIBC_TUNABLES``, ``MALLOC_*``), off glibc, or with ``SWARM_MALLOC_DEFAULTS=1``.
+    """
+    if _os.environ.get("SWARM_MALLOC_DEFAULTS") == "1" or "GLIBC_TUNABLES" in _os.environ:
+        return
+    if any(k.startswith("MALLOC_") for k in _os.environ):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt(-3, 16 << 20)  # M_MMAP_THRESHOLD: blocks below 16 MB come from the heap
+        libc.mallopt(-1, 128 << 20)  # M_TRIM_THRESHOLD: keep up to 128 MB free at the heap's top
+    except (OSError, AttributeError):
+        pass  # not glibc: its allocator keeps its own counsel
+
+
+_keep_freed_memory()

@@ -244,6 +244,16 @@ def warm_up() -> None:
     H = np.eye(6)[None].copy()
     gate_d2(P, o, t, y, H, -H, H)
     information(n, o, t, y, H, -H, H)
+    # The attitude kernels too: a swarm's agents all reach their first predict at once, and
+    # on a fresh checkout (no numba cache yet) 20 of them compiling there on 2 cores held
+    # step 0 and 1 past the world's 10 s estimate timeout.
+    q = np.array([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 1.0]])
+    w = np.zeros((n, 3))
+    J = np.eye(3)
+    rk4_free(q, w, J, J, 1.0, 1)
+    relative_residuals(q, np.zeros((n, 3)), np.eye(3), o, t, q[:1], np.zeros((1, 3)))
+    retract(q, w)
+    propagate_constant_rate(q[0], w[0], 1.0)
 
 
 # --------------------------------------------------------------------------- attitude
