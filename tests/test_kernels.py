@@ -104,3 +104,26 @@ def test_compiled_attitude_kernels_equal_numpy_twins(seed):
     for scale in (0.0, 1e-10, 0.3):
         om = rng.normal(size=3) * scale
         np.testing.assert_allclose(kernels.propagate_constant_rate(q[0], om, 1.0), quat.propagate_constant_rate(q[0], om, 1.0), atol=1e-15)
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed: the numpy twins are in use")
+def test_warm_up_compiles_every_kernel():
+    """An agent calls warm_up() before it announces itself; a kernel left out compiles at
+    the first step instead, in every agent at once (on a fresh checkout 20 agents held
+    steps 0 and 1 past the world's 10 s timeout). Checked in a fresh interpreter."""
+    import subprocess
+    import sys
+
+    code = (
+        "import numba\n"
+        "from swarmcore import kernels\n"
+        "kernels.warm_up()\n"
+        "d = {k: v for k, v in vars(kernels).items() if isinstance(v, numba.core.registry.CPUDispatcher)}\n"
+        "assert len(d) >= 6, sorted(d)\n"
+        "inner = {'_chol6'}  # called only from inside other kernels, compiled with them\n"
+        "cold = sorted(k for k, v in d.items() if v.targetoptions.get('inline') != 'always' and k not in inner and not v.signatures)\n"
+        "print('cold', cold)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "cold []", out.stdout
