@@ -10,4 +10,6 @@ import os
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
+import swarmcore  # noqa: E402, F401  (pins the BLAS kernels before numpy loads: see swarmcore._pin_blas_kernel)
+
 __version__ = "0.1.0"

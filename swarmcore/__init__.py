@@ -12,6 +12,31 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     _os.environ.setdefault(_var, "1")
 
 
+def _pin_blas_kernel() -> None:
+    """One OpenBLAS kernel family wherever the numbers are computed.
+
+    OpenBLAS picks its kernels by CPU (and by ``OPENBLAS_CORETYPE``); Cholesky, solves and
+    dot products from its Haswell (AVX2) and SkylakeX (AVX-512) kernels differ in the last
+    bits. A host shell that had ``OPENBLAS_CORETYPE=Haswell`` set ran ``swarm sim`` with one,
+    its containers (without that variable) with the other, and their numbers differed from
+    step 0 on. So unless the user chose, every process of the project uses the Haswell
+    kernels, which every AVX2+FMA CPU runs: the same bits on a host, in its containers and
+    on machines with or without AVX-512. Must run before numpy is first imported.
+    """
+    if _os.environ.get("OPENBLAS_CORETYPE"):  # the user's choice (compose passes the host's, or "")
+        return
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line.split(":", 1)[1].split() for line in f if line.startswith("flags")), [])
+    except OSError:
+        return
+    if "avx2" in flags and "fma" in flags:
+        _os.environ["OPENBLAS_CORETYPE"] = "Haswell"
+
+
+_pin_blas_kernel()
+
+
 def _keep_freed_memory() -> None:
     """Let glibc's malloc keep the filter's freed arrays for reuse instead of handing them
     back to the kernel after every step.

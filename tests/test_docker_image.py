@@ -60,6 +60,8 @@ def image() -> str:
 def docker_run(image: str, *args: str, volumes: dict[Path, str] | None = None,
                timeout: float = 300) -> subprocess.CompletedProcess:
     cmd = ["docker", "run", "--rm", "--user", f"{os.getuid()}:{os.getgid()}", "-e", "HOME=/tmp"]
+    # The host's BLAS kernel family (pinned by swarmcore, or the user's), as compose passes it.
+    cmd += ["-e", f"OPENBLAS_CORETYPE={os.environ.get('OPENBLAS_CORETYPE', '')}"]
     for host, inside in (volumes or {}).items():
         cmd += ["-v", f"{host}:{inside}"]
     return subprocess.run([*cmd, image, *args], capture_output=True, text=True, timeout=timeout)
