@@ -15,9 +15,9 @@ into per-sender statistics. A sample without a timestamp gets publish time = log
 the MCAP specification asks. The simulation time is in every message (``t_s``). Liveliness changes are recorded
 on ``swarm/<run>/alive`` (``swarm.v1.Liveliness``) and messages that fail validation on
 ``swarm/<run>/_malformed`` (``swarm.v1.Malformed``, with the reason), so the recording
-tells the whole story. Flushes at least once per ``flush_every_s`` of simulated time (and
-once per wall second); the file is readable after a SIGKILL at any instant (see
-:mod:`swarm.mcaplog`).
+tells the whole story. Flushes at step boundaries (once every live agent's estimate of a
+step is in), at least once per ``flush_every_s`` of simulated time, and once per wall
+second; the file is readable after a SIGKILL at any instant (see :mod:`swarm.mcaplog`).
 
 python -m swarm.recorder --run RUN --out FILE.mcap [--flush-every-s 1] [bus flags]
 """
@@ -82,7 +82,8 @@ class Recorder:
         ]
         self.token = self.session.liveliness().declare_token(self.keys.alive("recorder", 0))
         self._schema_ids: dict[str, int] = {}
-        self._est_at: dict[int, set[int]] = {}
+        self._est_at: dict[int, set[int]] = {}  # step → agents whose posterior of it is recorded
+        self._live_at: dict[int, set[int]] = {}  # step → the agents its clock lists live
         # The bus's health: gaps are recorded on swarm/<run>/_gap; a bus that does not come
         # back, or a world that goes before its last step, ends the recording.
         em = scenario.emulator if scenario is not None else None
@@ -169,7 +170,7 @@ class Recorder:
                 raise MessageError("unexpected delete")
             msg = decode(kind, s.payload)
             check_key(s.key, kind, _sat, msg)
-            if kind == "est":
+            if kind == "est" and msg.phase == "posterior":
                 self._est_at.setdefault(msg.k, set()).add(msg.own)
                 self._est_at.pop(msg.k - 3, None)
             # Images without their pixels on the bus channel (pixels as foxglove.RawImage when
@@ -189,6 +190,14 @@ class Recorder:
                 if msg.done:
                     self.done = True
                     self.final = (msg.k, set(msg.live_agents) - self._seen_final(msg.k))
+                else:
+                    self._live_at[msg.k] = set(msg.live_agents)
+                    self._live_at.pop(msg.k - 3, None)
+            if kind in ("clock", "est") and not getattr(msg, "done", False) and self._step_complete(msg.k):
+                # Flush at step boundaries: once every agent the clock of step k listed has
+                # its estimate of k recorded, so that what a SIGKILL leaves is whole steps
+                # (the world's next clock and an agent's last estimate travel independently,
+                # so flushing at a clock could cut a step in two).
                 if self.last_flush_t is None or msg.t_s - self.last_flush_t >= self.flush_every_s:
                     self.flush(msg.t_s)
         except MessageError as exc:
@@ -223,6 +232,10 @@ class Recorder:
 
     def _seen_final(self, k: int) -> set[int]:
         return self._est_at.get(k, set())
+
+    def _step_complete(self, k: int) -> bool:
+        live = self._live_at.get(k)
+        return live is not None and live <= self._est_at.get(k, set())
 
     def flush(self, t_s: float | None = None) -> None:
         self.w.flush()
