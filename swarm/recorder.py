@@ -193,13 +193,13 @@ class Recorder:
                 else:
                     self._live_at[msg.k] = set(msg.live_agents)
                     self._live_at.pop(msg.k - 3, None)
-            if kind in ("clock", "est") and not getattr(msg, "done", False) and self._step_complete(msg.k):
-                # Flush at step boundaries: once every agent the clock of step k listed has
-                # its estimate of k recorded, so that what a SIGKILL leaves is whole steps
-                # (the world's next clock and an agent's last estimate travel independently,
-                # so flushing at a clock could cut a step in two).
-                if self.last_flush_t is None or msg.t_s - self.last_flush_t >= self.flush_every_s:
-                    self.flush(msg.t_s)
+            # Flush at step boundaries: once every agent the clock of step k listed has its
+            # estimate of k recorded, so that what a SIGKILL leaves is whole steps (the
+            # world's next clock and an agent's last estimate travel independently, so
+            # flushing at a clock could cut a step in two).
+            if (kind in ("clock", "est") and not getattr(msg, "done", False) and self._step_complete(msg.k)
+                    and (self.last_flush_t is None or msg.t_s - self.last_flush_t >= self.flush_every_s)):
+                self.flush(msg.t_s)
         except MessageError as exc:
             self.malformed += 1
             body = Malformed(key=s.key, error=str(exc), payload=bytes(s.payload[:65536])).SerializeToString()

@@ -17,7 +17,7 @@ import os
 
 import numpy as np
 
-__all__ = ["gate_d2", "information", "warm_up", "HAVE_NUMBA"]
+__all__ = ["gate_d2", "information", "split_observed", "join_observed", "warm_up", "HAVE_NUMBA"]
 
 try:  # pragma: no cover - exercised by whichever is installed
     if os.environ.get("SWARM_NO_NUMBA"):
@@ -64,6 +64,30 @@ def information_numpy(n, observer, target, y, Hi, Hj, R):
     b += np.bincount(b_idx, weights=bvec.ravel(), minlength=n * 6).reshape(n, 6)
     yRy = float(np.sum(y * Wy))
     return Lam4.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n), b.ravel(), yRy
+
+
+def _observed_split(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """State indices of the observed errors O = [a, Δr] and the others U = [Δω|Δβ, Δv] of
+    every satellite's 12-state block (the order of :func:`swarmcore.mekf.observed_indices`)."""
+    base = 12 * np.arange(n)[:, None]
+    return (base + np.r_[0:3, 6:9]).ravel(), (base + np.r_[3:6, 9:12]).ravel()
+
+
+def split_observed_numpy(P, n):
+    O, U = _observed_split(n)
+    return P[np.ix_(O, O)], np.asfortranarray(P[np.ix_(O, U)]), P[np.ix_(U, U)]
+
+
+def join_observed_numpy(A_OO, C_OU, A_UU, n):
+    O, U = _observed_split(n)
+    P = np.empty((12 * n, 12 * n))
+    lo = np.tril(A_OO)
+    P[np.ix_(O, O)] = lo + np.tril(lo, -1).T
+    P[np.ix_(O, U)] = C_OU
+    P[np.ix_(U, O)] = np.asarray(C_OU).T
+    lu = np.tril(A_UU)
+    P[np.ix_(U, U)] = lu + np.tril(lu, -1).T
+    return P
 
 
 # --------------------------------------------------------------------------- numba kernels
@@ -209,6 +233,67 @@ if HAVE_NUMBA:
         return Lam, b, yRy
 
 
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True)
+    def _split_observed(P, O, U):
+        no, nu = O.size, U.size
+        P_OO = np.empty((no, no))
+        P_UU = np.empty((nu, nu))
+        P_UO = np.empty((nu, no))  # returned transposed: P_OU in Fortran order, as BLAS takes it
+        for a in range(no):
+            r = O[a]
+            for c in range(no):
+                P_OO[a, c] = P[r, O[c]]
+            for c in range(nu):
+                P_UO[c, a] = P[r, U[c]]
+        for a in range(nu):
+            r = U[a]
+            for c in range(nu):
+                P_UU[a, c] = P[r, U[c]]
+        return P_OO, P_UO.T, P_UU
+
+    @numba.njit(cache=True)
+    def _join_observed(A_OO, C_OU, A_UU, O, U):
+        no, nu = O.size, U.size
+        P = np.empty((no + nu, no + nu))
+        for a in range(no):
+            r = O[a]
+            for c in range(a + 1):
+                v = A_OO[a, c]
+                P[r, O[c]] = v
+                P[O[c], r] = v
+            for c in range(nu):
+                v = C_OU[a, c]
+                P[r, U[c]] = v
+                P[U[c], r] = v
+        for a in range(nu):
+            r = U[a]
+            for c in range(a + 1):
+                v = A_UU[a, c]
+                P[r, U[c]] = v
+                P[U[c], r] = v
+        return P
+
+
+def split_observed(P: np.ndarray, n: int):
+    """``(P_OO, P_OU, P_UU)``: the observed/other blocks of a full covariance in one pass
+    (``P_OU`` Fortran-ordered, as LAPACK and BLAS take it, so they need not copy it)."""
+    if HAVE_NUMBA:
+        O, U = _observed_split(n)
+        return _split_observed(np.ascontiguousarray(P), O, U)
+    return split_observed_numpy(P, n)
+
+
+def join_observed(A_OO: np.ndarray, C_OU: np.ndarray, A_UU: np.ndarray, n: int) -> np.ndarray:
+    """The full covariance in the state order from its blocks: the lower triangles of the
+    symmetric ``A_OO`` and ``A_UU`` (mirrored: the result is exactly symmetric) and ``C_OU``."""
+    if HAVE_NUMBA:
+        O, U = _observed_split(n)
+        return _join_observed(A_OO, C_OU, A_UU, O, U)
+    return join_observed_numpy(A_OO, C_OU, A_UU, n)
+
+
 def gate_d2(P_OO, observer, target, y, Hi, Hj, R) -> np.ndarray:
     """Squared Mahalanobis distance of every relative measurement against the prior."""
     if len(y) == 0:
@@ -244,6 +329,9 @@ def warm_up() -> None:
     H = np.eye(6)[None].copy()
     gate_d2(P, o, t, y, H, -H, H)
     information(n, o, t, y, H, -H, H)
+    P12 = np.eye(12 * n)
+    A_OO, C_OU, A_UU = split_observed(P12, n)
+    join_observed(A_OO, np.ascontiguousarray(C_OU), A_UU, n)  # the information form's blocks are C-ordered products
     # The attitude kernels too: a swarm's agents all reach their first predict at once, and
     # on a fresh checkout (no numba cache yet) 20 of them compiling there on 2 cores held
     # step 0 and 1 past the world's 10 s estimate timeout.

@@ -39,9 +39,10 @@ def expm_batched(A: np.ndarray) -> np.ndarray:
     return E
 
 
-def chol(A: np.ndarray) -> np.ndarray:
-    """Lower Cholesky factor of a symmetric positive-definite matrix (LAPACK potrf)."""
-    L, info = lapack.dpotrf(A, lower=1, clean=1)
+def chol(A: np.ndarray, overwrite: bool = False) -> np.ndarray:
+    """Lower Cholesky factor of a symmetric positive-definite matrix (LAPACK potrf; only
+    the lower triangle of ``A`` is read; ``overwrite``: ``A`` may be used as the workspace)."""
+    L, info = lapack.dpotrf(A, lower=1, clean=1, overwrite_a=1 if overwrite else 0)
     if info != 0:
         raise np.linalg.LinAlgError(f"matrix is not positive definite (potrf info {info})")
     return L

@@ -127,3 +127,26 @@ def test_warm_up_compiles_every_kernel():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "cold []", out.stdout
+
+
+@pytest.mark.parametrize("n", [1, 3, 7])
+def test_split_and_join_observed_equal_fancy_indexing(n):
+    """The information form's gather of a covariance into its observed/other blocks and
+    the scatter back (compiled) equal numpy's fancy indexing, and join mirrors the lower
+    triangles into an exactly symmetric matrix."""
+    from swarmcore.mekf import observed_indices, unobserved_indices
+
+    rng = np.random.default_rng(n)
+    A = rng.normal(size=(12 * n, 12 * n))
+    P = A @ A.T
+    O, U = observed_indices(n), unobserved_indices(n)
+    P_OO, P_OU, P_UU = kernels.split_observed(P, n)
+    assert np.array_equal(P_OO, P[np.ix_(O, O)]) and np.array_equal(P_UU, P[np.ix_(U, U)])
+    assert np.array_equal(P_OU, P[np.ix_(O, U)]) and P_OU.flags.f_contiguous
+    for twin in (kernels.split_observed_numpy(P, n),):
+        assert all(np.array_equal(a, b) for a, b in zip(twin, (P_OO, P_OU, P_UU), strict=True))
+    # Upper triangles deliberately wrong: only the lower ones may be read.
+    A_OO, A_UU = P_OO + np.triu(np.ones_like(P_OO), 1), P_UU + np.triu(np.ones_like(P_UU), 1)
+    back = kernels.join_observed(A_OO, np.ascontiguousarray(P_OU), A_UU, n)
+    assert np.array_equal(back, P) and np.array_equal(back, back.T)
+    assert np.array_equal(kernels.join_observed_numpy(A_OO, P_OU, A_UU, n), P)
