@@ -1,8 +1,8 @@
 """``sat_agent``'s process shell: the bus presence of :class:`sat_agent.protocol.AgentProtocol`.
 
-It subscribes to what satellite i may hear (the clock, its own sensors and cameras, its
-peers' batches, estimates and health reports, fault commands, agent liveliness; never
-the truth), serves its full estimate on ``cov/<i>``, builds its pose estimator, compiles
+It subscribes to what satellite i may hear (the clock, its own sensors and cameras, what
+the radio brings of its peers' batches, fault commands, agent liveliness; never the
+truth), serves its full estimate on ``cov/<i>``, builds its pose estimator, compiles
 the filter's kernels before it announces itself, and drives the protocol machine.
 """
 
@@ -29,11 +29,10 @@ class Agent(Node):
         estimator = measurement_model(sc).estimator()  # vision libraries only when the scenario renders
         self.machine = AgentProtocol(sc, sat, run, estimator, restart=restart, malformed=lambda: self.malformed,
                                     key_mismatch=lambda: self.key_mismatch)
-        # With links, peers' batches reach us only through the radio (the world's rx/<i>).
-        peers = self.keys.rx(sat) if sc.links.enabled else self.keys.meas()
-        # Peers are followed through their health reports (a few scalars), not their
-        # estimates: at n = 40, est/* put 31 MB a step through the router.
-        for key in (self.keys.clock(), self.keys.sensors(sat), peers, self.keys.fault(), self.keys.health()):
+        # Peers' batches reach us only through the radio, which the world emulates: the
+        # ideal radio's one message a step (batches), or with links what reached us (rx/<i>).
+        peers = self.keys.rx(sat) if sc.links.enabled else self.keys.batches()
+        for key in (self.keys.clock(), self.keys.sensors(sat), peers, self.keys.fault()):
             self.subscribe(key)
         self.subscribe(self.keys.img(sat) if sc.vision.pipeline != "none" else self.keys.cam(sat))
         self.watch_liveliness(self.keys.alive("agent"))

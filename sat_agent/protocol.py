@@ -1,16 +1,17 @@
 """One satellite's side of the lockstep protocol, as a bus-free state machine.
 
 The agent hears only what its satellite would: its own sensors (``sat/<i>/sensors``), its
-own cameras (``sat/<i>/cam`` detections, or ``sat/<i>/img`` rendered images), the
-relative-measurement batches its peers broadcast, the clock, and fault commands; never
-the truth. Step k:
+own cameras (``sat/<i>/cam`` detections, or ``sat/<i>/img`` rendered images), what the
+radio brings of its peers' relative-measurement batches, the clock, and fault commands;
+never the truth. Step k:
 
 1. wait for its own sensors and camera delivery of k (when the clock lists it live);
 2. its pose estimator turns its camera delivery into relative measurements (covariance
-   attached; the image pipelines start from this step's prediction); broadcast them as
-   one batch (an empty one too);
-3. wait for the batch of every live peer — or until the peer has said it is past k and a
-   short grace has passed (its batch is lost), or the step timeout;
+   attached; the image pipelines start from this step's prediction); transmit them as
+   one batch (an empty one too) to the radio, which the world emulates;
+3. wait for what the radio delivers of step k: the ideal radio's one message with every
+   live peer's batch (``batches``; free-running: each batch as it comes, until the step's
+   time is up), or with ``links`` on what the link model let through (``rx/<i>``);
 4. run its filter (:class:`swarmcore.agent.AgentFilter`: the same calls the in-process
    simulator makes) and publish the estimate and a health report.
 
@@ -38,14 +39,26 @@ from swarm.bus.convert import (
     full_estimate_msg,
     observation_from_images,
     relative_from_batches,
+    relative_from_step,
 )
-from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Images, Keys, MeasBatch, Sensors, codec_cpu_ms, replace
-from swarm.protocol import Event, Outbox, Query, Send, Wait, WorldLost
+from swarm.bus.messages import (
+    CameraOutput,
+    Clock,
+    Fault,
+    Health,
+    Images,
+    Keys,
+    MeasBatch,
+    Sensors,
+    StepBatches,
+    codec_cpu_ms,
+    replace,
+)
+from swarm.protocol import DROP_BATCH, DROP_ESTIMATE, Event, Outbox, Query, Send, Wait, WorldLost, message_dropped
 from swarmcore.agent import AgentFilter, filter_params
 from swarmcore.measurement import PoseEstimator
 from swarmcore.mekf import RelativeMeasurements, reframe
 from swarmcore.scenario import Scenario
-from swarmcore.streams import stream
 
 __all__ = ["AgentProtocol"]
 
@@ -79,10 +92,10 @@ class AgentProtocol:
         self.sensors: dict[int, Sensors] = {}
         self.cams: dict[int, CameraOutput] = {}
         self.imgs: dict[int, Images] = {}
-        self.batches: dict[int, dict[int, MeasBatch]] = {}
+        self.radio: dict[int, list[StepBatches]] = {}  # step → what the ideal radio brought of it
+        self.radio_obs: dict[int, set[int]] = {}  # step → the observers whose batch of it came
         self.peers_alive: set[int] = set()
-        self.peer_est_steps: dict[int, int] = {}
-        self.finished: dict[int, dict[int, float]] = {}  # step → {peer: when we learnt it is past it}
+        self.sent_k = -1  # the last step whose batch this agent has transmitted (or lost to a drop fault)
         self.batches_missing = 0
         self.batches_late = 0
         self.malformed = malformed  # the shell's count of malformed messages, reported in health
@@ -95,7 +108,6 @@ class AgentProtocol:
         self.done = False
         self.world_seen = False
         self.outbox = Outbox(skip_keys=("/fault",))  # this step's messages, sent again when the bus comes back
-        self._batch_seen: dict[int, set[int]] = {}  # step → observers whose batch came (a copy sent again is no news)
 
     @property
     def est(self):
@@ -145,27 +157,16 @@ class AgentProtocol:
                 return []  # a delivery sent again after the bus came back
             self.rx_steps.add(k)
             self.rx_items.extend(it.batch for it in ev.msg.items if it.batch.observer != self.i)
-        elif ev.kind == "meas":
-            if ev.msg.observer != self.i:
-                seen = self._batch_seen.setdefault(k, set())
-                if ev.msg.observer in seen:
-                    return []  # a copy sent again after the bus came back
-                seen.add(ev.msg.observer)
-                if k <= self.last_step:
-                    self.batches_late += 1
-                else:
-                    self.batches.setdefault(k, {})[ev.msg.observer] = ev.msg
-        elif ev.kind == "est":
-            if ev.msg.own != self.i and ev.msg.phase == "posterior":
-                self.peer_est_steps[ev.msg.own] = max(k, self.peer_est_steps.get(ev.msg.own, -1))
-                self.finished.setdefault(k, {}).setdefault(ev.msg.own, self.clock())
-        elif ev.kind == "health":
-            # A peer reports after its update, so its batch for k went out before; each
-            # subscription has its own thread, so the batch may still be a moment behind.
-            # Past a short grace it is lost, and waiting longer is pointless.
-            if ev.msg.sat != self.i:
-                self.finished.setdefault(k, {}).setdefault(ev.msg.sat, self.clock())
-                self.peer_est_steps[ev.msg.sat] = max(k, self.peer_est_steps.get(ev.msg.sat, -1))
+        elif ev.kind == "batches":
+            obs = set(ev.msg.observers) - {self.i}
+            seen = self.radio_obs.setdefault(k, set())
+            if obs <= seen and (obs or k in self.radio):
+                return []  # a copy sent again after the bus came back
+            if k <= self.last_step:
+                self.batches_late += len(obs - seen)  # its step is done: too late to use
+            else:
+                self.radio.setdefault(k, []).append(ev.msg)
+            seen |= obs
         elif ev.kind == "fault":
             return self._on_fault(ev.msg)
         return []
@@ -178,9 +179,11 @@ class AgentProtocol:
             self.log.info("camera %d %s", f.camera, f.state)
         elif f.action == "drop":
             self.drop_rate = float(f.rate or 0.0)
-            self.log.info("dropping %.0f%% of outgoing messages", 100 * self.drop_rate)
-            k = -1 if self.est is None else self.est.step
-            return [Send(self.keys.fault_report(self.name), replace(f, phase="done", sender=self.name, k=max(k, 0)))]
+            first = self.sent_k + 1  # the first batch it applies to
+            self.log.info("dropping %.0f%% of outgoing messages from step %d", 100 * self.drop_rate, first)
+            # The report says from which step: the world's radio then knows which batches
+            # will never come (it makes the same draws: swarm.protocol.message_dropped).
+            return [Send(self.keys.fault_report(self.name), replace(f, phase="done", sender=self.name, k=first))]
         return []
 
     # -- start ------------------------------------------------------------------
@@ -199,7 +202,7 @@ class AgentProtocol:
                     self.filter = self._filter_from(estimate_from_full(msg, self.n), prior=True)
                     break
                 yield Wait(lambda: False, 0.0)
-                if self.peer_est_steps:
+                if self.clocks:
                     # The world serves priors only before the run starts: we are late.
                     self.log.info("the run is under way; initialising from a peer")
                     self.restart = True
@@ -213,10 +216,10 @@ class AgentProtocol:
             # knows to be alive (in lockstep the world holds the clock until we are back, so
             # no new estimate would come to tell us who is freshest) and takes the latest
             # step, then the lowest id.
-            yield Wait(lambda: bool(self.peer_est_steps or self.peers_alive), em.startup_timeout_s)
+            yield Wait(lambda: bool(self.peers_alive), em.startup_timeout_s)
             yield Wait(lambda: False, 0.0)  # take in every liveliness token already announced
             while self.filter is None:
-                peers = sorted(set(self.peer_est_steps) | self.peers_alive)
+                peers = sorted(self.peers_alive)
                 if not peers:
                     raise SystemExit(f"agent {self.i}: no live peer to initialise from")
                 got = []
@@ -225,10 +228,9 @@ class AgentProtocol:
                     if msg is not None and msg.own == j:
                         got.append(msg)
                     else:
-                        self.peer_est_steps.pop(j, None)
                         self.peers_alive.discard(j)
                 if not got:
-                    yield Wait(lambda: bool(self.peer_est_steps or self.peers_alive), em.startup_timeout_s)
+                    yield Wait(lambda: bool(self.peers_alive), em.startup_timeout_s)
                     continue
                 got.sort(key=lambda m: (-m.k, m.own))
                 msg = got[0]
@@ -275,9 +277,7 @@ class AgentProtocol:
         return _gyro(msg)
 
     def _dropped(self, k: int, what: int) -> bool:
-        if self.drop_rate <= 0:
-            return False
-        return bool(stream(self.sc.seed, "drop", self.i, k, what).random() < self.drop_rate)
+        return message_dropped(self.sc.seed, self.i, k, what, self.drop_rate)
 
     def _own_measurements(self, k: int, sens):
         """Predict first when the estimator needs it, then measure our own camera delivery."""
@@ -312,29 +312,24 @@ class AgentProtocol:
         t0 = time.perf_counter()
         rel_own, cams = self._own_measurements(k, sens)
         ms_own = (time.perf_counter() - t0) * 1e3
-        if not self._dropped(k, 0):
+        if not self._dropped(k, DROP_BATCH):
             yield Send(self.keys.meas(self.i), batch_msg(rel_own, cams, run=self.run_id, sender=self.name, k=k, t_s=t, observer=self.i))
+        self.sent_k = k
         if self.linked:
             yield from self._finish_linked(k, t, sens, rel_own, ms_own, clock, timeout)
             return
+        # The ideal radio: in lockstep one message with every live peer's batch of k; free-
+        # running, each batch as it comes until the step's time is up.
         expected = [j for j in clock.live_agents if j != self.i]
-        grace = em.lost_batch_grace_s
-
-        def lost(j):
-            t_done = self.finished.get(k, {}).get(j)
-            return t_done is not None and self.clock() - t_done >= grace
-
-        def next_wake():
-            pending = [self.finished.get(k, {}).get(j) for j in expected if j not in self.batches.get(k, {})]
-            times = [t + grace for t in pending if t is not None]
-            return min(times) if times else None
-
-        yield Wait(lambda: all(j in self.batches.get(k, {}) or j not in self.peers_alive or lost(j) for j in expected), timeout,
-                   wake=next_wake)
-        got = self.batches.pop(k, {})
+        if em.time_mode == "lockstep":
+            yield Wait(lambda: k in self.radio, timeout)
+        else:
+            yield Wait(lambda: all(j in self.radio_obs.get(k, ()) or j not in self.peers_alive for j in expected), timeout)
+        got = sorted(self.radio_obs.get(k, set()))
         missing = [j for j in expected if j not in got]
         self.batches_missing += len(missing)
-        rel = RelativeMeasurements.concat([rel_own, relative_from_batches([got[j] for j in sorted(got)])])
+        parts = sorted(self.radio.pop(k, []), key=lambda m: m.observers[0] if m.observers else -1)
+        rel = RelativeMeasurements.concat([rel_own, *(relative_from_step(m, skip=self.i) for m in parts)])
         t0, c0 = time.perf_counter(), time.thread_time()
         self.flt.coast_to(k, self._gyro_of)
         report, _late = self.flt.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel)
@@ -342,14 +337,14 @@ class AgentProtocol:
         ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
         msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
                            step_cpu_ms=(time.thread_time() - c0) * 1e3, codec_cpu_ms=codec_cpu_ms(),
-                           batches_used=sorted(got), batches_missing=missing, batches_late=self.batches_late)
-        if not self._dropped(k, 1):
+                           batches_used=got, batches_missing=missing, batches_late=self.batches_late)
+        if not self._dropped(k, DROP_ESTIMATE):
             yield Send(self.keys.est(self.i), msg)
         yield Send(self.keys.health(self.i), self._health(k, t))
         self._prune(k)
 
     def _prune(self, k: int) -> None:
-        for store in (self.sensors, self.cams, self.imgs, self.batches, self.clocks, self.finished, self._batch_seen):
+        for store in (self.sensors, self.cams, self.imgs, self.radio, self.radio_obs, self.clocks):
             for old in [s for s in store if s < k - 2]:
                 store.pop(old, None)
         self.rx_steps = {s for s in self.rx_steps if s >= k - 2}
@@ -383,7 +378,7 @@ class AgentProtocol:
                            step_cpu_ms=(time.thread_time() - c0) * 1e3, codec_cpu_ms=codec_cpu_ms(),
                            batches_used=sorted(b.observer for b in on_time), batches_late=self.batches_late,
                            late_used=lrep.used, late_dropped=lrep.dropped, replayed_steps=lrep.replayed_steps)
-        if not self._dropped(k, 1):
+        if not self._dropped(k, DROP_ESTIMATE):
             yield Send(self.keys.est(self.i), msg)
         yield Send(self.keys.health(self.i), self._health(k, t))
         self._prune(k)

@@ -49,7 +49,9 @@ with zenoh.open(cfg) as s:
     stop.wait()
 """
 _RUN = "bench"
-_PING, _PONG = f"swarm/{_RUN}/meas/0", f"swarm/{_RUN}/meas/1"  # agent 0's and agent 1's batches
+# A batch's path in a swarm: agent 0 puts it on meas/0 to the radio (the world), the world
+# passes batches on to every agent on batches (the echo plays the world).
+_PING, _PONG = f"swarm/{_RUN}/meas/0", f"swarm/{_RUN}/batches"
 _ECHO = f"_PING, _PONG = {_PING!r}, {_PONG!r}\n" + _ECHO
 
 
@@ -140,7 +142,7 @@ def _bench_latency(samples: int, big_samples: int, log, batch_sizes, keys_dir: P
     try:
         assert b"READY" in router.stdout.readline()
         shm = json.dumps(shared_memory_enabled())  # as the swarm's processes have it
-        echo_cred = str(keys_dir / "agent-1.json") if keys_dir is not None else ""
+        echo_cred = str(keys_dir / "world.json") if keys_dir is not None else ""
         echo = subprocess.Popen([sys.executable, "-c", _ECHO, endpoint, shm, echo_cred], stdout=subprocess.PIPE)
         assert b"READY" in echo.stdout.readline()
         cfg = zenoh.Config()

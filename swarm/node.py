@@ -149,7 +149,7 @@ class Node:
         those are decoded and checked (:func:`swarm.bus.messages.decode`)."""
         if shallow:
             self._shallow.add(key.rsplit("/", 1)[0])
-        if key.rsplit("/", 1)[0] == self.keys.meas("x").rsplit("/", 1)[0]:
+        if key in (self.keys.meas(), self.keys.batches()):
             prepare("meas")  # before this node says it is alive
         self._handles.append(self.session.declare_subscriber(key, self.inbox.callback))
 

@@ -20,8 +20,10 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
+from swarmcore.streams import stream
+
 __all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock", "RunBroken", "BusLost", "WorldLost",
-           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "Outbox"]
+           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "Outbox", "DROP_BATCH", "DROP_ESTIMATE", "message_dropped"]
 
 #: Exit status of a role (and of ``swarm run``) whose bus did not come back within
 #: ``emulator.bus_lost_after_s``, and of one whose world is gone before the run's end.
@@ -126,6 +128,19 @@ class Outbox:
         if ev.kind == "resync" or (ev.kind == "bus" and ev.alive):
             return [*self.previous, *self.sends]
         return []
+
+
+#: What a drop fault loses (the ``what`` of :func:`message_dropped`).
+DROP_BATCH = 0
+DROP_ESTIMATE = 1
+
+
+def message_dropped(seed: int, sat: int, k: int, what: int, rate: float) -> bool:
+    """The drop fault's draw: whether satellite ``sat``'s message ``what`` of step ``k``
+    is lost at ``rate``. The agent that drops and the world, whose radio must not wait for
+    a batch that will never come, make the same draw (keyed by satellite, step and
+    message, never by arrival order)."""
+    return rate > 0 and bool(stream(seed, "drop", sat, k, what).random() < rate)
 
 
 class Clock(Protocol):

@@ -54,7 +54,7 @@ class Recording:
     link_latencies: list = field(default_factory=list)  # (sender, receiver, sent step, latency s)
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
     rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
-    dropped: dict = field(default_factory=dict)  # agent -> (malformed, of which key mismatch): its last health report's counts
+    dropped: dict = field(default_factory=dict)  # agent-<i> or world -> (malformed, of which key mismatch): its last report's counts
     bus: BusTimes | None = None  # every bus message's sender, kind, step, publish and receive time
     gaps: list = field(default_factory=list)  # the recorder's bus gaps (no router reachable)
     resent: int = 0  # messages recorded twice (sent again after a bus gap; read once)
@@ -114,14 +114,14 @@ class Recording:
 
 
 def security_summary(on: bool, dropped: dict) -> dict:
-    """``summary.json``'s ``security``: on or off (off says so in words), and what each
-    agent dropped: malformed messages, and of those the ones on a key their sender field
-    may not use (someone speaking for another, whatever the router let through)."""
+    """``summary.json``'s ``security``: on or off (off says so in words), and what the world
+    and each agent dropped: malformed messages, and of those the ones on a key their sender
+    field may not use (someone speaking for another, whatever the router let through)."""
     out: dict = {"state": "on" if on else "off"}
     if not on:
         out["warning"] = ("emulator.security was off: no authentication and no access rules on the bus; "
                           "any process that reached the router could publish anything")
-    names = sorted(dropped, key=lambda a: int(a.split("-")[1]))
+    names = sorted(dropped, key=lambda a: (a != "world", int(a.split("-")[1]) if a.startswith("agent-") else -1))
     out["malformed_dropped"] = {a: int(dropped[a][0]) for a in names}
     out["key_mismatch_dropped"] = {a: int(dropped[a][1]) for a in names}
     return out
@@ -240,6 +240,12 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
             try:
                 h = decode("health", data)
                 rec.dropped[f"agent-{h.sat}"] = (h.malformed, h.key_mismatch)
+            except MessageError:
+                pass
+        if kind == "clock":
+            try:
+                c = decode("clock", data)
+                rec.dropped["world"] = (c.malformed, c.key_mismatch)
             except MessageError:
                 pass
         if kind == "_gap":

@@ -339,6 +339,7 @@ def warm_up() -> None:
     w = np.zeros((n, 3))
     J = np.eye(3)
     rk4_free(q, w, J, J, 1.0, 1)
+    rk4(q, w, J, J, 1.0, 1, np.zeros((1, n, 3)))
     relative_residuals(q, np.zeros((n, 3)), np.eye(3), o, t, q[:1], np.zeros((1, 3)))
     retract(q, w)
     propagate_constant_rate(q[0], w[0], 1.0)
@@ -361,38 +362,42 @@ if HAVE_NUMBA:
         )
 
     @numba.njit(cache=True, fastmath=False, inline="always")
-    def _att_rhs(q0, q1, q2, q3, w0, w1, w2, J, Ji):
-        # q̇ = ½ [ω; 0] ⊗ q (Shuster);  ω̇ = J⁻¹ (−ω × Jω)
+    def _att_rhs(q0, q1, q2, q3, w0, w1, w2, J, Ji, t0, t1, t2):
+        # q̇ = ½ [ω; 0] ⊗ q (Shuster);  ω̇ = J⁻¹ (τ − ω × Jω)
         p0, p1, p2, p3 = _qmul_s(w0, w1, w2, 0.0, q0, q1, q2, q3)
         dq0, dq1, dq2, dq3 = 0.5 * p0, 0.5 * p1, 0.5 * p2, 0.5 * p3
         h0 = J[0, 0] * w0 + J[0, 1] * w1 + J[0, 2] * w2
         h1 = J[1, 0] * w0 + J[1, 1] * w1 + J[1, 2] * w2
         h2 = J[2, 0] * w0 + J[2, 1] * w1 + J[2, 2] * w2
-        r0 = -(w1 * h2 - w2 * h1)
-        r1 = -(w2 * h0 - w0 * h2)
-        r2 = -(w0 * h1 - w1 * h0)
+        r0 = t0 - (w1 * h2 - w2 * h1)
+        r1 = t1 - (w2 * h0 - w0 * h2)
+        r2 = t2 - (w0 * h1 - w1 * h0)
         dw0 = Ji[0, 0] * r0 + Ji[0, 1] * r1 + Ji[0, 2] * r2
         dw1 = Ji[1, 0] * r0 + Ji[1, 1] * r1 + Ji[1, 2] * r2
         dw2 = Ji[2, 0] * r0 + Ji[2, 1] * r1 + Ji[2, 2] * r2
         return dq0, dq1, dq2, dq3, dw0, dw1, dw2
 
     @numba.njit(cache=True, fastmath=False)
-    def _rk4_free(q, w, J, Ji, dt, substeps):
+    def _rk4(q, w, J, Ji, dt, substeps, torques):
+        """RK4 of every satellite; ``torques`` (substeps, n, 3) held over each substep, or
+        an empty array for none."""
         n = q.shape[0]
         qo = np.empty((n, 4))
         wo = np.empty((n, 3))
         h = dt / substeps
+        torqued = torques.shape[0] > 0
         for s in range(n):
             a0, a1, a2, a3 = q[s, 0], q[s, 1], q[s, 2], q[s, 3]
             b0, b1, b2 = w[s, 0], w[s, 1], w[s, 2]
-            for _ in range(substeps):
-                k1 = _att_rhs(a0, a1, a2, a3, b0, b1, b2, J, Ji)
+            for k in range(substeps):
+                t0, t1, t2 = (torques[k, s, 0], torques[k, s, 1], torques[k, s, 2]) if torqued else (0.0, 0.0, 0.0)
+                k1 = _att_rhs(a0, a1, a2, a3, b0, b1, b2, J, Ji, t0, t1, t2)
                 k2 = _att_rhs(a0 + 0.5 * h * k1[0], a1 + 0.5 * h * k1[1], a2 + 0.5 * h * k1[2], a3 + 0.5 * h * k1[3],
-                              b0 + 0.5 * h * k1[4], b1 + 0.5 * h * k1[5], b2 + 0.5 * h * k1[6], J, Ji)
+                              b0 + 0.5 * h * k1[4], b1 + 0.5 * h * k1[5], b2 + 0.5 * h * k1[6], J, Ji, t0, t1, t2)
                 k3 = _att_rhs(a0 + 0.5 * h * k2[0], a1 + 0.5 * h * k2[1], a2 + 0.5 * h * k2[2], a3 + 0.5 * h * k2[3],
-                              b0 + 0.5 * h * k2[4], b1 + 0.5 * h * k2[5], b2 + 0.5 * h * k2[6], J, Ji)
+                              b0 + 0.5 * h * k2[4], b1 + 0.5 * h * k2[5], b2 + 0.5 * h * k2[6], J, Ji, t0, t1, t2)
                 k4 = _att_rhs(a0 + h * k3[0], a1 + h * k3[1], a2 + h * k3[2], a3 + h * k3[3],
-                              b0 + h * k3[4], b1 + h * k3[5], b2 + h * k3[6], J, Ji)
+                              b0 + h * k3[4], b1 + h * k3[5], b2 + h * k3[6], J, Ji, t0, t1, t2)
                 c = h / 6.0
                 a0 = a0 + c * (k1[0] + 2 * k2[0] + 2 * k3[0] + k4[0])
                 a1 = a1 + c * (k1[1] + 2 * k2[1] + 2 * k3[1] + k4[1])
@@ -479,13 +484,24 @@ if HAVE_NUMBA:
         return y, Hi, Hj
 
 
+_NO_TORQUE = np.zeros((0, 0, 3))
+
+
 def rk4_free(q, w, J, J_inv, dt: float, substeps: int):
     """Torque-free RK4 of every satellite's attitude and rate (the filter's prediction of
     the others); ``None`` when numba is missing (the caller uses its numpy form)."""
+    return rk4(q, w, J, J_inv, dt, substeps)
+
+
+def rk4(q, w, J, J_inv, dt: float, substeps: int, torques=None):
+    """RK4 of every satellite's attitude and rate (:func:`swarmcore.dynamics.rk4_attitude`,
+    compiled): ``torques`` (substeps, n, 3) held over each substep (the truth's torque
+    noise) or None; ``None`` when numba is missing (the caller uses its numpy form)."""
     if not HAVE_NUMBA:
         return None
-    return _rk4_free(np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(J, dtype=float),
-                     np.ascontiguousarray(J_inv, dtype=float), float(dt), int(substeps))
+    tq = _NO_TORQUE if torques is None else np.ascontiguousarray(torques, dtype=float)
+    return _rk4(np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(w, dtype=float), np.ascontiguousarray(J, dtype=float),
+                np.ascontiguousarray(J_inv, dtype=float), float(dt), int(substeps), tq)
 
 
 def relative_residuals(q_BI, r_H, T_IH, observer, target, q_meas, r_meas):

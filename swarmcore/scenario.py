@@ -404,9 +404,6 @@ class Emulator(_Model):
     )
     step_timeout_s: PosFloat = Field(10.0, description="lockstep: longest wait for a live peer's message")
     select_timeout_s: PosFloat = Field(2.0, description="longest wait for the selector before falling back")
-    lost_batch_grace_s: PosFloat = Field(
-        0.5, description="a peer's batch still missing this long after the peer reported the step done is lost"
-    )
     startup_timeout_s: PosFloat = Field(120.0, description="longest wait for every process to come up")
     flush_every_s: PosFloat = Field(1.0, description="recorder: flush to disk at least this often (sim time)")
     record_images: bool = Field(

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import quat
+from . import kernels, quat
 from .agent import Detections
 from .cameras import best_camera
 from .dynamics import hcw_noise_cov, hcw_phi, rk4_attitude
@@ -149,7 +149,8 @@ def step_truth(wp: WorldParams, s: TruthState) -> tuple[TruthState, np.ndarray]:
     if wp.torque_sigma > 0:
         h = dt / wp.truth_substeps
         torques = stream(wp.seed, "torque", k).standard_normal((wp.truth_substeps, n, 3)) * (wp.torque_sigma / np.sqrt(h))
-    q1, w1 = rk4_attitude(s.q_BI, s.omega_BI_B, wp.J, dt, wp.truth_substeps, torques)
+    out = kernels.rk4(s.q_BI, s.omega_BI_B, wp.J, np.linalg.inv(wp.J), dt, wp.truth_substeps, torques)  # compiled (numpy twin: rk4_attitude)
+    q1, w1 = rk4_attitude(s.q_BI, s.omega_BI_B, wp.J, dt, wp.truth_substeps, torques) if out is None else out
     rv = np.concatenate([s.r_H, s.v_H], axis=1) @ wp.phi_trans.T
     if wp.accel_sigma > 0:
         rv = rv + stream(wp.seed, "force", k).standard_normal((n, 6)) @ wp.chol_trans.T

@@ -53,7 +53,8 @@ def _open(endpoint: str, cred=None, timeout_ms: int = 10_000):
 def forge(endpoint: str, run: str, keys_dir, done: dict, from_step: int = 3) -> None:
     """Once the run is at ``from_step``: a stranger tries to connect; agent 3's credential
     puts a fault command (kill agent 1, drop all of agent 1's messages, a camera off), a
-    done clock, a batch on meas/2, and a batch on its own meas/3 naming agent 2; the
+    done clock, a batch on meas/2, and a batch on its own meas/3 naming agent 2 (the world,
+    the radio, hears it, refuses it and carries it to no agent); the
     recorder's credential puts the same commands and clock. ``done`` collects what a
     separate recorder-identity session saw (a session hears its own puts locally)."""
     k = M.Keys(run)
@@ -96,7 +97,7 @@ def forge(endpoint: str, run: str, keys_dir, done: dict, from_step: int = 3) -> 
 
 
 def check_forgeries(done: dict, summary: dict, sc, run: str) -> None:
-    """Nothing refused got through, every receiver dropped the batch naming another, and
+    """Nothing refused got through, the radio dropped the batch naming another, and
     the numbers are those of the run without the attempts (`swarm sim`), bit for bit."""
     from swarmcore.sim import simulate
 
@@ -112,7 +113,9 @@ def check_forgeries(done: dict, summary: dict, sc, run: str) -> None:
     assert summary["faults"] == []
     sec = summary["security"]
     assert sec["state"] == "on"
-    assert all(sec["key_mismatch_dropped"][f"agent-{i}"] >= 1 for i in range(sc.n_sats)), sec
+    # The batch naming agent 2 on agent 3's key passed the router: its receiver, the world
+    # (the radio), dropped and counted it, and carried nothing of it to any agent.
+    assert sec["key_mismatch_dropped"]["world"] >= 1, sec
     ref = simulate(sc).summary()
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis"):
         assert summary[key] == ref[key], key

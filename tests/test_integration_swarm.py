@@ -65,7 +65,7 @@ def _check_complete_recording(path, sc):
     run = runs.pop()
     root = f"swarm/{run}"
     per_sat = [f"{root}/{kind}" for i in range(n) for kind in (f"sat/{i}/sensors", f"sat/{i}/cam", f"meas/{i}", f"est/{i}", f"health/{i}")]
-    assert {t for t in chans if t.startswith("swarm/")} == {f"{root}/clock", f"{root}/truth", f"{root}/alive", *per_sat}
+    assert {t for t in chans if t.startswith("swarm/")} == {f"{root}/clock", f"{root}/truth", f"{root}/batches", f"{root}/alive", *per_sat}
     steps = defaultdict(list)  # topic -> [(k, message)]
     for topic in chans:
         if not topic.startswith("swarm/") or topic.endswith("/alive"):
@@ -81,6 +81,12 @@ def _check_complete_recording(path, sc):
             steps[topic].append((m.k, m))
     every_step = list(range(K))
     assert sorted(k for k, _m in steps[f"{root}/truth"]) == every_step
+    # The ideal radio: one message a step, carrying every agent's batch of that step as sent.
+    radio = dict(steps[f"{root}/batches"])
+    assert sorted(radio) == every_step and all(list(m.observers) == list(range(n)) for m in radio.values())
+    for k, m in radio.items():
+        sent = sorted((b for i in range(n) for kb, b in steps[f"{root}/meas/{i}"] if kb == k), key=lambda b: b.observer)
+        assert list(m.counts) == [len(b.target) for b in sent] and list(m.target) == [t for b in sent for t in b.target]
     for i in range(n):
         for kind in (f"sat/{i}/sensors", f"sat/{i}/cam", f"meas/{i}", f"health/{i}"):
             assert sorted(k for k, _m in steps[f"{root}/{kind}"]) == every_step, kind

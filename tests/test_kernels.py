@@ -69,7 +69,7 @@ def test_small_inverses_and_lapack_wrappers():
 @pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed: the numpy twins are in use")
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_compiled_attitude_kernels_equal_numpy_twins(seed):
-    """Residuals and Jacobians, torque-free RK4, retraction and the constant-rate step:
+    """Residuals and Jacobians, RK4 (torque-free, and the truth's with torques), retraction and the constant-rate step:
     the compiled forms the filter uses equal the vectorised numpy ones to round-off."""
     from swarmcore import dynamics, quat
     from swarmcore.agent import filter_params
@@ -99,6 +99,13 @@ def test_compiled_attitude_kernels_equal_numpy_twins(seed):
         b = dynamics.rk4_attitude(q, w, J, 1.0, sub)
         np.testing.assert_allclose(a[0], b[0], atol=1e-14)
         np.testing.assert_allclose(a[1], b[1], atol=1e-14)
+        # The truth's: torque noise held over each substep.
+        tau = rng.normal(scale=0.05, size=(sub, n, 3))
+        a = kernels.rk4(q, w, J, np.linalg.inv(J), 1.0, sub, tau)
+        b = dynamics.rk4_attitude(q, w, J, 1.0, sub, tau)
+        np.testing.assert_allclose(a[0], b[0], atol=1e-14)
+        np.testing.assert_allclose(a[1], b[1], atol=1e-14)
+        assert not np.allclose(a[1], kernels.rk4_free(q, w, J, np.linalg.inv(J), 1.0, sub)[1], atol=1e-6), "the torques act"
     da = rng.normal(scale=0.05, size=(n, 3))
     np.testing.assert_allclose(kernels.retract(q, da), quat.retract(q, da), atol=1e-15)
     for scale in (0.0, 1e-10, 0.3):

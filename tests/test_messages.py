@@ -15,7 +15,9 @@ from swarm.bus.convert import (
     observation_from_images,
     pairs_from_select,
     relative_from_batches,
+    relative_from_step,
     select_msg,
+    step_batches_msg,
     truth_msg,
 )
 from swarmcore import quat
@@ -77,6 +79,9 @@ EXAMPLES["rx"] = M.Delivery(**H, sat=0, items=[M.Delivered(arrival_t_s=2.7, batc
 EXAMPLES["links"] = M.LinkStats(**H, **{f: matrix(np.arange(9.0).reshape(3, 3)) for f in M._LINK_COUNTERS}, queue_bytes=[0, 120, 4],
                                 latencies=[M.Latency(sender=2, receiver=0, sent_k=2, latency_s=0.7)])
 EXAMPLES["rejoin"] = M.RejoinFate(**H, sat=1, peer=2, bytes=12345, fate="delivered", arrival_t_s=3.4)
+_B0 = batch_msg(_rel(2, observer=0), np.array([0, 3]), run=RUN, sender="agent-0", k=3, t_s=3.0, observer=0)
+_B1 = batch_msg(RelativeMeasurements.empty(), np.zeros(0, int), run=RUN, sender="agent-1", k=3, t_s=3.0, observer=1)
+EXAMPLES["batches"] = M.replace(step_batches_msg([_METER, _B1, _B0], run=RUN, k=3, t_s=3.0), schema_version=M.SCHEMA_VERSION)
 
 
 def _raw(kind, **changes):
@@ -121,6 +126,21 @@ def test_measurement_batches_round_trip():
     assert len(relative_from_batches([empty])) == 0
     with pytest.raises(ValueError, match="batch of observer 1"):
         batch_msg(rel, np.array([1, 5]), run=RUN, sender="a", k=1, t_s=1.0, observer=1)
+
+
+def test_step_batches_carry_every_batch_bit_for_bit_in_observer_order():
+    msg = M.decode("batches", M.encode(EXAMPLES["batches"]))
+    assert list(msg.observers) == [0, 1, 2] and list(msg.counts) == [2, 0, 2]
+    want = relative_from_batches([_B0, _B1, _METER])
+    for skip, keep in ((None, [0, 0, 2, 2]), (0, [2, 2]), (1, [0, 0, 2, 2]), (2, [0, 0])):
+        got = relative_from_step(M.decode("batches", M.encode(EXAMPLES["batches"])), skip=skip)
+        rows = [r for r in range(4) if want.observer[r] != skip]
+        assert got.observer.tolist() == keep
+        for f in ("observer", "target", "q_BjBi", "r_ij_Bi", "R_Bi"):
+            np.testing.assert_array_equal(getattr(got, f), getattr(want, f)[rows])
+    assert list(msg.camera) == [0, 3, 1, 5]
+    empty = M.decode("batches", M.encode(step_batches_msg([], run=RUN, k=0, t_s=0.0)))
+    assert len(relative_from_step(empty)) == 0 and not empty.observers
 
 
 def test_select_pairs_round_trip():
@@ -188,6 +208,16 @@ def _indefinite_R():
         ("links", _raw("links", sent=matrix(np.ones((2, 3)))), "sent: shape"),
         ("rx", M.encode(M.Delivery(**H, sat=0, items=[M.Delivered(arrival_t_s=1.0, batch=M.replace(_METER, q_BjBi=[0.0] * 8))])), "items.0.batch: .*unit quaternion"),
         ("rx", M.encode(M.Delivery(**H, sat=2, items=[M.Delivered(arrival_t_s=1.0, batch=_METER)])), "own batch"),
+        ("batches", _raw("batches", counts=[2, 0]), "counts: 2 values for 3 observers"),
+        ("batches", _raw("batches", observers=[0, 2, 1]), "not ascending"),
+        ("batches", _raw("batches", observers=[0, 1, 1]), "not ascending"),
+        ("batches", _raw("batches", counts=[2, 1, 2]), "for 5 rows"),
+        ("batches", _raw("batches", target=[1, 0, 0, 1]), "satellite 0 cannot measure itself"),
+        ("batches", _raw("batches", target=[1, 3, 0, 10_001]), "out of range"),
+        ("batches", _raw("batches", q_BjBi=[0.0] * 16), "unit quaternion"),
+        ("batches", _raw("batches", r_ij_Bi_m=[1.0] * 11), "r_ij_Bi_m: 11 numbers, expected 4 × 3"),
+        ("batches", _raw("batches", R_Bi=M.Matrix(shape=[4, 6, 6], data=[float("nan")] * 144)), "R_Bi: not finite"),
+        ("batches", _raw("batches", R_Bi=M.Matrix(shape=[1 << 30, 1 << 30, 6], data=[1.0])), "shape"),
         ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], width_px=0)]), "width_px"),
         ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], images_mono8=[bytes(14)])]), "needs 15 bytes, got 14"),
         ("img", _raw("img", views=[M.replace(EXAMPLES["img"].views[0], T_CB=[2.0] + [0.0] * 8)]), "rotation"),

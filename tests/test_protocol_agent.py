@@ -10,8 +10,8 @@ import pytest
 from protocol_driver import Driver, FakeClock
 
 from sat_agent.protocol import AgentProtocol
-from swarm.bus.convert import batch_msg, detections, full_estimate_msg, sensors_msg
-from swarm.bus.messages import CameraOutput, Clock, Fault, Health, Keys
+from swarm.bus.convert import batch_msg, detections, full_estimate_msg, sensors_msg, step_batches_msg
+from swarm.bus.messages import CameraOutput, Clock, Fault, Keys
 from swarm.protocol import Event, Query
 from swarmcore.agent import AgentFilter, SyntheticPoseEstimator, filter_params
 from swarmcore.graphs import scenario_graph
@@ -69,8 +69,9 @@ def prior_answer(sc: Scenario, truth0):
     return answer
 
 
-def meas_event(msg) -> Event:
-    return Event(K.meas(msg.observer), "meas", msg.observer, msg=msg)
+def radio_event(k: int, batches) -> Event:
+    """What the ideal radio (the world) delivers of step k: ``batches``, in one message."""
+    return Event(K.batches(), "batches", None, msg=step_batches_msg(list(batches), run=RUN, k=k, t_s=float(k)))
 
 
 def test_agent_steps_equal_the_filter_run_directly():
@@ -92,9 +93,9 @@ def test_agent_steps_equal_the_filter_run_directly():
         d.feed(*world.events_for(0, k))
         (own,) = d.sent_on(K.meas(0))
         assert own.k == k and sorted(own.target) == [1, 2]
-        assert not d.sent_on(K.est(0)), "the agent waits for its peers' batches"
+        assert not d.sent_on(K.est(0)), "the agent waits for the radio's batches"
         peers = [world.batch(1, k), world.batch(2, k)]
-        d.feed(*(meas_event(b) for b in peers))
+        d.feed(radio_event(k, [peers[1], own, peers[0]]))
         (est,) = d.sent_on(K.est(0))
         (health,) = d.sent_on(K.health(0))
         assert est.k == k and est.batches_used == [1, 2] and health.batches_missing == 0
@@ -108,37 +109,37 @@ def test_agent_steps_equal_the_filter_run_directly():
         np.testing.assert_array_equal(a.est.P, ref.est.P)
 
 
-def test_a_peer_done_without_its_batch_is_given_up_after_the_grace():
-    sc = scenario(emulator={"lost_batch_grace_s": 0.5, "step_timeout_s": 10.0})
+def test_a_batch_the_radio_did_not_carry_is_missing_and_a_late_one_is_counted():
+    sc = scenario()
     world = WorldScript(sc)
     clock = FakeClock()
     a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
     d = Driver(a, clock, answer=prior_answer(sc, world.truth))
     d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), Event(K.alive("agent", 2), "alive", 2, alive=True))
     world.advance(0)
-    d.feed(*world.events_for(0, 0), meas_event(world.batch(1, 0)))
-    h2 = Health(run=RUN, sender="agent-2", k=0, t_s=0.0, sat=2, camera_ok=[True] * 6)
-    d.feed(Event(K.health(2), "health", 2, msg=h2))
-    d.elapse(0.4)
-    assert not d.sent_on(K.est(0)) or d.sent_on(K.est(0))[-1].phase == "prior"
-    d.elapse(0.2)
+    d.feed(*world.events_for(0, 0))
+    (own,) = d.sent_on(K.meas(0))
+    d.feed(radio_event(0, [own, world.batch(1, 0)]))  # 2's batch did not reach the radio (dead, or lost)
     est = d.sent_on(K.est(0))[-1]
     assert est.phase == "posterior" and est.batches_missing == [2] and est.batches_used == [1]
+    d.feed(radio_event(0, [world.batch(2, 0)]))  # step 0 is done: too late
+    assert a.batches_late == 1
 
 
-def test_a_dead_peer_is_not_waited_for_and_a_late_batch_is_counted():
-    sc = scenario()
+def test_the_agent_waits_for_the_radio_not_for_a_timeout():
+    sc = scenario(emulator={"step_timeout_s": 10.0})
     world = WorldScript(sc)
     clock = FakeClock()
     a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
     d = Driver(a, clock, answer=prior_answer(sc, world.truth))
     d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True))  # 2 never comes up
     world.advance(0)
-    d.feed(*world.events_for(0, 0), meas_event(world.batch(1, 0)))
+    d.feed(*world.events_for(0, 0))
+    d.elapse(9.0)
+    assert d.sent_on(K.est(0))[-1].phase == "prior", "no update before the radio's message of the step"
+    d.feed(radio_event(0, [world.batch(1, 0)]))
     est = d.sent_on(K.est(0))[-1]
     assert est.phase == "posterior" and est.batches_missing == [2]
-    d.feed(meas_event(world.batch(2, 0)))  # step 0 is done: too late
-    assert a.batches_late == 1
 
 
 def test_restarted_agent_initialises_from_the_freshest_peer():
@@ -154,9 +155,7 @@ def test_restarted_agent_initialises_from_the_freshest_peer():
     a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), restart=True, clock=clock)
     d = Driver(a, clock, answer=answer)
     assert not d.queries, "a restarted agent first waits to hear of a live peer"
-    from swarm.bus.convert import estimate_msg
-
-    d.feed(Event(K.est(1), "est", 1, msg=estimate_msg(peer_est, run=RUN, sender="agent-1", own=1)))
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True))
     assert [q.key for q in d.queries] == [K.cov(1)]
     (prior,) = d.sent_on(K.est(0))
     assert prior.phase == "prior" and prior.own == 0 and not a.filter.prior_pending
@@ -176,9 +175,10 @@ def test_drop_and_camera_faults_addressed_to_this_agent():
     assert not a.camera_ok[2] and a.camera_ok[[0, 1, 3, 4, 5]].all()
     assert not d.sent_on(K.fault()), "an agent sends no fault commands"
     (done,) = d.sent_on(K.fault_report("agent-0"))
-    assert (done.action, done.phase, done.target, done.sender) == ("drop", "done", 0, "agent-0")
+    assert (done.action, done.phase, done.target, done.sender, done.k) == ("drop", "done", 0, "agent-0", 0), "from step 0 on"
     world.advance(0)
-    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), *world.events_for(0, 0, live=(0, 1)), meas_event(world.batch(1, 0)))
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), *world.events_for(0, 0, live=(0, 1)))
+    d.feed(radio_event(0, [world.batch(1, 0)]))
     assert not d.sent_on(K.meas(0)) and not d.sent_on(K.est(0)[:-1] + "0"), "rate 1: every outgoing batch and estimate lost"
     assert d.sent_on(K.health(0))[-1].drop_rate == 1.0
 
@@ -227,13 +227,15 @@ def test_bus_back_sends_the_step_again_copies_are_no_news_and_a_lost_world_ends_
     d.feed(Event(K.alive("world", 0), "alive", 0, alive=True, role="world"))
     d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True, role="agent"), Event(K.alive("agent", 2), "alive", 2, alive=True, role="agent"))
     world.advance(0)
-    b1, b2 = meas_event(world.batch(1, 0)), meas_event(world.batch(2, 0))
-    d.feed(*world.events_for(0, 0), b1, b2)
+    d.feed(*world.events_for(0, 0))
+    (own,) = d.sent_on(K.meas(0))
+    radio = radio_event(0, [own, world.batch(1, 0), world.batch(2, 0)])
+    d.feed(radio)
     step0 = [s for s in d.take() if s.msg.k == 0 and not (s.key == K.est(0) and s.msg.phase == "prior")]
     assert [s.key for s in step0] == [K.meas(0), K.est(0), K.health(0)]
     d.feed(Event(K.alive("recorder", 0), "resync", 0, role="recorder"))
     assert d.take()[-len(step0):] == step0, "the recorder came back: the step's messages again"
-    d.feed(*world.events_for(0, 0), b1, b2)  # the world and the peers send step 0 again
+    d.feed(*world.events_for(0, 0), radio)  # the world sends step 0 again
     assert a.batches_late == 0 and not d.sent and a.last_step == 0
     with pytest.raises(WorldLost):
         d.feed(Event(K.alive("world", 0), "alive", 0, alive=False, role="world"))

@@ -7,7 +7,7 @@ import pytest
 from protocol_driver import Driver, FakeClock
 
 from swarm.bus.convert import matrix, select_msg
-from swarm.bus.messages import Estimate, Fault, Health, Keys
+from swarm.bus.messages import Estimate, Fault, Health, Keys, Matrix, MeasBatch
 from swarm.protocol import Event
 from swarmcore.measurement import synthetic_model
 from swarmcore.scenario import Scenario
@@ -37,6 +37,20 @@ def est(i: int, k: int, phase: str = "posterior") -> Event:
     return Event(K.est(i), "est", i, msg=m)
 
 
+def batch(i: int, k: int, targets=()) -> Event:
+    """Agent i's batch of step k (its measurements of ``targets``, identity poses)."""
+    m = len(targets)
+    R = np.tile(np.eye(6), (m, 1, 1)).ravel().tolist()
+    msg = MeasBatch(run=RUN, sender=f"agent-{i}", k=k, t_s=float(k), observer=i, target=list(targets), camera=[0] * m,
+                    q_BjBi=[0.0, 0.0, 0.0, 1.0] * m, r_ij_Bi_m=[1.0, 0.0, 0.0] * m, R_Bi=Matrix(shape=[m, 6, 6], data=R))
+    return Event(K.meas(i), "meas", i, msg=msg)
+
+
+def finish(k: int, agents=(0, 1, 2)) -> list[Event]:
+    """Step k of ``agents`` as the world hears it: each one's batch, then each one's estimate."""
+    return [*(batch(i, k) for i in agents), *(est(i, k) for i in agents)]
+
+
 def started_world(sc: Scenario, **kw) -> tuple[Driver, WorldProtocol, FakeClock]:
     clock = FakeClock()
     w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock, **kw)
@@ -55,6 +69,12 @@ def test_step_publishes_truth_clock_sensors_and_cameras_then_waits_for_every_est
     assert keys[:2] == [K.truth(), K.clock()]
     assert keys[2:5] == [K.sensors(0), K.sensors(1), K.sensors(2)]
     assert keys[5:] == [K.cam(0), K.cam(1), K.cam(2)]
+    d.feed(batch(0, 0), batch(1, 0))
+    assert not d.sent, "the radio waits for agent 2's batch of step 0"
+    d.feed(batch(2, 0))
+    (radio,) = d.sent_on(K.batches())
+    assert radio.k == 0 and list(radio.observers) == [0, 1, 2]
+    d.take()
     d.feed(est(0, 0), est(1, 0))
     assert not d.sent, "the world waits for agent 2's estimate of step 0"
     d.feed(est(2, 0))
@@ -75,7 +95,7 @@ def test_a_dead_agent_is_not_waited_for_and_gets_nothing():
     d, _w, _ = started_world(sc)
     d.take()
     d.feed(alive("agent", 1, up=False))
-    d.feed(est(0, 0), est(2, 0))
+    d.feed(*finish(0, (0, 2)))
     sent = d.take()
     (clock,) = [s.msg for s in sent if s.key == K.clock()]
     assert clock.k == 1 and clock.live_agents == [0, 2]
@@ -86,7 +106,7 @@ def test_a_silent_agent_costs_one_step_timeout_then_the_world_moves_on():
     sc = scenario(emulator={"step_timeout_s": 5.0})
     d, _w, _clock = started_world(sc)
     d.take()
-    d.feed(est(0, 0), est(1, 0))
+    d.feed(*finish(0, (0, 1)), batch(2, 0))
     d.elapse(4.9)
     assert not d.sent_on(K.clock())
     d.elapse(0.2)
@@ -98,7 +118,7 @@ def test_health_report_counts_as_finished_when_the_estimate_was_dropped():
     d, _w, _ = started_world(sc)
     d.take()
     h = Health(run=RUN, sender="agent-2", k=0, t_s=0.0, sat=2, camera_ok=[True] * 6)
-    d.feed(est(0, 0), est(1, 0), Event(K.health(2), "health", 2, msg=h))
+    d.feed(*finish(0, (0, 1)), batch(2, 0), Event(K.health(2), "health", 2, msg=h))
     assert [c.k for c in d.sent_on(K.clock())] == [1]
 
 
@@ -106,7 +126,7 @@ def test_scheduled_camera_fault_is_announced_and_silences_that_camera():
     sc = scenario(faults=[{"at_step": 1, "action": "camera", "target": 0, "camera": 0, "state": "off"}])
     d, w, _ = started_world(sc)
     d.take()
-    d.feed(est(0, 0), est(1, 0), est(2, 0))
+    d.feed(*finish(0))
     faults = d.sent_on(K.fault()) + d.sent_on(K.fault_report("world"))  # the command, then the world's report
     assert [(f.phase, f.action, f.target, f.camera) for f in faults] == [("command", "camera", 0, 0), ("done", "camera", 0, 0)]
     (cam,) = d.sent_on(K.cam(0))
@@ -129,7 +149,7 @@ def test_selector_choice_is_used_and_a_dead_selector_brings_the_fallback():
     assert [x.target for x in cams[0].detections] == [1] and [x.target for x in cams[2].detections] == [0]
     assert len(cams[1].detections) == 0
     d.take()
-    d.feed(alive("selector", up=False), est(0, 0), est(1, 0), est(2, 0))
+    d.feed(alive("selector", up=False), *finish(0))
     (fb,) = d.sent_on(K.select())
     assert fb.fallback and fb.sender == "world" and fb.k == 1 and fb.strategy == sc.selection.fallback
     assert len(fb.observer) >= 1
@@ -145,7 +165,7 @@ def test_fallback_never_schedules_a_dead_observer():
         d.feed(alive("agent", i), est(i, 0, "prior"))
     d.elapse(sc.emulator.startup_timeout_s + 1)  # no selector ever comes: fallback from step 0
     d.feed(alive("agent", 3, up=False))
-    d.feed(*[est(i, 0) for i in range(3)])
+    d.feed(*finish(0))
     sels = d.sent_on(K.select())
     assert sels[-1].k == 1 and all(o != 3 for o in sels[-1].observer)
 
@@ -154,7 +174,7 @@ def test_scheduled_kill_waits_until_the_agent_is_gone():
     sc = scenario(faults=[{"at_step": 1, "action": "kill-agent", "target": 2}])
     d, _w, _ = started_world(sc)
     d.take()
-    d.feed(est(0, 0), est(1, 0), est(2, 0))
+    d.feed(*finish(0))
     assert [f.action for f in d.sent_on(K.fault())] == ["kill-agent"]
     assert not d.sent_on(K.clock()), "step 1 starts only once agent 2 is gone"
     d.feed(alive("agent", 2, up=False))
@@ -166,7 +186,7 @@ def test_the_run_ends_with_a_done_clock_and_queries_stop_serving_priors():
     d, w, _ = started_world(sc)
     assert w.serve_prior(K.init(0)) is None, "once started, the world serves no priors"
     for k in range(sc.steps):
-        d.feed(*[est(i, k) for i in range(3)])
+        d.feed(*finish(k))
     assert d.finished and d.sent_on(K.clock())[-1].done
 
 
@@ -208,9 +228,65 @@ def test_bus_back_sends_the_step_again_and_a_held_token_holds_the_step():
     d.feed(Event("", "bus", None, alive=True))
     assert d.take() == first, "the step's truth, clock, sensors and cameras, again"
     d.feed(Event(K.alive("recorder", 0), "held", 0, role="recorder"))
-    d.feed(est(0, 0), est(1, 0), est(2, 0))
-    assert not [s for s in d.sent if s.key == K.clock()], "step 1 must wait: the recorder is only out of reach"
+    d.feed(*finish(0))
+    assert [s.key for s in d.take()] == [K.batches()], "the step's radio; step 1 must wait: the recorder is only out of reach"
     d.feed(Event(K.alive("recorder", 0), "resync", 0, role="recorder"))
     again = d.take()
     assert [s.key for s in again[: len(first)]] == [s.key for s in first]  # step 0 again for the recorder, then step 1
     assert [s.msg.k for s in again if s.key == K.clock()] == [0, 1]
+
+
+def test_the_ideal_radio_carries_every_batch_of_a_step_in_one_message():
+    """Every agent's batch of step k reaches every agent through the world, the ideal radio
+    (links.enabled false): one StepBatches in observer order, whatever the arrival order,
+    each batch's rows as sent; a copy sent again after a bus gap is not carried twice."""
+    from swarm.bus.convert import relative_from_batches, relative_from_step
+
+    sc = scenario()
+    d, _w, _ = started_world(sc)
+    d.take()
+    b = {i: batch(i, 0, targets=[j for j in range(3) if j != i]) for i in range(3)}
+    d.feed(b[2], b[0], b[0], b[1])
+    (radio,) = d.sent_on(K.batches())
+    assert list(radio.observers) == [0, 1, 2] and list(radio.counts) == [2, 2, 2]
+    got, want = relative_from_step(radio), relative_from_batches([b[i].msg for i in range(3)])
+    for f in ("observer", "target", "q_BjBi", "r_ij_Bi", "R_Bi"):
+        assert np.array_equal(getattr(got, f), getattr(want, f)), f
+    mine = relative_from_step(radio, skip=1)
+    assert sorted(set(mine.observer.tolist())) == [0, 2]
+    d.take()
+    d.feed(b[1])  # too late for step 0 (its message went out): not carried again
+    assert not d.sent_on(K.batches())
+
+
+def test_a_dropped_batch_is_not_waited_for():
+    """An agent that reported a drop fault from step s loses its batches by the same
+    seeded draw the world makes: the radio goes on without the lost ones at once."""
+    from swarm.protocol import DROP_BATCH, message_dropped
+
+    sc = scenario(duration_s=30, emulator={"step_timeout_s": 50.0})
+    d, _w, _ = started_world(sc)
+    done = Fault(run=RUN, sender="agent-2", k=1, t_s=1.0, action="drop", target=2, rate=0.5, phase="done")
+    d.feed(Event(K.fault_report("agent-2"), "fault", None, msg=done))
+    carried = []
+    for k in range(sc.steps - 1):
+        lost = k >= 1 and message_dropped(sc.seed, 2, k, DROP_BATCH, 0.5)
+        d.take()
+        d.feed(batch(0, k), batch(1, k), *([] if lost else [batch(2, k)]))
+        (radio,) = d.sent_on(K.batches())
+        carried.append(2 in radio.observers)
+        assert carried[-1] == (not lost), k
+        d.feed(est(0, k), est(1, k), est(2, k))
+    assert carried[0] and 0 < carried[1:].count(False) < len(carried) - 1, carried
+
+
+def test_free_running_radio_passes_each_batch_on_as_it_comes():
+    sc = scenario(emulator={"time_mode": "free", "realtime_factor": 1.0})
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(batch(1, 0))
+    (radio,) = d.sent_on(K.batches())
+    assert radio.k == 0 and list(radio.observers) == [1]
+    d.take()
+    d.feed(batch(1, 0))  # the same batch again: passed on once
+    assert not d.sent_on(K.batches())

@@ -56,7 +56,9 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
             _open(endpoint, cred["agent-1"]) as a1, _open(endpoint, cred["agent-3"]) as a3:
         everything = Witness(rec, k.everything())
         truth_at_agent = Witness(a1, k.truth())  # an agent asking for the truth is refused
-        meas_at_agent = Witness(a1, k.meas())
+        meas_at_world = Witness(world, k.meas())  # the world is the radio: it hears every batch
+        meas_at_agent = Witness(a1, k.meas())  # an agent hears its peers only through the radio
+        radio_at_agent = Witness(a1, k.batches())
         # Subscriptions propagate through the router: probe until the recorder sees a put.
         for _ in range(100):
             world.put(k.clock(), b"probe")
@@ -71,10 +73,13 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
         a3.put(k.fault_report("agent-2"), b"forged report")
         a3.put(k.meas(3), _batch(RUN, "agent-3", 3))  # the control
         assert everything.wait_for(lambda key, p: key == k.meas(3))
-        assert meas_at_agent.wait_for(lambda key, p: key == k.meas(3))
+        assert meas_at_world.wait_for(lambda key, p: key == k.meas(3))
         assert everything.seen_keys().count(k.clock()) >= 1 and b"forged clock" not in [p for _, p in everything.got]
         assert {k.meas(2), k.fault(), k.fault_report("agent-2")}.isdisjoint(everything.seen_keys())
-        assert k.meas(2) not in meas_at_agent.seen_keys()
+        assert k.meas(2) not in meas_at_world.seen_keys()
+        world.put(k.batches(), b"radio")  # what agent 1 may hear, after the batches it may not
+        assert radio_at_agent.wait_for(lambda key, p: p == b"radio")
+        assert not meas_at_agent.got, "an agent heard a peer's batch straight off the bus"
 
         # The world puts the truth: the recorder gets it, agent 1 (subscribed) does not.
         world.put(k.truth(), b"truth")
@@ -105,6 +110,11 @@ def test_access_rules_follow_the_key_space():
     # With the radio on, an agent hears peers' batches only through the world.
     assert "swarm/r/rx/2" in rules["agent-2:ingress:sub"]["key_exprs"]
     assert "swarm/r/meas/*" not in rules["agent-2:ingress:sub"]["key_exprs"]
+    # With the ideal radio, through the world's batches.
+    ideal = {r["id"]: r for r in acl_config("r", 3, links=False)["rules"]}
+    assert "swarm/r/batches" in ideal["agent-2:ingress:sub"]["key_exprs"]
+    assert not any("meas" in e for e in ideal["agent-2:ingress:sub"]["key_exprs"])
+    assert "swarm/r/batches" in ideal["world:ingress:put"]["key_exprs"]
     assert "recorder:ingress:put" not in rules
     assert rules["cli:ingress:put"]["key_exprs"] == ["swarm/r/fault", "swarm/r/fault/cli"]
     assert not any("truth" in e for name in ("agent-0", "selector", "observer") for e in rules[f"{name}:egress:samples"]["key_exprs"])
@@ -115,7 +125,7 @@ def test_forgeries_against_a_running_swarm_change_nothing(tmp_path):
     """Agent 3's credential publishing a batch on meas/2, fault commands and a clock; the
     recorder's publishing; a stranger's fault command: all refused. A batch on agent 3's
     own key naming agent 2 as its sender passes the router and is dropped and counted by
-    every receiver. The run equals `swarm sim` bit for bit."""
+    its receiver, the world (the radio). The run equals `swarm sim` bit for bit."""
     sc = scenario(n_sats=4, duration_s=14, emulator={"lockstep_max_realtime_factor": 4.0})
     done: dict = {}
     rec, summary, codes, sw = run_swarm(sc, tmp_path / "run", during=lambda sw: forge(sw.endpoint, sw.run, sw.keys_dir, done))

@@ -1,7 +1,7 @@
 """``world_sim``'s process shell: the bus presence of :class:`world_sim.protocol.WorldProtocol`.
 
-It subscribes to what the world listens to (estimates, health reports, the selector's
-choice, fault commands, liveliness), serves the priors (``init/<i>``) and satellite
+It subscribes to what the world listens to (the agents' batches, which it carries as the
+radio; estimates, health reports, the selector's choice, fault commands, liveliness), serves the priors (``init/<i>``) and satellite
 claims (``claim/<token>``), builds the world-side camera model the scenario asks for, and
 drives the protocol machine; the protocol itself has no bus in it.
 """
@@ -25,13 +25,13 @@ class World(Node):
         super().__init__("world", 0, run, sc.n_sats, bus, announce=False)
         self.sc = sc
         self.cameras = measurement_model(sc).cameras()  # rendering only when the scenario renders
-        self.machine = WorldProtocol(sc, run, self.cameras, expect_recorder, expect_selector, agent_passwords=agent_passwords)
+        self.machine = WorldProtocol(sc, run, self.cameras, expect_recorder, expect_selector, agent_passwords=agent_passwords,
+                                     malformed=lambda: self.malformed, key_mismatch=lambda: self.key_mismatch)
         self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())
         self.subscribe(self.keys.faults())  # commands, and what others carried out
-        if sc.links.enabled:
-            self.subscribe(self.keys.meas())  # the radio channel carries the agents' batches
+        self.subscribe(self.keys.meas())  # the world is the radio: it carries the agents' batches
         self.watch_liveliness()
         self.set_bus_limits(sc.emulator)
         self.queryable(self.keys.init(), self.machine.serve_prior)

@@ -7,10 +7,14 @@ The world owns truth and time. Lockstep step k:
    set, and each live agent's own sensors;
 3. take the selector's choice for k (or fall back when it is dead or late);
 4. publish each live agent's camera delivery (synthetic detections, or rendered images);
-5. wait until every live agent has published its estimate for k (or the step timeout);
+5. be the radio: take every live agent's batch of k and deliver it to every agent — the
+   ideal radio puts them all in one message (``batches``), the link model
+   (``links.enabled``) gives each agent what reached it (``rx/<i>``);
+6. wait until every live agent has published its estimate for k (or the step timeout);
    optionally pace against wall time.
 
-Free-running mode paces the clock at ``realtime_factor`` × wall time instead of step 5.
+Free-running mode paces the clock at ``realtime_factor`` × wall time instead of step 6,
+and the radio passes each batch on as it comes.
 Everything the world computes (truth, images) reaches an agent only as what its own
 sensors and cameras deliver. :class:`WorldProtocol` is driven by :class:`swarm.node.Node`
 in ``python -m world_sim`` and by scripted events in ``tests/test_protocol_world.py``.
@@ -34,6 +38,7 @@ from swarm.bus.convert import (
     radio_bytes,
     select_msg,
     sensors_msg,
+    step_batches_msg,
     truth_msg,
 )
 from swarm.bus.messages import (
@@ -51,14 +56,14 @@ from swarm.bus.messages import (
     Select,
     replace,
 )
-from swarm.protocol import Event, Outbox, Send, Wait
+from swarm.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped
 from swarmcore.graphs import edges, scenario_graph
 from swarmcore.links import LinkCounters, LinkModel
 from swarmcore.measurement import CameraModel
 from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
 from swarmcore.selection import mask_dead, select_for_scenario
 from swarmcore.sim import link_body_radius
-from swarmcore.world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
+from swarmcore.world import TruthState, absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
 
 __all__ = ["WorldProtocol"]
 
@@ -72,7 +77,8 @@ class WorldProtocol:
 
     def __init__(self, sc: Scenario, run: str, cameras: CameraModel, expect_recorder: bool = True,
                  expect_selector: bool | None = None, clock: Callable[[], float] = time.monotonic,
-                 agent_passwords: dict[int, str] | None = None):
+                 agent_passwords: dict[int, str] | None = None, malformed: Callable[[], int] = lambda: 0,
+                 key_mismatch: Callable[[], int] = lambda: 0):
         self.sc = sc
         # Security on, agents started with --id auto: satellite i's bus password, handed to
         # the claimant given satellite i (swarm.security says why this is safe).
@@ -83,9 +89,12 @@ class WorldProtocol:
         self.cameras = cameras
         self.rendered = sc.vision.pipeline != "none"
         self.clock = clock
+        self.malformed = malformed  # the shell's counts of refused messages, published with each clock
+        self.key_mismatch = key_mismatch
         self.wp = world_params(sc)
         self.G = scenario_graph(sc)
         self.truth = initial_truth(sc)
+        self._ahead: tuple[TruthState, np.ndarray] | None = None  # the next step's (truth, gyro), computed ahead
         self._priors = {i: initial_estimate(sc, self.truth, i) for i in range(sc.n_sats)}
         self.expect_recorder = expect_recorder
         self.use_selector = sc.selection.strategy != "none" if expect_selector is None else expect_selector
@@ -102,7 +111,8 @@ class WorldProtocol:
         self.finished = False
         # The radio channel (links.enabled): the world carries the agents' batches.
         self.links = LinkModel(sc.links, sc.n_sats, sc.seed, link_body_radius(sc)) if sc.links.enabled else None
-        self.batches: dict[int, dict[int, tuple[MeasBatch, int]]] = {}  # step → observer → (batch, bytes)
+        self.batches: dict[int, dict[int, tuple[MeasBatch, int]]] = {}  # step → observer → (batch, radio bytes)
+        self.drops: dict[int, tuple[float, int]] = {}  # agent → (rate, first step) of its drop fault, as it reported
         self._lat_sent = 0  # latencies already reported
         self._new_batch = False
         self._radio_lock = threading.Lock()  # the link model is shared with the rejoin queryable
@@ -191,9 +201,15 @@ class WorldProtocol:
             # when its estimate was lost (the drop fault).
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
         elif ev.kind == "meas":
-            if self.links is not None and (ev.msg.k, ev.msg.observer) not in self._aired:  # not a copy sent again
-                self.batches.setdefault(ev.msg.k, {})[ev.msg.observer] = (ev.msg, radio_bytes(ev.msg))
-                self._new_batch = True
+            m = ev.msg
+            if (m.k, m.observer) in self._aired:  # a copy sent again
+                return []
+            if self.links is None and self.sc.emulator.time_mode == "free":
+                # The ideal radio, free-running: every batch goes on to everyone as it comes.
+                self._aired.add((m.k, m.observer))
+                return [Send(self.keys.batches(), step_batches_msg([m], run=self.run_id, k=m.k, t_s=m.t_s))]
+            self.batches.setdefault(m.k, {})[m.observer] = (m, 0 if self.links is None else radio_bytes(m))
+            self._new_batch = True
         elif ev.kind == "select":
             if ev.msg.sender != "world":
                 self.selections[ev.msg.k] = ev.msg
@@ -206,6 +222,8 @@ class WorldProtocol:
     def _on_fault(self, f: Fault) -> list[Send]:
         if f.phase != "command":
             self.fault_done.append(f)
+            if f.action == "drop" and f.phase == "done" and f.HasField("target") and f.sender == f"agent-{f.target}":
+                self.drops[f.target] = (f.rate, f.k)  # from step f.k on, its batches are lost at this rate
             return []
         if f.action == "camera" and f.target is not None and f.camera is not None:
             self.camera_ok[f.target, f.camera] = f.state == "on"
@@ -230,9 +248,11 @@ class WorldProtocol:
         for k in range(sc.steps):
             self.k = k
             self.outbox.clear()
+            self._aired = {(s, i) for s, i in self._aired if s >= k - 50}
             yield from self._apply_scheduled_faults(k)
             if k > 0:
-                self.truth, gyro = step_truth(self.wp, self.truth)
+                self.truth, gyro = self._ahead if self._ahead is not None else step_truth(self.wp, self.truth)
+                self._ahead = None
             tr = self.truth
             t = tr.t
             yield Send(self.keys.truth(), self._truth_msg(k))
@@ -241,7 +261,8 @@ class WorldProtocol:
                 yield Send(self.keys.rejoin(m.sat), m)
             yield Wait(lambda: False, 0.0)  # take in what has arrived: the live set reflects deaths up to now
             live = self.live()
-            yield Send(self.keys.clock(), Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode))
+            yield Send(self.keys.clock(), Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode,
+                                                malformed=self.malformed(), key_mismatch=self.key_mismatch()))
             absm = absolute_measurements(self.wp, tr)
             for i in live:
                 yield Send(self.keys.sensors(i), sensors_msg(
@@ -250,8 +271,12 @@ class WorldProtocol:
                 ))
             obs, tgt = yield from self._selection(k)
             yield from self._deliver_cameras(k, t, live, obs, tgt)
-            if self.links is not None and em.time_mode == "lockstep":
-                yield from self._radio(k, t, live)
+            if em.time_mode == "lockstep":
+                yield from (self._relay(k, t, live) if self.links is None else self._radio(k, t, live))
+            if k + 1 < sc.steps:
+                # The next step's truth while the agents work on this one (it depends on
+                # nothing they do): off the path every step waits on.
+                self._ahead = step_truth(self.wp, self.truth)
             if em.time_mode == "lockstep":
                 # Not on while some role is only out of reach (the recorder would miss the step).
                 ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live)
@@ -274,7 +299,7 @@ class WorldProtocol:
     def done_clock(self) -> Clock:
         """The clock that tells everyone the run is over."""
         return Clock(run=self.run_id, sender="world", k=self.k, t_s=self.truth.t, live_agents=self.live(),
-                     mode=self.sc.emulator.time_mode, done=True)
+                     mode=self.sc.emulator.time_mode, done=True, malformed=self.malformed(), key_mismatch=self.key_mismatch())
 
     def _pace(self, deadline: float):
         rem = deadline - self.clock()
@@ -360,13 +385,35 @@ class WorldProtocol:
                                                   select_ms=(time.perf_counter() - t0) * 1e3))
         return obs, tgt
 
+    def _batch_lost(self, i: int, k: int) -> bool:
+        """Agent i's batch of step k will not come: its drop fault lost it (the agent's
+        own draw, made again here)."""
+        rate, first = self.drops.get(i, (0.0, 0))
+        return k >= first and message_dropped(self.sc.seed, i, k, DROP_BATCH, rate)
+
+    def _batches_in(self, k: int, live: list[int]):
+        """Wait until the batch of step k of every live agent is in (or will never come)."""
+        yield Wait(lambda: all(i in self.batches.get(k, {}) or i not in self.alive_agents or self._batch_lost(i, k) for i in live),
+                   self.sc.emulator.step_timeout_s)
+
+    def _relay(self, k: int, t: float, live: list[int]):
+        """The ideal radio of step k (lockstep): every live agent's batch of k, to every
+        agent, in one message (an empty one too: every agent waits for it). A batch that
+        comes after its step's message went out is too late for anyone and is dropped."""
+        yield from self._batches_in(k, live)
+        got = self.batches.pop(k, {})
+        for s in [s for s in self.batches if s < k]:
+            late = self.batches.pop(s)
+            log.warning("step %d: batches of step %d from %s came after their step; dropped", k, s, sorted(late))
+        self._aired.update((k, i) for i in got)
+        yield Send(self.keys.batches(), step_batches_msg([m for m, _size in got.values()], run=self.run_id, k=k, t_s=t))
+
     def _radio(self, k: int, t: float, live: list[int]):
         """The radio channel of step k (lockstep): take every live agent's batch of k, hand
         each to the link model (copies for every other live agent, in observer order), and
         deliver to each live agent what has arrived by t_k (an empty delivery too: every
         agent waits for one)."""
-        em = self.sc.emulator
-        yield Wait(lambda: all(i in self.batches.get(k, {}) or i not in self.alive_agents for i in live), em.step_timeout_s)
+        yield from self._batches_in(k, live)
         with self._radio_lock:
             arrived = self._air(k, t, live)
         for j in live:
@@ -383,7 +430,6 @@ class WorldProtocol:
             for i, (msg, size) in sorted(self.batches.pop(s).items()):
                 lm.send(i, live, msg, size, t, key=msg.k)
                 self._aired.add((s, i))
-        self._aired = {(s, i) for s, i in self._aired if s >= k - 50}
         return lm.due(t)
 
     def _radio_free(self, k: int, live: list[int], t_wall0: float, deadline: float):

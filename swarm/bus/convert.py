@@ -25,12 +25,14 @@ from .messages import (
     MessageError,
     Select,
     Sensors,
+    StepBatches,
     Truth,
     batch_arrays,
     counted,
     encode,
     pixels,
     replace,
+    step_batch_arrays,
 )
 
 __all__ = [
@@ -46,6 +48,8 @@ __all__ = [
     "batch_msg",
     "radio_bytes",
     "relative_from_batches",
+    "step_batches_msg",
+    "relative_from_step",
     "detections",
     "detections_from_msg",
     "truth_msg",
@@ -257,6 +261,46 @@ def relative_from_batches(batches: list[MeasBatch]) -> RelativeMeasurements:
         r_ij_Bi=np.concatenate([a[2] for _o, a in cols]),
         R_Bi=np.concatenate([a[3] for _o, a in cols]),
     )
+
+
+@counted
+def step_batches_msg(batches: list[MeasBatch], *, run: str, k: int, t_s: float) -> StepBatches:
+    """The ideal radio's message of step k: ``batches`` (one per observer) laid end to end
+    in observer order."""
+    batches = sorted(batches, key=lambda b: b.observer)
+    cols = [batch_arrays(b) for b in batches]
+    n = sum(len(c[0]) for c in cols)
+
+    def cat(i: int, width: tuple[int, ...]) -> np.ndarray:
+        return np.concatenate([c[i] for c in cols]) if cols else np.zeros((0, *width))
+
+    return StepBatches(
+        run=run,
+        sender="world",
+        k=k,
+        t_s=t_s,
+        observers=[b.observer for b in batches],
+        counts=[len(c[0]) for c in cols],
+        target=cat(0, ()).astype(np.int64).tolist(),
+        camera=[c for b in batches for c in b.camera],
+        q_BjBi=_l(cat(1, (4,))),
+        r_ij_Bi_m=_l(cat(2, (3,))),
+        R_Bi=Matrix(shape=[n, 6, 6], data=_l(cat(3, (6, 6)))),
+    )
+
+
+@counted
+def relative_from_step(msg: StepBatches, skip: int | None = None) -> RelativeMeasurements:
+    """The measurements of a StepBatches (observer order, as they came), without those of
+    observer ``skip`` (the receiver's own, which it already holds)."""
+    obs, tgt, q, r, R = step_batch_arrays(msg)
+    if skip is not None:
+        keep = obs != skip
+        if not keep.all():
+            obs, tgt, q, r, R = obs[keep], tgt[keep], q[keep], r[keep], R[keep]
+    if not len(obs):
+        return RelativeMeasurements.empty()
+    return RelativeMeasurements(observer=obs, target=tgt, q_BjBi=q, r_ij_Bi=r, R_Bi=R)
 
 
 @counted

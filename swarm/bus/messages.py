@@ -31,7 +31,10 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/sat/<i>/sensors      world → agent i       Sensors
     swarm/<run>/sat/<i>/cam          world → agent i       CameraOutput
     swarm/<run>/sat/<i>/img          world → agent i       Images  (rendered scenarios)
-    swarm/<run>/meas/<i>             agent i → all         MeasBatch
+    swarm/<run>/meas/<i>             agent i → the radio   MeasBatch (the world, the recorder; with the
+                                                           selector or a tool that asks for them)
+    swarm/<run>/batches              world → all agents    StepBatches (links.enabled false: the ideal
+                                                           radio's every batch of a step, one message)
     swarm/<run>/est/<i>              agent i → all         Estimate
     swarm/<run>/cov/<i>              agent i (queryable)   FullEstimate
     swarm/<run>/init/<i>             world (queryable)     FullEstimate (the prior)
@@ -55,11 +58,13 @@ from __future__ import annotations
 
 import collections
 import functools
+import itertools
 import math
 import re
 import threading
 import time
-from typing import NamedTuple
+from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import numpy as np
 from google.protobuf.message import DecodeError, Message
@@ -72,7 +77,7 @@ from swarm.v1.fault_pb2 import Fault
 from swarm.v1.health_pb2 import Health
 from swarm.v1.images_pb2 import CameraView, Images
 from swarm.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
-from swarm.v1.measurements_pb2 import MeasBatch
+from swarm.v1.measurements_pb2 import MeasBatch, StepBatches
 from swarm.v1.recording_pb2 import BusGap, Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
 from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
@@ -84,7 +89,7 @@ MAX_SAT_ID = 10_000
 QUAT_TOL = 1e-6  # |‖q‖ − 1| a unit quaternion may show (checked as |‖q‖² − 1| ≤ 2e-6; ours: ~1e-16)
 SYM_TOL = 1e-9  # |A − Aᵀ| relative to max |A| a covariance may show (round-off only)
 MiB = 1 << 20
-MAX_PAYLOAD_BYTES = {"img": 64 * MiB, "full_est": 64 * MiB}
+MAX_PAYLOAD_BYTES = {"img": 64 * MiB, "full_est": 64 * MiB, "batches": 64 * MiB}
 MAX_PAYLOAD_DEFAULT = 8 * MiB  # every other kind (an estimate of 100 satellites is ~60 KB)
 
 __all__ = [
@@ -105,6 +110,7 @@ __all__ = [
     "Detection",
     "CameraOutput",
     "MeasBatch",
+    "StepBatches",
     "Estimate",
     "FullEstimate",
     "Select",
@@ -135,6 +141,7 @@ __all__ = [
     "opt",
     "pixels",
     "batch_arrays",
+    "step_batch_arrays",
     "prepare",
     "file_descriptor_set",
     "codec_cpu_ms",
@@ -157,6 +164,7 @@ MODELS: dict[str, type[Message]] = {
     "sensors": Sensors,
     "cam": CameraOutput,
     "meas": MeasBatch,
+    "batches": StepBatches,
     "est": Estimate,
     "full_est": FullEstimate,
     "select": Select,
@@ -429,6 +437,42 @@ def _meas(m: MeasBatch, top: int) -> None:
     _MEMO.put(m, (np.array(tgt, dtype=int), q, r, R))
 
 
+def _step_batches(m: StepBatches, top: int) -> None:
+    obs = list(m.observers)
+    cnt = list(m.counts)
+    if len(cnt) != len(obs):
+        raise MessageError(f"counts: {len(cnt)} values for {len(obs)} observers")
+    _ids(top, "observers", obs)
+    if any(b <= a for a, b in itertools.pairwise(obs)):
+        raise MessageError("observers: not ascending and distinct")
+    n = sum(cnt)
+    if len(m.target) != n or len(m.camera) != n:
+        raise MessageError(f"target/camera: {len(m.target)}/{len(m.camera)} values for {n} rows (the sum of counts)")
+    tgt = np.asarray(m.target, dtype=int)
+    if n and tgt.max() > top:
+        raise MessageError(f"target: satellite id {int(tgt.max())} out of range (0-{top})")
+    if max(m.camera, default=0) > 6 + MAX_SAT_ID:
+        raise MessageError(f"camera: {max(m.camera)} out of range")
+    for name, vals, width in (("q_BjBi", m.q_BjBi, 4), ("r_ij_Bi_m", m.r_ij_Bi_m, 3)):
+        if len(vals) != width * n:
+            raise MessageError(f"{name}: {len(vals)} numbers, expected {n} × {width}")
+    if tuple(m.R_Bi.shape) != (n, 6, 6):
+        raise MessageError(f"R_Bi: shape {list(m.R_Bi.shape)}, expected {[n, 6, 6]}")
+    if len(m.R_Bi.data) != 36 * n:
+        raise MessageError(f"R_Bi: shape {[n, 6, 6]} needs {36 * n} numbers, got {len(m.R_Bi.data)}")
+    rows = np.repeat(np.asarray(obs, dtype=int), np.asarray(cnt, dtype=int))
+    if (rows == tgt).any():
+        raise MessageError(f"target: satellite {int(rows[rows == tgt][0])} cannot measure itself")
+    q = np.asarray(m.q_BjBi, dtype=float).reshape(n, 4)
+    r = np.asarray(m.r_ij_Bi_m, dtype=float).reshape(n, 3)
+    R = np.asarray(m.R_Bi.data, dtype=float).reshape(n, 6, 6)
+    fc = _fastcheck()
+    code = fc.check_batch(q, r, R, 2 * QUAT_TOL, SYM_TOL)
+    if code:
+        raise MessageError(fc.REASONS[code])
+    _MEMO.put(m, (rows, tgt, q, r, R))
+
+
 @functools.cache
 def _fastcheck():
     """:mod:`.fastcheck` (numba), loaded when first needed, not at import."""
@@ -440,7 +484,7 @@ def _fastcheck():
 def prepare(kind: str) -> None:
     """Load now what decoding ``kind`` will need (measurement batches: the compiled
     checks, about a second with numba's import), so the first message is not late."""
-    if kind == "meas":
+    if kind in ("meas", "batches"):
         _fastcheck().warm_up()
 
 
@@ -478,6 +522,21 @@ def batch_arrays(m: MeasBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.n
         return got
     n = len(m.target)
     return (
+        np.asarray(m.target, dtype=int),
+        np.asarray(m.q_BjBi, dtype=float).reshape(n, 4),
+        np.asarray(m.r_ij_Bi_m, dtype=float).reshape(n, 3),
+        np.asarray(m.R_Bi.data, dtype=float).reshape(n, 6, 6),
+    )
+
+
+def step_batch_arrays(m: StepBatches) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(observer (rows,), target (rows,), q_BjBi (rows, 4), r_ij_Bi_m (rows, 3), R_Bi (rows, 6, 6)) of a decoded StepBatches."""
+    got = _MEMO.take(m)
+    if got is not None:
+        return got
+    n = len(m.target)
+    return (
+        np.repeat(np.asarray(m.observers, dtype=int), np.asarray(m.counts, dtype=int)),
         np.asarray(m.target, dtype=int),
         np.asarray(m.q_BjBi, dtype=float).reshape(n, 4),
         np.asarray(m.r_ij_Bi_m, dtype=float).reshape(n, 3),
@@ -677,11 +736,12 @@ def _rejoin(m: RejoinFate, top: int) -> None:
         raise MessageError("arrival_t_s: a delivered transfer needs its arrival time")
 
 
-_VALIDATORS = {
+_VALIDATORS: dict[str, Callable[[Any, int], None]] = {
     "clock": _clock,
     "sensors": _sensors,
     "cam": _cam,
     "meas": _meas,
+    "batches": _step_batches,
     "est": _est,
     "full_est": _full_est,
     "select": _select,
@@ -700,7 +760,7 @@ _KIND_OF = {cls: kind for kind, cls in MODELS.items()}
 
 
 # -- the message against its key ----------------------------------------------------------
-_WORLD_KEYS = ("clock", "sensors", "cam", "img", "truth", "claim", "rx", "links", "rejoin")
+_WORLD_KEYS = ("clock", "sensors", "cam", "img", "truth", "claim", "rx", "batches", "links", "rejoin")
 _OWNER_FIELD = {"sensors": "sat", "cam": "sat", "img": "sat", "health": "sat", "meas": "observer", "est": "own", "full_est": "own", "rx": "sat", "rejoin": "sat"}
 
 
@@ -873,6 +933,10 @@ class Keys:
     def rx(self, i: int | str = "*") -> str:
         return f"{self.root}/rx/{i}"
 
+    def batches(self) -> str:
+        """Every batch of a step, from the ideal radio (links.enabled false) to every agent."""
+        return f"{self.root}/batches"
+
     def links(self) -> str:
         return f"{self.root}/links"
 
@@ -894,7 +958,7 @@ class Keys:
 
 _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
-    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)(?:/[A-Za-z0-9_.-]+)?|(?P<truth>truth)|(?P<links>links)"
+    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)(?:/[A-Za-z0-9_.-]+)?|(?P<truth>truth)|(?P<links>links)|(?P<batches>batches)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
     r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin)/(?P<id>\d+)(?:/\d+/\d+)?"
     r"|claim/(?P<token>[^/]+)"
@@ -913,7 +977,7 @@ def _parse_key(key: str) -> tuple[str, str, int | None]:
     if not m:
         raise MessageError(f"unexpected key {str(key)[:200]!r}")
     run = m["run"]
-    for k in ("clock", "select", "fault", "truth", "links"):
+    for k in ("clock", "select", "fault", "truth", "links", "batches"):
         if m[k]:
             return run, k, None
     if m["satkind"]:
@@ -945,14 +1009,15 @@ class Grants(NamedTuple):
 
 
 def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
-    """The single table of who may say what. ``links``: the scenario's radio is on (agents
-    then hear peers' batches only through the world's ``rx/<i>``, never ``meas/*``)."""
+    """The single table of who may say what. Agents hear their peers' batches only through
+    the world, the radio: ``batches`` (the ideal radio) or, when the scenario's ``links``
+    are on, their own ``rx/<i>``; never another agent's ``meas/<j>``."""
     k = keys
     alive = f"{k.root}/alive/**"
     if identity == "world":
         return Grants(
-            put=(k.clock(), k.sensors("*"), k.cam("*"), k.img("*"), k.truth(), k.links(), k.rx("*"), k.rejoin("*"),
-                 k.select(), k.fault(), k.fault_report("world")),
+            put=(k.clock(), k.sensors("*"), k.cam("*"), k.img("*"), k.truth(), k.links(), k.rx("*"), k.batches(),
+                 k.rejoin("*"), k.select(), k.fault(), k.fault_report("world")),
             sub=(k.est(), k.health(), k.select(), k.faults(), k.meas()),
             serve=(k.init(), k.claim(), k.rejoin("*") + "/*/*"),
             token=(k.alive("world"),), watch=(alive,))
@@ -960,7 +1025,7 @@ def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
         i = int(m[1])
         return Grants(
             put=(k.meas(i), k.est(i), k.health(i), k.fault_report(identity)),
-            sub=(k.clock(), k.sensors(i), k.cam(i), k.img(i), k.rx(i) if links else k.meas(), k.fault(), k.health()),
+            sub=(k.clock(), k.sensors(i), k.cam(i), k.img(i), k.rx(i) if links else k.batches(), k.fault()),
             query=(k.init(i), k.cov(), k.rejoin(i, "*", "*")),
             serve=(k.cov(i),), token=(k.alive("agent", i),), watch=(alive,))
     if identity == "selector":

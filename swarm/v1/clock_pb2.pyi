@@ -7,7 +7,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class Clock(_message.Message):
-    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "live_agents", "mode", "done")
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "live_agents", "mode", "done", "malformed", "key_mismatch")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_FIELD_NUMBER: _ClassVar[int]
     SENDER_FIELD_NUMBER: _ClassVar[int]
@@ -16,6 +16,8 @@ class Clock(_message.Message):
     LIVE_AGENTS_FIELD_NUMBER: _ClassVar[int]
     MODE_FIELD_NUMBER: _ClassVar[int]
     DONE_FIELD_NUMBER: _ClassVar[int]
+    MALFORMED_FIELD_NUMBER: _ClassVar[int]
+    KEY_MISMATCH_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     run: str
     sender: str
@@ -24,4 +26,6 @@ class Clock(_message.Message):
     live_agents: _containers.RepeatedScalarFieldContainer[int]
     mode: str
     done: bool
-    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., live_agents: _Optional[_Iterable[int]] = ..., mode: _Optional[str] = ..., done: _Optional[bool] = ...) -> None: ...
+    malformed: int
+    key_mismatch: int
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., live_agents: _Optional[_Iterable[int]] = ..., mode: _Optional[str] = ..., done: _Optional[bool] = ..., malformed: _Optional[int] = ..., key_mismatch: _Optional[int] = ...) -> None: ...

@@ -32,3 +32,31 @@ class MeasBatch(_message.Message):
     r_ij_Bi_m: _containers.RepeatedScalarFieldContainer[float]
     R_Bi: _common_pb2.Matrix
     def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., observer: _Optional[int] = ..., target: _Optional[_Iterable[int]] = ..., camera: _Optional[_Iterable[int]] = ..., q_BjBi: _Optional[_Iterable[float]] = ..., r_ij_Bi_m: _Optional[_Iterable[float]] = ..., R_Bi: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ...) -> None: ...
+
+class StepBatches(_message.Message):
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "observers", "counts", "target", "camera", "q_BjBi", "r_ij_Bi_m", "R_Bi")
+    SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
+    RUN_FIELD_NUMBER: _ClassVar[int]
+    SENDER_FIELD_NUMBER: _ClassVar[int]
+    K_FIELD_NUMBER: _ClassVar[int]
+    T_S_FIELD_NUMBER: _ClassVar[int]
+    OBSERVERS_FIELD_NUMBER: _ClassVar[int]
+    COUNTS_FIELD_NUMBER: _ClassVar[int]
+    TARGET_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_FIELD_NUMBER: _ClassVar[int]
+    Q_BJBI_FIELD_NUMBER: _ClassVar[int]
+    R_IJ_BI_M_FIELD_NUMBER: _ClassVar[int]
+    R_BI_FIELD_NUMBER: _ClassVar[int]
+    schema_version: int
+    run: str
+    sender: str
+    k: int
+    t_s: float
+    observers: _containers.RepeatedScalarFieldContainer[int]
+    counts: _containers.RepeatedScalarFieldContainer[int]
+    target: _containers.RepeatedScalarFieldContainer[int]
+    camera: _containers.RepeatedScalarFieldContainer[int]
+    q_BjBi: _containers.RepeatedScalarFieldContainer[float]
+    r_ij_Bi_m: _containers.RepeatedScalarFieldContainer[float]
+    R_Bi: _common_pb2.Matrix
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., observers: _Optional[_Iterable[int]] = ..., counts: _Optional[_Iterable[int]] = ..., target: _Optional[_Iterable[int]] = ..., camera: _Optional[_Iterable[int]] = ..., q_BjBi: _Optional[_Iterable[float]] = ..., r_ij_Bi_m: _Optional[_Iterable[float]] = ..., R_Bi: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ...) -> None: ...
