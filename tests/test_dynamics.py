@@ -33,6 +33,26 @@ def test_hcw_noise_cov_matches_quadrature():
     np.testing.assert_allclose(dynamics.hcw_noise_cov(N_E, dt, sa, sp), ref, rtol=1e-8, atol=1e-22)
 
 
+def test_hcw_noise_cov_is_filterpys_van_loan_bit_for_bit():
+    """Written out to spare every process filterpy's import (and scipy.stats with it); the
+    numbers are filterpy's own."""
+    for dt, sa, sp in ((1.0, 1e-3, 0.0), (5.0, 1e-3, 2e-4), (0.1, 3e-6, 1e-5)):
+        _, Q = van_loan_discretization(dynamics.hcw_A(N_E), np.diag([sp] * 3 + [sa] * 3), dt)
+        assert np.array_equal(dynamics.hcw_noise_cov(N_E, dt, sa, sp), 0.5 * (Q + Q.T))
+
+
+def test_a_filter_does_not_import_filterpy_or_scipy_stats():
+    """Start-up: a process that builds a filter imports neither (checked in a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom swarmcore.agent import filter_params\nfrom swarmcore.scenario import Scenario\n"
+            "filter_params(Scenario(n_sats=3), 0)\nprint(sorted(m for m in ('filterpy', 'scipy.stats') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout
+
+
 def test_T_IH_rotates_about_z_at_mean_motion():
     t = 1234.0
     T = dynamics.T_IH(N_E, t)
