@@ -29,6 +29,7 @@ from .messages import (
     Truth,
     batch_arrays,
     counted,
+    detection_arrays,
     encode,
     pixels,
     replace,
@@ -203,24 +204,19 @@ def gyro_from_sensors(msg: Sensors) -> np.ndarray | None:
 @counted
 def detections(d: Detections) -> list[Detection]:
     """An observer's synthetic camera detections as message rows."""
-    return [
-        Detection(target=int(d.target[m]), camera=int(d.camera[m]), q_BjBi=d.q_BjBi[m].tolist(), r_ij_Bi_m=d.r_ij_Bi[m].tolist())
-        for m in range(len(d))
-    ]
+    cols = (np.asarray(d.target).tolist(), np.asarray(d.camera).tolist(), np.asarray(d.q_BjBi).tolist(), np.asarray(d.r_ij_Bi).tolist())
+    return [Detection(target=t, camera=c, q_BjBi=q, r_ij_Bi_m=r) for t, c, q, r in zip(*cols, strict=True)]
 
 
 @counted
 def detections_from_msg(msg: CameraOutput, camera_ok=None) -> Detections:
     """The detections of a camera-output message, keeping those of cameras ``camera_ok``
     says work (the agent's own belief of its camera health)."""
-    rows = [d for d in msg.detections if camera_ok is None or camera_ok[d.camera]]
-    return Detections(
-        observer=msg.sat,
-        target=np.array([d.target for d in rows], dtype=int),
-        camera=np.array([d.camera for d in rows], dtype=int),
-        q_BjBi=np.array([list(d.q_BjBi) for d in rows], dtype=float).reshape(-1, 4),
-        r_ij_Bi=np.array([list(d.r_ij_Bi_m) for d in rows], dtype=float).reshape(-1, 3),
-    )
+    target, camera, q, r = detection_arrays(msg)
+    d = Detections(observer=msg.sat, target=target, camera=camera, q_BjBi=q, r_ij_Bi=r)
+    if camera_ok is not None and len(d) and not np.asarray(camera_ok)[camera].all():
+        d = d.subset(np.asarray(camera_ok)[camera])
+    return d
 
 
 @counted

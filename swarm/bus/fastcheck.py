@@ -33,11 +33,12 @@ REASONS = {
 def check_batch_numpy(q: np.ndarray, r: np.ndarray, R: np.ndarray, quat_tol2: float, sym_tol: float) -> int:
     """0 if the batch is sound, else the code of the first defect found (see :data:`REASONS`).
 
-    ``q`` (m, 4), ``r`` (m, 3), ``R`` (m, 6, 6); a quaternion passes with
+    ``q`` (m, 4), ``r`` (m', 3), ``R`` (m'', 6, 6) (a batch has m = m' = m''; an estimate
+    checked with the same pass has 3m + 1 rows of rates and positions); a quaternion passes with
     ``|‖q‖² − 1| ≤ quat_tol2``, a covariance is symmetric when every
     ``|R_ij − R_ji| ≤ sym_tol · max |R|`` (its own largest entry) and positive-definite
     when its Cholesky factorisation succeeds."""
-    if len(q) == 0:
+    if len(q) == 0 and len(r) == 0 and len(R) == 0:
         return 0
     if not np.isfinite(q).all():
         return 1
@@ -63,6 +64,8 @@ if HAVE_NUMBA:
     @numba.njit(cache=True, fastmath=False)
     def _check_batch(q, r, R, quat_tol2, sym_tol):  # pragma: no cover - compiled
         m = q.shape[0]
+        mr = r.shape[0]  # as many rows as q in a batch; an estimate's rates, positions, velocities and bias: 3n + 1
+        mR = R.shape[0]
         L = np.empty((6, 6))
         for k in range(m):  # the checks in check_batch_numpy's order
             for c in range(4):
@@ -74,16 +77,16 @@ if HAVE_NUMBA:
                 s += q[k, c] * q[k, c]
             if not abs(s - 1.0) <= quat_tol2:
                 return 2
-        for k in range(m):
+        for k in range(mr):
             for c in range(3):
                 if not np.isfinite(r[k, c]):
                     return 3
-        for k in range(m):
+        for k in range(mR):
             for i in range(6):
                 for j in range(6):
                     if not np.isfinite(R[k, i, j]):
                         return 4
-        for k in range(m):
+        for k in range(mR):
             scale = 0.0
             for i in range(6):
                 for j in range(6):
@@ -92,7 +95,7 @@ if HAVE_NUMBA:
                 for j in range(i):
                     if not abs(R[k, i, j] - R[k, j, i]) <= sym_tol * scale:
                         return 5
-        for k in range(m):
+        for k in range(mR):
             # Cholesky–Banachiewicz on the lower triangle, as LAPACK's potrf reads it.
             for i in range(6):
                 for j in range(i + 1):
