@@ -454,7 +454,11 @@ def fault_restart_router(
 
 @fault_app.command("drop")
 def fault_drop(ctx: typer.Context, sat: int, rate: float = typer.Option(..., "--rate", min=0.0, max=1.0, help="fraction of SAT's outgoing messages lost")):
-    """Lose a fraction of satellite SAT's outgoing measurement batches and estimates."""
+    """Lose a fraction of satellite SAT's outgoing measurement batches and estimates.
+
+    The agent makes the draws (seeded by satellite, step and message); its report says
+    from which step, and the world's radio, knowing the same draws, never waits for a
+    batch that was lost."""
     _send_fault(ctx, action="drop", target=sat, rate=rate)
 
 
