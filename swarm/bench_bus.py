@@ -60,9 +60,9 @@ def _percentiles(x):
     return {"p50_ms": float(np.percentile(a, 50)), "p99_ms": float(np.percentile(a, 99)), "mean_ms": float(a.mean()), "samples": int(a.size)}
 
 
-def _batch(n: int):
-    """A realistic measurement batch: observer 0's relative poses of the n−1 others, with
-    the covariances the sensor model reports (what one agent broadcasts at n satellites)."""
+def _batch(n: int, observer: int = 0):
+    """A realistic measurement batch: the observer's relative poses of the n−1 others, with
+    the covariances the sensor model reports (what one agent transmits at n satellites)."""
     from swarmcore.agent import SyntheticPoseEstimator
     from swarmcore.scenario import Scenario
     from swarmcore.world import SyntheticCameras, initial_truth, world_params
@@ -70,16 +70,29 @@ def _batch(n: int):
     sc = Scenario(name=f"bench-n{n}", seed=1, n_sats=n, duration_s=10.0)
     wp = world_params(sc)
     tr = initial_truth(sc)
-    obs, tgt = np.zeros(n - 1, dtype=int), np.arange(1, n)
+    tgt = np.array([j for j in range(n) if j != observer])
+    obs = np.full(n - 1, observer)
     seen = SyntheticCameras(wp).observe(tr, obs, tgt)
-    return SyntheticPoseEstimator(sc).measure(0, seen[0])
+    return SyntheticPoseEstimator(sc).measure(observer, seen[observer])
+
+
+def _median_us(f, repeat: int) -> float:
+    ts = []
+    for _ in range(repeat):
+        t0 = time.thread_time_ns()
+        f()
+        ts.append((time.thread_time_ns() - t0) / 1e3)
+    return float(np.median(ts))
 
 
 def codec_cost(n: int, repeat: int = 200) -> dict:
     """CPU time (µs, median) to turn one agent's batch at swarm size n into bytes (message
     construction + encoding) and back into the filter's arrays (decoding, validation,
-    conversion): the work every agent does once, and n−1 times, per step."""
-    from swarm.bus.convert import batch_msg, relative_from_batches
+    conversion): what an agent does once a step, and what the world (the radio) does for
+    each agent's batch. Then the step's every batch in one message: the world's cost to
+    build and encode it, and each agent's to decode, check and convert its peers' rows
+    (once a step, in place of a decode per peer)."""
+    from swarm.bus.convert import batch_msg, relative_from_batches, relative_from_step, step_batches_msg
     from swarm.bus.messages import decode, encode
 
     rel, cams = _batch(n)
@@ -96,13 +109,24 @@ def codec_cost(n: int, repeat: int = 200) -> dict:
     assert np.array_equal(back.R_Bi, rel.R_Bi) and np.array_equal(back.q_BjBi, rel.q_BjBi), "the batch did not round-trip"
     out = {"bytes": len(raw)}
     for name, f in (("encode_us", enc), ("decode_us", dec)):
-        ts = []
-        for _ in range(repeat):
-            t0 = time.thread_time_ns()
-            f()
-            ts.append((time.thread_time_ns() - t0) / 1e3)
-        out[name] = float(np.median(ts))
-    out["decode_all_peers_ms"] = out["decode_us"] * (n - 1) / 1e3
+        out[name] = _median_us(f, repeat)
+    out["decode_all_peers_ms"] = out["decode_us"] * (n - 1) / 1e3  # what an agent did when it heard every peer's batch
+    batches = [decode("meas", encode(batch_msg(*_batch(n, i), run="bench", sender=f"agent-{i}", k=1, t_s=1.0, observer=i)))
+               for i in range(n)]
+
+    def build():
+        return encode(step_batches_msg(batches, run="bench", k=1, t_s=1.0))
+
+    step_raw = build()
+    want = relative_from_batches(batches[1:])
+
+    def step_dec():
+        return relative_from_step(decode("batches", step_raw), skip=0)
+
+    got = step_dec()
+    assert np.array_equal(got.R_Bi, want.R_Bi) and np.array_equal(got.target, want.target), "the step's batches did not round-trip"
+    out["step_batches"] = {"bytes": len(step_raw), "build_us": _median_us(build, max(10, repeat // 10)),
+                           "decode_us": _median_us(step_dec, max(10, repeat // 10))}
     return out
 
 
@@ -196,7 +220,10 @@ def _bench_latency(samples: int, big_samples: int, log, batch_sizes, keys_dir: P
                     row["n"] = n_batch
                     row["codec"] = codec_cost(n_batch)
                     c = row["codec"]
-                    line += f"  encode {c['encode_us']:.0f} µs  decode {c['decode_us']:.0f} µs (×{n_batch - 1} peers: {c['decode_all_peers_ms']:.2f} ms)"
+                    sb = c["step_batches"]
+                    line += (f"  encode {c['encode_us']:.0f} µs  decode {c['decode_us']:.0f} µs; the step's {n_batch} batches in one message "
+                             f"({sb['bytes']} B): built by the world in {sb['build_us'] / 1e3:.2f} ms, decoded by an agent in "
+                             f"{sb['decode_us'] / 1e3:.2f} ms (a decode per peer: {c['decode_all_peers_ms']:.2f} ms)")
                 log(line)
                 rows.append(row)
             pub.put(b"stop")

@@ -31,6 +31,7 @@ from .messages import (
     counted,
     detection_arrays,
     encode,
+    forget_arrays,
     pixels,
     replace,
     step_batch_arrays,
@@ -262,27 +263,21 @@ def relative_from_batches(batches: list[MeasBatch]) -> RelativeMeasurements:
 @counted
 def step_batches_msg(batches: list[MeasBatch], *, run: str, k: int, t_s: float) -> StepBatches:
     """The ideal radio's message of step k: ``batches`` (one per observer) laid end to end
-    in observer order."""
-    batches = sorted(batches, key=lambda b: b.observer)
-    cols = [batch_arrays(b) for b in batches]
-    n = sum(len(c[0]) for c in cols)
-
-    def cat(i: int, width: tuple[int, ...]) -> np.ndarray:
-        return np.concatenate([c[i] for c in cols]) if cols else np.zeros((0, *width))
-
-    return StepBatches(
-        run=run,
-        sender="world",
-        k=k,
-        t_s=t_s,
-        observers=[b.observer for b in batches],
-        counts=[len(c[0]) for c in cols],
-        target=cat(0, ()).astype(np.int64).tolist(),
-        camera=[c for b in batches for c in b.camera],
-        q_BjBi=_l(cat(1, (4,))),
-        r_ij_Bi_m=_l(cat(2, (3,))),
-        R_Bi=Matrix(shape=[n, 6, 6], data=_l(cat(3, (6, 6)))),
-    )
+    in observer order. Each column is extended from the batch's own (protobuf copies packed
+    numbers container to container: at n = 40, 0.2 ms where going through Python floats
+    took 3.3 ms, on the world's path every step waits on)."""
+    msg = StepBatches(run=run, sender="world", k=k, t_s=t_s)
+    for b in sorted(batches, key=lambda b: b.observer):
+        msg.observers.append(b.observer)
+        msg.counts.append(len(b.target))
+        msg.target.extend(b.target)
+        msg.camera.extend(b.camera)
+        msg.q_BjBi.extend(b.q_BjBi)
+        msg.r_ij_Bi_m.extend(b.r_ij_Bi_m)
+        msg.R_Bi.data.extend(b.R_Bi.data)
+        forget_arrays(b)  # its decoder kept its columns for a conversion that will not come
+    msg.R_Bi.shape.extend([len(msg.target), 6, 6])
+    return msg
 
 
 @counted

@@ -143,6 +143,7 @@ __all__ = [
     "batch_arrays",
     "step_batch_arrays",
     "detection_arrays",
+    "forget_arrays",
     "prepare",
     "file_descriptor_set",
     "codec_cpu_ms",
@@ -555,6 +556,11 @@ def detection_arrays(m: CameraOutput) -> tuple[np.ndarray, np.ndarray, np.ndarra
         np.array([x for d in dets for x in d.q_BjBi], dtype=float).reshape(-1, 4),
         np.array([x for d in dets for x in d.r_ij_Bi_m], dtype=float).reshape(-1, 3),
     )
+
+
+def forget_arrays(m) -> None:
+    """Drop what a validation kept of ``m`` for a conversion that will not come."""
+    _MEMO.take(m)
 
 
 def batch_arrays(m: MeasBatch) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
