@@ -13,6 +13,7 @@ observer's and target's ``[a, Δr]``, ``R`` (m, 6, 6), ``P_OO`` (6n, 6n).
 
 from __future__ import annotations
 
+import functools
 import os
 
 import numpy as np
@@ -66,11 +67,15 @@ def information_numpy(n, observer, target, y, Hi, Hj, R):
     return Lam4.transpose(0, 2, 1, 3).reshape(6 * n, 6 * n), b.ravel(), yRy
 
 
+@functools.lru_cache(maxsize=64)
 def _observed_split(n: int) -> tuple[np.ndarray, np.ndarray]:
     """State indices of the observed errors O = [a, Δr] and the others U = [Δω|Δβ, Δv] of
-    every satellite's 12-state block (the order of :func:`swarmcore.mekf.observed_indices`)."""
+    every satellite's 12-state block (the order of :func:`swarmcore.mekf.observed_indices`);
+    computed once per swarm size (read-only)."""
     base = 12 * np.arange(n)[:, None]
-    return (base + np.r_[0:3, 6:9]).ravel(), (base + np.r_[3:6, 9:12]).ravel()
+    O, U = (base + np.r_[0:3, 6:9]).ravel(), (base + np.r_[3:6, 9:12]).ravel()
+    O.flags.writeable = U.flags.writeable = False
+    return O, U
 
 
 def split_observed_numpy(P, n):

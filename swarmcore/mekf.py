@@ -649,7 +649,8 @@ def _solve_information(P: np.ndarray, n: int, lin: Linearized, blocks=None):
     # them to LAPACK and BLAS without a copy. Only lower triangles are read and written.)
     L = chol(P_OO.T)
     M = blas.dtrmm(1.0, L, blas.dtrmm(1.0, L, Lam.T, side=1, lower=1), lower=1, trans_a=1, overwrite_b=1)  # Lᵀ (Λ L)
-    M[np.diag_indices_from(M)] += 1.0
+    d = _diagonal(M.shape[0])
+    M[d, d] += 1.0
     Uc = chol(M, overwrite=True)
     W = blas.dtrsm(1.0, Uc, L, side=1, lower=1, trans_a=1)  # L U⁻ᵀ: P⁺_OO = W Wᵀ
     # With B = P_UO P_OO⁻¹ = Xᵀ L⁻¹ and X = L⁻¹ P_OU: B P_OU = XᵀX and B W = (U⁻¹ X)ᵀ = Yᵀ.
@@ -665,6 +666,11 @@ def _solve_information(P: np.ndarray, n: int, lin: Linearized, blocks=None):
     dx[U] = Y.T @ Wb
     # Joint NIS yᵀ S⁻¹ y = yᵀ R⁻¹ y − bᵀ P⁺_OO b (matrix inversion lemma).
     return dx, kernels.join_observed(A_OO, C_OU, A_UU, n), yRy - float(Wb @ Wb)
+
+
+@lru_cache(maxsize=64)
+def _diagonal(size: int) -> np.ndarray:
+    return np.arange(size)
 
 
 @lru_cache(maxsize=64)
