@@ -437,13 +437,10 @@ def _cam(m: CameraOutput, top: int) -> None:
     _MEMO.put(m, (np.array(tgt, dtype=int), np.array(cam, dtype=int), qa, ra))
 
 
-def _meas(m: MeasBatch, top: int) -> None:
-    _id(top, "observer", m.observer)
-    tgt = list(m.target)
-    n = len(tgt)
-    _ids(top, "target", tgt)
-    if m.observer in tgt:
-        raise MessageError(f"target: satellite {m.observer} cannot measure itself")
+def _columns(m, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The measurement columns of a MeasBatch or StepBatches of ``n`` rows (camera,
+    q_BjBi, r_ij_Bi_m, R_Bi: lengths, shape, and every number in one compiled pass);
+    returns (q (n, 4), r (n, 3), R (n, 6, 6))."""
     if len(m.camera) != n:
         raise MessageError(f"camera: {len(m.camera)} values for {n} measurements")
     if max(m.camera, default=0) > 6 + MAX_SAT_ID:
@@ -462,6 +459,16 @@ def _meas(m: MeasBatch, top: int) -> None:
     code = fc.check_batch(q, r, R, 2 * QUAT_TOL, SYM_TOL)
     if code:
         raise MessageError(fc.REASONS[code])
+    return q, r, R
+
+
+def _meas(m: MeasBatch, top: int) -> None:
+    _id(top, "observer", m.observer)
+    tgt = list(m.target)
+    _ids(top, "target", tgt)
+    if m.observer in tgt:
+        raise MessageError(f"target: satellite {m.observer} cannot measure itself")
+    q, r, R = _columns(m, len(tgt))
     # The receiver's next step is converting these very arrays: keep them for it.
     _MEMO.put(m, (np.array(tgt, dtype=int), q, r, R))
 
@@ -475,30 +482,15 @@ def _step_batches(m: StepBatches, top: int) -> None:
     if any(b <= a for a, b in itertools.pairwise(obs)):
         raise MessageError("observers: not ascending and distinct")
     n = sum(cnt)
-    if len(m.target) != n or len(m.camera) != n:
-        raise MessageError(f"target/camera: {len(m.target)}/{len(m.camera)} values for {n} rows (the sum of counts)")
+    if len(m.target) != n:
+        raise MessageError(f"target: {len(m.target)} values for {n} rows (the sum of counts)")
     tgt = np.asarray(m.target, dtype=int)
     if n and tgt.max() > top:
         raise MessageError(f"target: satellite id {int(tgt.max())} out of range (0-{top})")
-    if max(m.camera, default=0) > 6 + MAX_SAT_ID:
-        raise MessageError(f"camera: {max(m.camera)} out of range")
-    for name, vals, width in (("q_BjBi", m.q_BjBi, 4), ("r_ij_Bi_m", m.r_ij_Bi_m, 3)):
-        if len(vals) != width * n:
-            raise MessageError(f"{name}: {len(vals)} numbers, expected {n} × {width}")
-    if tuple(m.R_Bi.shape) != (n, 6, 6):
-        raise MessageError(f"R_Bi: shape {list(m.R_Bi.shape)}, expected {[n, 6, 6]}")
-    if len(m.R_Bi.data) != 36 * n:
-        raise MessageError(f"R_Bi: shape {[n, 6, 6]} needs {36 * n} numbers, got {len(m.R_Bi.data)}")
     rows = np.repeat(np.asarray(obs, dtype=int), np.asarray(cnt, dtype=int))
     if (rows == tgt).any():
         raise MessageError(f"target: satellite {int(rows[rows == tgt][0])} cannot measure itself")
-    q = np.asarray(m.q_BjBi, dtype=float).reshape(n, 4)
-    r = np.asarray(m.r_ij_Bi_m, dtype=float).reshape(n, 3)
-    R = np.asarray(m.R_Bi.data, dtype=float).reshape(n, 6, 6)
-    fc = _fastcheck()
-    code = fc.check_batch(q, r, R, 2 * QUAT_TOL, SYM_TOL)
-    if code:
-        raise MessageError(fc.REASONS[code])
+    q, r, R = _columns(m, n)
     _MEMO.put(m, (rows, tgt, q, r, R))
 
 
