@@ -134,13 +134,25 @@ def test_protoc_decode_of_recorded_messages_equals_the_python_values(recording):
             block = text[text.index("R_Bi {"):]
             assert _numbers(block, "data") == array(m.R_Bi).ravel().tolist()
             done.add("meas")
+        elif kind == "batches" and "batches" not in done:
+            # What an agent of another language reads of its peers: the radio's one message.
+            m = M.decode("batches", data)
+            if len(m.observers) < 2 or not len(m.target):
+                continue
+            text = _protoc_decode("StepBatches", "swarm/v1/measurements.proto", data)
+            assert _numbers(text, "observers") == list(m.observers)
+            assert _numbers(text, "counts") == list(m.counts)
+            assert _numbers(text, "q_BjBi") == list(m.q_BjBi)
+            block = text[text.index("R_Bi {"):]
+            assert _numbers(block, "data") == array(m.R_Bi).ravel().tolist()
+            done.add("batches")
         elif kind == "truth" and "truth" not in done:
             m = M.decode("truth", data)
             text = _protoc_decode("Truth", "swarm/v1/truth.proto", data)
             assert _numbers(text, "t_s") == [rec.t[m.k]] or (m.k == 0 and "t_s:" not in text)
             assert _numbers(text, "q_BI") == rec.truth_q[m.k].ravel().tolist()
             done.add("truth")
-    assert done == {"est", "meas", "truth"}
+    assert done == {"est", "meas", "batches", "truth"}
 
 
 def test_a_recording_of_the_json_wire_format_is_refused_with_the_reason(tmp_path):
