@@ -40,6 +40,16 @@ def router(tmp_path):
         p.wait(10)
 
 
+def _until_seen(put, witness, pred, tries: int = 100) -> bool:
+    """Put again until ``witness`` has it: a subscription just declared takes a moment to
+    reach the router, and a put before that reaches no one."""
+    for _ in range(tries):
+        put()
+        if witness.wait_for(pred, 0.1):
+            return True
+    return witness.wait_for(pred, 1.0)
+
+
 def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
     endpoint, keys = router
     k = M.Keys(RUN)
@@ -71,14 +81,14 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
         a3.put(k.fault(), b"forged command")
         a3.put(k.clock(), b"forged clock")
         a3.put(k.fault_report("agent-2"), b"forged report")
-        a3.put(k.meas(3), _batch(RUN, "agent-3", 3))  # the control
+        assert _until_seen(lambda: a3.put(k.meas(3), _batch(RUN, "agent-3", 3)), meas_at_world,  # the control
+                           lambda key, p: key == k.meas(3))
         assert everything.wait_for(lambda key, p: key == k.meas(3))
-        assert meas_at_world.wait_for(lambda key, p: key == k.meas(3))
         assert everything.seen_keys().count(k.clock()) >= 1 and b"forged clock" not in [p for _, p in everything.got]
         assert {k.meas(2), k.fault(), k.fault_report("agent-2")}.isdisjoint(everything.seen_keys())
         assert k.meas(2) not in meas_at_world.seen_keys()
-        world.put(k.batches(), b"radio")  # what agent 1 may hear, after the batches it may not
-        assert radio_at_agent.wait_for(lambda key, p: p == b"radio")
+        # What agent 1 may hear, after the batches it may not.
+        assert _until_seen(lambda: world.put(k.batches(), b"radio"), radio_at_agent, lambda key, p: p == b"radio")
         assert not meas_at_agent.got, "an agent heard a peer's batch straight off the bus"
 
         # The world puts the truth: the recorder gets it, agent 1 (subscribed) does not.
@@ -93,8 +103,7 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
         with _open(endpoint, cred["observer"]) as obs:
             clocks = Witness(obs, k.clock())
             faults = Witness(world, k.faults())
-            world.put(k.clock(), b"ready?")
-            assert clocks.wait_for(lambda key, p: p == b"ready?")
+            assert _until_seen(lambda: world.put(k.clock(), b"ready?"), clocks, lambda key, p: p == b"ready?")
             rec.put(k.clock(), b"recorder clock")
             rec.put(k.fault(), b"recorder fault")
             assert not clocks.wait_for(lambda key, p: p == b"recorder clock", 1.0)
