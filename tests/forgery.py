@@ -78,6 +78,9 @@ def forge(endpoint: str, run: str, keys_dir, done: dict, from_step: int = 3) -> 
         sub = obs.declare_subscriber(k.clock(), on_clock)
         assert at.wait(300), "the run never reached the step of the forgeries"
         witness = Witness(watcher, k.everything())
+        # The witness's subscription has reached the router once the run's own traffic
+        # comes to it: only then do the forgeries (and the control) prove anything.
+        assert witness.wait_for(lambda key, p: key == k.clock(), 60), "the witness heard none of the run"
         kk = step["k"]
         hdr = {"run": run, "sender": "cli", "k": kk, "t_s": float(kk), "phase": "command"}
         commands = [M.Fault(**hdr, action="kill-agent", target=1), M.Fault(**hdr, action="drop", target=1, rate=1.0),
