@@ -19,12 +19,13 @@ FROM ${BASE_IMAGE} AS runtime
 # Python, tini, the Mesa/EGL/OSMesa libraries headless rendering and
 # Open3D need, iproute2 and iptables (swarm fault netem): scripts/apt-packages.txt
 # less the host-only ones (chromium),
-# plus libGLU, which pyglet loads as soon as pyrender is imported.
+# plus libGLU, which pyglet loads as soon as pyrender is imported, and openssl,
+# with which compose's keys service makes the TLS certificates (`swarm keys`).
 # Installs only what the base lacks: the locally made base already has all of
 # them, so this step needs no network there.
 COPY scripts/apt-packages.txt /tmp/apt-packages.txt
 RUN set -eu; \
-    pkgs="python3 python3-venv ca-certificates tini libglu1-mesa $(grep -Ev '^[[:space:]]*(#|$)' /tmp/apt-packages.txt | grep -Ev '^chromium')"; \
+    pkgs="python3 python3-venv ca-certificates openssl tini libglu1-mesa $(grep -Ev '^[[:space:]]*(#|$)' /tmp/apt-packages.txt | grep -Ev '^chromium')"; \
     missing=""; \
     for p in $pkgs; do \
       dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q 'install ok installed' || missing="$missing $p"; \
@@ -91,7 +92,7 @@ COPY --from=wheel /dist/ /tmp/dist/
 # compiles afresh).
 RUN pip install -q --no-deps --no-index /tmp/dist/*.whl \
  && rm -rf /tmp/dist /root/.cache \
- && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli; from swarm.bus import fastcheck; fastcheck.warm_up()" \
+ && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli; from swarmrt.bus import fastcheck; fastcheck.warm_up()" \
  && { swarm sim scenarios/demo.yaml --out /tmp/warm --no-arrays >/tmp/warm.log 2>&1 \
       || { cat /tmp/warm.log; exit 1; }; } \
  && rm -rf /tmp/warm /tmp/warm.log

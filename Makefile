@@ -1,5 +1,5 @@
 # One command to set up and run the default swarm; one to set up and run the tests.
-.PHONY: setup demo sim test test-fast check bench image clean
+.PHONY: setup demo sim test test-fast check bench soak image rust-agent clean
 
 SWARM ?= .venv/bin/swarm
 DEMO_OUT ?= runs/demo
@@ -25,12 +25,12 @@ sim: setup
 # test, slow and container ones included (what CI runs).
 test: setup
 	scripts/check.sh
-	.venv/bin/python -m pytest -q
+	.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=30
 
 # Skip the slow, rendering and container tests while iterating.
 test-fast: setup
 	scripts/check.sh
-	.venv/bin/python -m pytest -q -m "not slow and not docker"
+	.venv/bin/python -m pytest -q -n 2 --dist loadfile -m "not slow and not docker"
 
 # Only the house rules: import contracts, the linter and the type checker.
 check: setup
@@ -39,9 +39,24 @@ check: setup
 bench: setup
 	.venv/bin/swarm bench filter --sats 3,6,12,25,50,100 --graph complete --out runs/bench/filter.json
 
+# The chaos soak: 200 fault episodes (agents killed, stopped and restarted, cameras off,
+# dropped messages, router restarts, one of two routers killed and restarted) over 1800
+# simulated seconds of the demo swarm at n = 10 on two meshed routers, every invariant
+# checked (README "Chaos campaigns"); runs/soak/chaos.json.
+SOAK_FAULTS ?= 200
+SOAK_DURATION ?= 1800
+SOAK_SATS ?= 10
+soak: setup
+	.venv/bin/swarm chaos scenarios/demo.yaml --faults $(SOAK_FAULTS) --duration $(SOAK_DURATION) --set n_sats=$(SOAK_SATS) \
+		--routers 2 --seed 1 --out runs/soak
+
 # The container image (makes the local base image and the wheelhouse when needed).
 image:
 	scripts/docker-build.sh
+
+# The Rust agent (participants/rust-agent), release build, for compose.rust.yaml (needs cargo and protoc).
+rust-agent:
+	cd participants/rust-agent && cargo build --release --locked --target-dir ../target
 
 clean:
 	rm -rf runs .pytest_cache

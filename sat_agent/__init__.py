@@ -1,1 +1,1 @@
-"""One satellite's agent: measurement pipeline and full-swarm filter (see :mod:`sat_agent.node`)."""
+"""One satellite's agent: measurement pipeline and its estimator (full, ci, pairwise or a plug-in; see :mod:`sat_agent.node`)."""

@@ -5,11 +5,14 @@ from __future__ import annotations
 import dataclasses
 import sys
 
-from swarm.node import RunBroken, bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
-
 
 def main(argv=None) -> int:
-    p = role_arg_parser("sat_agent: one satellite's measurements and full-swarm filter")
+    from swarmrt import tuning
+
+    tuning.tune_process()  # first, before numpy loads: the project's BLAS kernels and threads
+    from swarmrt.node import bus_config_from_args, load_role_scenario, role_arg_parser, serve, setup_logging
+
+    p = role_arg_parser("sat_agent: one satellite's measurements and its estimator (the scenario's estimator.kind)")
     p.add_argument("--id", required=True, help="this satellite's id (0..n-1), or 'auto' to be given one by the world")
     p.add_argument("--restart", action="store_true", help="initialise from a live peer's estimate")
     a = p.parse_args(argv)
@@ -24,7 +27,7 @@ def main(argv=None) -> int:
         restart = restart or running
         if password and sc.emulator.security:
             # Reconnect as agent-<sat>: the claimant's credential may do nothing but claim.
-            from swarm.security import Credential
+            from swarmrt.security import Credential
 
             base = bus.identity()
             bus = dataclasses.replace(bus, credential_file=None,
@@ -36,19 +39,8 @@ def main(argv=None) -> int:
         except ValueError:
             p.error(f"--id {a.id!r}: expected a satellite number or 'auto'")
     setup_logging(f"agent-{sat}", a.verbose)
-    ag = Agent(sc, sat, a.run, bus, restart=restart)
-    install_term_handler(ag.stop)
-    try:
-        ag.run_loop()
-        if ag.done and not ag.stop.is_set():
-            # Our final estimate may still be on its way: leave once the recorder has it.
-            ag.linger_while_recording(sc.emulator.shutdown_linger_s + 5.0)
-    except RunBroken as exc:
-        ag.log.error("%s; exiting", exc)
-        return exc.exit_code
-    finally:
-        ag.close()
-    return 0
+    # Our final estimate may still be on its way: once done, leave when the recorder has it.
+    return serve(Agent(sc, sat, a.run, bus, restart=restart), linger_s=sc.emulator.shutdown_linger_s + 5.0)
 
 
 if __name__ == "__main__":

@@ -11,10 +11,11 @@ from __future__ import annotations
 import time
 import uuid
 
-from swarm.models import measurement_model
-from swarm.node import Node
 from swarmcore import kernels
 from swarmcore.scenario import Scenario
+from swarmrt.estimators import estimator_for
+from swarmrt.flight import pose_estimator
+from swarmrt.node import Node
 
 from .protocol import AgentProtocol
 
@@ -26,8 +27,8 @@ class Agent(Node):
         if not 0 <= sat < sc.n_sats:
             raise SystemExit(f"sat_agent: --id {sat} is not a satellite of this {sc.n_sats}-satellite swarm")
         super().__init__("agent", sat, run, sc.n_sats, bus, announce=False)
-        estimator = measurement_model(sc).estimator()  # vision libraries only when the scenario renders
-        self.machine = AgentProtocol(sc, sat, run, estimator, restart=restart, malformed=lambda: self.malformed,
+        pose = pose_estimator(sc)  # vision libraries only when the scenario renders
+        self.machine = AgentProtocol(sc, sat, run, pose, estimator_for(sc, sat), restart=restart, malformed=lambda: self.malformed,
                                     key_mismatch=lambda: self.key_mismatch)
         # Peers' batches reach us only through the radio, which the world emulates: the
         # ideal radio's one message a step (batches), or with links what reached us (rx/<i>).
@@ -38,9 +39,9 @@ class Agent(Node):
         self.watch_liveliness(self.keys.alive("agent"))
         self.watch_liveliness(self.keys.alive("world"))  # gone before the end: the run is broken
         self.watch_liveliness(self.keys.alive("recorder"))  # back after a bus gap: it is sent the step again
-        self.set_bus_limits(sc.emulator)
+        self.set_bus_limits(sc.emulator, hold_world=True)
         self.queryable(self.keys.cov(sat), self.machine.serve_cov)
-        warm = getattr(estimator, "warm_up", None)
+        warm = getattr(pose, "warm_up", None)
         if warm is not None:
             warm()  # build the pipeline now (tag detector, model cloud), not at step 0
         kernels.warm_up()  # compile before the world counts on our step times
@@ -50,8 +51,9 @@ class Agent(Node):
     def done(self) -> bool:
         return self.machine.done
 
-    def run_loop(self) -> None:
-        self.drive(self.machine)
+    @property
+    def finished(self) -> bool:
+        return self.machine.done
 
 
 def claim_id(sc: Scenario, run: str, bus, timeout: float | None = None) -> tuple[int, bool, str]:

@@ -17,7 +17,7 @@ never the truth. Step k:
 
 Start: the world's prior (a query on ``init/<i>``) or, for a restarted agent or one that
 comes late, a live peer's full estimate (``cov/<j>``), re-framed for this satellite.
-:class:`AgentProtocol` is driven by :class:`swarm.node.Node` in ``python -m sat_agent``
+:class:`AgentProtocol` is driven by :class:`swarmrt.node.Node` in ``python -m sat_agent``
 and by scripted events in ``tests/test_protocol_agent.py``.
 """
 
@@ -30,18 +30,24 @@ from collections.abc import Callable
 
 import numpy as np
 
-from swarm.bus.convert import (
+from swarmcore.estimators import Estimator, StepInputs
+from swarmcore.measurement import PoseEstimator
+from swarmcore.mekf import RelativeMeasurements
+from swarmcore.scenario import Scenario
+from swarmrt.bus.convert import (
     absolute_from_sensors,
     batch_msg,
     detections_from_msg,
     estimate_from_full,
-    estimate_msg,
     full_estimate_msg,
     observation_from_images,
-    relative_from_batches,
+    radio_bytes,
+    received_from_batches,
+    received_from_step,
     relative_from_step,
+    view_msg,
 )
-from swarm.bus.messages import (
+from swarmrt.bus.messages import (
     CameraOutput,
     Clock,
     Fault,
@@ -54,11 +60,8 @@ from swarm.bus.messages import (
     codec_cpu_ms,
     replace,
 )
-from swarm.protocol import DROP_BATCH, DROP_ESTIMATE, Event, Outbox, Query, Send, Wait, WorldLost, message_dropped
-from swarmcore.agent import AgentFilter, filter_params
-from swarmcore.measurement import PoseEstimator
-from swarmcore.mekf import RelativeMeasurements, reframe
-from swarmcore.scenario import Scenario
+from swarmrt.estimators import EstimatorCodec
+from swarmrt.protocol import DROP_BATCH, DROP_ESTIMATE, Event, Outbox, Query, Send, Wait, WorldLost, message_dropped, world_wait_s
 
 __all__ = ["AgentProtocol"]
 
@@ -68,7 +71,7 @@ _HOST = socket.gethostname()
 class AgentProtocol:
     """Satellite ``sat``'s flight software on the bus (see the module docstring)."""
 
-    def __init__(self, sc: Scenario, sat: int, run: str, estimator: PoseEstimator, restart: bool = False,
+    def __init__(self, sc: Scenario, sat: int, run: str, pose: PoseEstimator, estimator: Estimator, restart: bool = False,
                  clock: Callable[[], float] = time.monotonic, malformed: Callable[[], int] = lambda: 0,
                  key_mismatch: Callable[[], int] = lambda: 0):
         if not 0 <= sat < sc.n_sats:
@@ -79,13 +82,16 @@ class AgentProtocol:
         self.name = f"agent-{sat}"
         self.run_id = run
         self.keys = Keys(run)
-        self.estimator = estimator
+        self.pose = pose  # its cameras' measurements (synthetic, or a vision pipeline)
+        self.estimator = estimator  # its estimator (swarmcore.estimators): the scenario's estimator.kind
+        self.codec = EstimatorCodec(type(estimator))
         self.rendered = sc.vision.pipeline != "none"
         self.clock = clock
         self.log = logging.getLogger(self.name)
-        self.params = filter_params(sc, sat)
         self.restart = restart
-        self.filter: AgentFilter | None = None
+        self.started = False  # the estimator has a state (from a prior, a peer, or a cold start)
+        self.cold = False  # restarted without a warm rejoin: the estimator starts at its next step
+        self.bytes_sent = 0  # bytes put on the radio this step (batch and estimator message)
         self.camera_ok = np.ones(6, dtype=bool)
         self.drop_rate = 0.0
         self.clocks: dict[int, Clock] = {}
@@ -104,6 +110,8 @@ class AgentProtocol:
         self.rx_steps: set[int] = set()  # steps whose delivery (lockstep) has come
         self.rx_items: list[MeasBatch] = []  # delivered peer batches not yet used
         self.late_used = self.late_dropped = self.replayed_steps = 0
+        self._missing: list[int] = []  # peers whose batch of the current step did not come
+        self._peer_batch: RelativeMeasurements | None = None  # the ideal radio's peers' measurements of the step, columnar
         self.last_step = -1  # the last step this agent has processed (updated at)
         self.done = False
         self.world_seen = False
@@ -111,23 +119,25 @@ class AgentProtocol:
 
     @property
     def est(self):
-        return None if self.filter is None else self.filter.est
-
-    @property
-    def flt(self) -> AgentFilter:
-        """The filter, once initialised (every step runs after :meth:`initialise`)."""
-        if self.filter is None:
-            raise RuntimeError(f"agent {self.i}: no filter before initialisation")
-        return self.filter
+        """The whole-swarm estimate, for estimators that keep one (None otherwise or before start)."""
+        return self.estimator.rejoin_state() if self.started else None
 
     # -- queries and events -----------------------------------------------------
     def serve_cov(self, key: str):
-        """``cov/<i>``: this agent's full estimate (an immutable value: safe to read from
-        the bus's thread)."""
+        """``cov/<i>``: what this agent's estimator serves a restarted peer (the full
+        estimate, for ``full``; an immutable value: safe to read from the bus's thread)."""
         est = self.est
         if est is None:
             return None
         return full_estimate_msg(est, run=self.run_id, sender=self.name, own=self.i)
+
+    def _payload(self, msg, sender: int, step: int):
+        """A peer's estimator message as its value (None: not ours, or refused: counted)."""
+        try:
+            return self.codec.from_msg(msg, sender, step)
+        except ValueError as exc:
+            self.log.warning("estimator message of agent %d, step %d refused: %s", sender, step, exc)
+            return None
 
     def handle(self, ev: Event) -> list[Send]:
         k: int = getattr(ev.msg, "k", -1)
@@ -182,24 +192,21 @@ class AgentProtocol:
             first = self.sent_k + 1  # the first batch it applies to
             self.log.info("dropping %.0f%% of outgoing messages from step %d", 100 * self.drop_rate, first)
             # The report says from which step: the world's radio then knows which batches
-            # will never come (it makes the same draws: swarm.protocol.message_dropped).
+            # will never come (it makes the same draws: swarmrt.protocol.message_dropped).
             return [Send(self.keys.fault_report(self.name), replace(f, phase="done", sender=self.name, k=first))]
         return []
 
     # -- start ------------------------------------------------------------------
-    def _filter_from(self, est, prior: bool) -> AgentFilter:
-        f = self.sc.filter
-        hist = int(np.ceil(f.history_s / self.sc.dt_s)) if self.linked and f.late == "replay" else 0
-        return AgentFilter(self.params, est, f.mode, late=f.late, history_steps=hist, prior_pending=prior)
-
     def initialise(self):
         em = self.sc.emulator
         if not self.restart:
             deadline = self.clock() + em.startup_timeout_s
-            while self.filter is None and self.clock() < deadline:
+            while not self.started and self.clock() < deadline:
                 msg = yield Query(self.keys.init(self.i), "full_est", 2.0)
                 if msg is not None:
-                    self.filter = self._filter_from(estimate_from_full(msg, self.n), prior=True)
+                    self.estimator.start(estimate_from_full(msg, self.n), step_pending=True)
+                    self.started = True
+                    self.last_step = int(msg.k) - 1
                     break
                 yield Wait(lambda: False, 0.0)
                 if self.clocks:
@@ -207,10 +214,19 @@ class AgentProtocol:
                     self.log.info("the run is under way; initialising from a peer")
                     self.restart = True
                     break
-            if self.filter is None and not self.restart:
+            if not self.started and not self.restart:
                 raise SystemExit(f"agent {self.i}: no prior from the world within {em.startup_timeout_s} s")
-            if self.filter is not None:
-                self.log.info("initialised from the world's prior at step %d", self.est.step)
+            if self.started:
+                self.log.info("initialised from the world's prior at step %d", self.estimator.step_index)
+        if self.restart and not self.estimator.warm_rejoin:
+            # Nothing a peer holds can restart this estimator: it starts from its own
+            # sensors at its next step (cold start). Its health report says it is here, so
+            # that the world counts it live again and sends it its sensors.
+            self.cold = True
+            self.log.info("restarted: estimator %r starts cold at the next step", self.estimator.kind)
+            k_now = max(self.clocks) if self.clocks else 0
+            yield Send(self.keys.health(self.i), self._health(k_now, self.clocks[k_now].t_s if k_now in self.clocks else 0.0))
+            return
         if self.restart:
             # A restarted agent borrows a live peer's full estimate: it asks every peer it
             # knows to be alive (in lockstep the world holds the clock until we are back, so
@@ -218,7 +234,7 @@ class AgentProtocol:
             # step, then the lowest id.
             yield Wait(lambda: bool(self.peers_alive), em.startup_timeout_s)
             yield Wait(lambda: False, 0.0)  # take in every liveliness token already announced
-            while self.filter is None:
+            while not self.started:
                 peers = sorted(self.peers_alive)
                 if not peers:
                     raise SystemExit(f"agent {self.i}: no live peer to initialise from")
@@ -241,23 +257,20 @@ class AgentProtocol:
                     if msg is None:
                         yield Wait(lambda: False, min(em.step_timeout_s, 1.0))
                         continue
-                s = self.sc.filter.initial_sigma
-                est = reframe(estimate_from_full(msg, self.n), msg.own, self.i, s.bias_rad_s, s.rate_rad_s)
-                self.filter = self._filter_from(est, prior=False)
-                if self.linked and self.clocks:
-                    # It arrived some steps later: carry it to the swarm's present (no gyro
-                    # samples meanwhile: the world sends sensors only to live agents).
-                    now = max(self.clocks)
-                    self.filter.coast_to(now, lambda s_: None)
-                    est = self.filter.est
-                self.last_step = est.step
-                self.log.info("restarted from agent %d's estimate at step %d", msg.own, est.step)
-        yield Send(self.keys.est(self.i), estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, phase="prior"))
+                # It arrived some steps later: carry it to the swarm's present (no gyro
+                # samples meanwhile: the world sends sensors only to live agents).
+                now = max(self.clocks) if self.linked and self.clocks else None
+                self.estimator.rejoin(estimate_from_full(msg, self.n), int(msg.own), now)
+                self.started = True
+                self.last_step = self.estimator.step_index
+                self.log.info("restarted from agent %d's estimate at step %d", msg.own, self.estimator.step_index)
+        yield Send(self.keys.est(self.i), view_msg(self.estimator.view(), run=self.run_id, sender=self.name, phase="prior",
+                                                    estimator=self.estimator.kind))
 
     def _through_the_radio(self, candidates):
         """The first peer estimate (in order of preference) the radio delivers, once it has
         arrived (a clock at or after its arrival time); None if none gets through."""
-        from swarm.bus.messages import encode
+        from swarmrt.bus.messages import encode
 
         for m in candidates:
             size = len(encode(m))
@@ -279,22 +292,19 @@ class AgentProtocol:
     def _dropped(self, k: int, what: int) -> bool:
         return message_dropped(self.sc.seed, self.i, k, what, self.drop_rate)
 
-    def _own_measurements(self, k: int, sens):
-        """Predict first when the estimator needs it, then measure our own camera delivery."""
-        f = self.flt
-        if not self.estimator.needs_prediction:
-            return self.estimator.measure(self.i, detections_from_msg(self.cams.pop(k), self.camera_ok) if k in self.cams else None,
-                                          f.est, k)
-        f.coast_to(k, self._gyro_of)
-        if k > 0 and f.est.step < k:
-            f.predict_to(k, _gyro(sens))
+    def _own_measurements(self, k: int):
+        """Measure our own camera delivery (image pipelines start from the prediction)."""
+        e = self.estimator
+        if not self.pose.needs_prediction:
+            return self.pose.measure(self.i, detections_from_msg(self.cams.pop(k), self.camera_ok) if k in self.cams else None,
+                                     e.prediction() if self.started else None, k)
         msg = self.imgs.pop(k, None)
         obs = None
         if msg is not None and msg.views:
             obs = observation_from_images(msg)
             obs.views = [v for v in obs.views if v.camera >= 6 or self.camera_ok[v.camera]]
-        rel, cams = self.estimator.measure(self.i, obs, f.est, k)
-        rep = getattr(self.estimator, "last_reports", {}).get(self.i)
+        rel, cams = self.pose.measure(self.i, obs, e.prediction() if self.started else None, k)
+        rep = getattr(self.pose, "last_reports", {}).get(self.i)
         if rep is not None and rep.missed:
             self.log.debug("step %d: no pose of %s from the images", k, rep.missed)
         return rel, cams
@@ -304,44 +314,80 @@ class AgentProtocol:
         self.outbox.clear()
         clock = self.clocks.pop(k)
         t = clock.t_s
-        timeout = em.step_timeout_s if em.time_mode == "lockstep" else 0.8 * self.sc.dt_s / em.realtime_factor
+        # Lockstep: what the world sends of the step may be held up by a stalled world
+        # until its lease runs out (then the wait pauses while its token is held).
+        timeout = world_wait_s(em) if em.time_mode == "lockstep" else 0.8 * self.sc.dt_s / em.realtime_factor
         if self.i in clock.live_agents:  # otherwise the world sends us nothing this step
             mine = self.imgs if self.rendered else self.cams
             yield Wait(lambda: k in self.sensors and k in mine, timeout)
         sens = self.sensors.pop(k, None)
+        e = self.estimator
+        t0, c0 = time.perf_counter(), time.thread_time()
+        if self.started:
+            # Its prior of step k, before anything of k is measured or sent.
+            e.coast_to(k, self._gyro_of)
+            e.predict(k, _gyro(sens))
+        ms_pred = (time.perf_counter() - t0) * 1e3
+        cpu_pred = (time.thread_time() - c0) * 1e3
         t0 = time.perf_counter()
-        rel_own, cams = self._own_measurements(k, sens)
+        rel_own, cams = self._own_measurements(k)
         ms_own = (time.perf_counter() - t0) * 1e3
+        message = self.codec.to_msg(e.transmit(k)) if self.started else None
+        batch = batch_msg(rel_own, cams, run=self.run_id, sender=self.name, k=k, t_s=t, observer=self.i, estimator=message)
+        self.bytes_sent = radio_bytes(batch)
         if not self._dropped(k, DROP_BATCH):
-            yield Send(self.keys.meas(self.i), batch_msg(rel_own, cams, run=self.run_id, sender=self.name, k=k, t_s=t, observer=self.i))
+            yield Send(self.keys.meas(self.i), batch)
         self.sent_k = k
         if self.linked:
-            yield from self._finish_linked(k, t, sens, rel_own, ms_own, clock, timeout)
-            return
-        # The ideal radio: in lockstep one message with every live peer's batch of k; free-
-        # running, each batch as it comes until the step's time is up.
+            received = yield from self._linked_radio(k, clock, timeout)
+        else:
+            received = yield from self._ideal_radio(k, clock, timeout)
+        inputs = StepInputs(k, t, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel_own, received,
+                            self._peer_batch if not self.linked else None)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        if not self.started:
+            if not e.cold_start(inputs):
+                # Nothing of its own to start from (no star tracker and GPS reading): an
+                # estimator without warm rejoin cannot come back on this satellite.
+                raise SystemExit(f"agent {self.i}: estimator {e.kind!r} cannot restart cold without its own star tracker and "
+                                 f"GPS readings (step {k})")
+            self.started = True
+            self.log.info("started cold at step %d", k)
+            report = None
+        else:
+            report = e.step(inputs)
+        self.last_step = k
+        ms = (time.perf_counter() - t0) * 1e3 + ms_pred + (ms_own if self.rendered else 0.0)
+        if report is not None:
+            self.late_used += report.late_used
+            self.late_dropped += report.late_dropped
+            self.replayed_steps += report.replayed_steps
+        msg = view_msg(e.view(), run=self.run_id, sender=self.name, report=report, estimator=e.kind, step_ms=ms,
+                       step_cpu_ms=(time.thread_time() - c0) * 1e3 + cpu_pred, codec_cpu_ms=codec_cpu_ms(),
+                       batches_used=sorted(r.sender for r in received if r.step == k), batches_missing=self._missing,
+                       batches_late=self.batches_late, bytes_sent=self.bytes_sent)
+        if not self._dropped(k, DROP_ESTIMATE):
+            yield Send(self.keys.est(self.i), msg)
+        yield Send(self.keys.health(self.i), self._health(k, t))
+        self._prune(k)
+
+    def _ideal_radio(self, k: int, clock, timeout: float):
+        """The ideal radio: in lockstep one message with every live peer's batch of k;
+        free-running, each batch as it comes until the step's time is up."""
+        em = self.sc.emulator
         expected = [j for j in clock.live_agents if j != self.i]
         if em.time_mode == "lockstep":
             yield Wait(lambda: k in self.radio, timeout)
         else:
             yield Wait(lambda: all(j in self.radio_obs.get(k, ()) or j not in self.peers_alive for j in expected), timeout)
         got = sorted(self.radio_obs.get(k, set()))
-        missing = [j for j in expected if j not in got]
-        self.batches_missing += len(missing)
+        self._missing = [j for j in expected if j not in got]
+        self.batches_missing += len(self._missing)
         parts = sorted(self.radio.pop(k, []), key=lambda m: m.observers[0] if m.observers else -1)
-        rel = RelativeMeasurements.concat([rel_own, *(relative_from_step(m, skip=self.i) for m in parts)])
-        t0, c0 = time.perf_counter(), time.thread_time()
-        self.flt.coast_to(k, self._gyro_of)
-        report, _late = self.flt.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel)
-        self.last_step = k
-        ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
-        msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
-                           step_cpu_ms=(time.thread_time() - c0) * 1e3, codec_cpu_ms=codec_cpu_ms(),
-                           batches_used=got, batches_missing=missing, batches_late=self.batches_late)
-        if not self._dropped(k, DROP_ESTIMATE):
-            yield Send(self.keys.est(self.i), msg)
-        yield Send(self.keys.health(self.i), self._health(k, t))
-        self._prune(k)
+        received = [r for m in parts for r in received_from_step(m, self.i, self._payload)]
+        received.sort(key=lambda r: r.sender)
+        self._peer_batch = RelativeMeasurements.concat([relative_from_step(m, skip=self.i) for m in parts])
+        return received
 
     def _prune(self, k: int) -> None:
         for store in (self.sensors, self.cams, self.imgs, self.radio, self.radio_obs, self.clocks):
@@ -349,39 +395,21 @@ class AgentProtocol:
                 store.pop(old, None)
         self.rx_steps = {s for s in self.rx_steps if s >= k - 2}
 
-    def _finish_linked(self, k: int, t: float, sens, rel_own, ms_own: float, clock, timeout: float):
-        """Step k with the radio: what the world's link model delivered by t_k — on-time
-        batches of k, and late ones of earlier steps (replayed or dropped) — then update."""
+    def _linked_radio(self, k: int, clock, timeout: float):
+        """The radio with links: what the world's link model delivered by t_k — on-time
+        batches of k, and late ones of earlier steps (the estimator replays, fuses or
+        drops them)."""
+        self._missing = []
         if self.i in clock.live_agents and self.sc.emulator.time_mode == "lockstep":
             # Lockstep: the world delivers once per step, after every batch of k is in.
             # Free-running: take what the radio has delivered by now; the rest is late.
             yield Wait(lambda: k in self.rx_steps, timeout)
         items = [b for b in self.rx_items if b.k <= k]
         self.rx_items = [b for b in self.rx_items if b.k > k]
-        on_time = [b for b in items if b.k == k]
-        late_by_step: dict[int, list] = {}
-        for b in items:
-            if b.k < k:
-                late_by_step.setdefault(b.k, []).append(b)
-        rel = RelativeMeasurements.concat([rel_own, relative_from_batches(sorted(on_time, key=lambda b: b.observer))])
-        late = {s: relative_from_batches(sorted(v, key=lambda b: b.observer)) for s, v in late_by_step.items()}
-        t0, c0 = time.perf_counter(), time.thread_time()
-        self.flt.coast_to(k, self._gyro_of)
-        report, lrep = self.flt.step(k, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel, late=late)
-        self.last_step = k
-        self.late_used += lrep.used
-        self.late_dropped += lrep.dropped
-        self.replayed_steps += lrep.replayed_steps
-        self.batches_late += sum(len(v) for v in late_by_step.values())
-        ms = (time.perf_counter() - t0) * 1e3 + (ms_own if self.rendered else 0.0)
-        msg = estimate_msg(self.est, run=self.run_id, sender=self.name, own=self.i, report=report, step_ms=ms,
-                           step_cpu_ms=(time.thread_time() - c0) * 1e3, codec_cpu_ms=codec_cpu_ms(),
-                           batches_used=sorted(b.observer for b in on_time), batches_late=self.batches_late,
-                           late_used=lrep.used, late_dropped=lrep.dropped, replayed_steps=lrep.replayed_steps)
-        if not self._dropped(k, DROP_ESTIMATE):
-            yield Send(self.keys.est(self.i), msg)
-        yield Send(self.keys.health(self.i), self._health(k, t))
-        self._prune(k)
+        self.batches_late += sum(1 for b in items if b.k < k)
+        received = received_from_batches(items, self._payload)
+        received.sort(key=lambda r: (r.step, r.sender))
+        return received
 
     def _health(self, k: int, t: float) -> Health:
         return Health(
@@ -408,7 +436,7 @@ class AgentProtocol:
                 continue
             yield Wait(lambda: self.done or any(s > self.last_step for s in self.clocks), 0.5)
         self.log.info("done at step %d; %d malformed (%d on a key not their sender's), %d missing, %d late batches",
-                      self.est.step, self.malformed(), self.key_mismatch(),
+                      self.last_step, self.malformed(), self.key_mismatch(),
                       self.batches_missing, self.batches_late)
 
 

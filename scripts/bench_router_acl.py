@@ -3,7 +3,7 @@
 
     python scripts/bench_router_acl.py [--batches 100000] [--rounds 2]
 
-A router process (``python -m swarm.router``; with security: the keys of a 2-satellite run
+A router process (``python -m swarm.supervise.router``; with security: the keys of a 2-satellite run
 and its access rules), agent 0 putting n = 10 measurement batches on ``meas/0`` as fast as
 the bus takes them (congestion control BLOCK) and agent 1 subscribed: each batch is one
 ingress and one egress check of the rules. The router's user + system CPU time (psutil)
@@ -25,9 +25,9 @@ from pathlib import Path
 import psutil
 import zenoh
 
-from swarm.bench_bus import _batch_payload
-from swarm.launch import free_port
-from swarm.security import load_credential, make_keys
+from swarm.bench.bus import _batch_payload
+from swarm.supervise.launch import free_port
+from swarmrt.security import load_credential, make_keys
 
 
 def _client(endpoint: str, cred: Path | None):
@@ -45,7 +45,7 @@ def one(on: bool, n: int, payload: bytes) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         keys = Path(tmp)
         endpoint = f"tcp/127.0.0.1:{free_port()}"
-        args = [sys.executable, "-m", "swarm.router", "--listen", endpoint]
+        args = [sys.executable, "-m", "swarm.supervise.router", "--listen", endpoint]
         if on:
             make_keys(keys, 2)
             args += ["--keys", str(keys), "--run", "bench", "--n-sats", "2"]

@@ -8,8 +8,8 @@
 # What it makes: a minimal Debian bookworm root file system (debootstrap
 # --variant=minbase) that already holds the run-time packages the Dockerfile
 # would otherwise apt-get install (python3, python3-venv, ca-certificates,
-# tini, and the Mesa/EGL/OSMesa libraries of scripts/apt-packages.txt less the
-# host-only ones such as chromium), trimmed like Debian's "slim" images and
+# openssl, tini, and the Mesa/EGL/OSMesa libraries of scripts/apt-packages.txt
+# less the host-only ones such as chromium), trimmed like Debian's "slim" images and
 # loaded with `docker import` under the tag the Dockerfile's FROM names. The
 # Dockerfile then finds every package present and needs no network for apt.
 #
@@ -29,7 +29,8 @@ SUITE=${SUITE:-bookworm}
 # Packages of scripts/apt-packages.txt that only the host needs.
 EXCLUDE_RE=${EXCLUDE_RE:-'^(chromium.*)$'}
 # libglu1-mesa: pyglet (imported by `import pyrender`) loads libGLU at import.
-EXTRA_PKGS=(python3 python3-venv ca-certificates tini libglu1-mesa)
+# openssl: compose's keys service makes the TLS certificates with it (swarm keys).
+EXTRA_PKGS=(python3 python3-venv ca-certificates openssl tini libglu1-mesa)
 
 log() { echo "docker-base: $*" >&2; }
 

@@ -22,7 +22,7 @@
 #
 # Usage: scripts/docker-build.sh
 #   IMAGE=swarm-coloc:latest  BASE_IMAGE=debian:bookworm-slim
-#   WHEELS_PORT=38517 (loopback port of the wheelhouse server)  OFFLINE=1
+#   WHEELS_PORT=0 (loopback port of the wheelhouse server; 0: any free one)  OFFLINE=1
 #   DOCKER_BUILD_ARGS="--no-cache ..." (extra arguments for docker build)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -33,7 +33,7 @@ OFFLINE=${OFFLINE:-1}
 WHEELS=docker/.cache/wheels
 # Fixed by default: the port is a build argument, and a new value would
 # invalidate the cached dependency layer.
-WHEELS_PORT=${WHEELS_PORT:-38517}
+WHEELS_PORT=${WHEELS_PORT:-0}  # 0: a free port the kernel picks
 # The interpreter of the image (Debian bookworm): wheels are picked for it,
 # whatever Python the host has.
 TARGET_PY=3.11
@@ -53,7 +53,13 @@ t1=$(date +%s)
 
 build_args=(--build-arg "BASE_IMAGE=$BASE_IMAGE")
 server_pid=
-cleanup() { if [ -n "$server_pid" ]; then kill "$server_pid" 2>/dev/null || true; wait "$server_pid" 2>/dev/null || true; fi; }
+# The wheelhouse server ends at the end of its stdin (below): close it, then wait.
+cleanup() {
+  if [ -n "$server_pid" ]; then
+    if [ -n "${WHEELSRV[1]:-}" ]; then eval "exec ${WHEELSRV[1]}>&-"; fi
+    wait "$server_pid" 2>/dev/null || true
+  fi
+}
 trap cleanup EXIT
 
 if [ "$OFFLINE" = "1" ]; then
@@ -80,25 +86,24 @@ if [ "$OFFLINE" = "1" ]; then
     log "wheelhouse: $(ls "$WHEELS" | wc -l) files, $(du -sh "$WHEELS" | cut -f1)"
   fi
   # Serve it on loopback for the build (the build's RUN steps share the host's
-  # network namespace through --network host).
-  if ! "$PY" - "$WHEELS_PORT" <<'EOF'
-import socket, sys
-s = socket.socket()
-s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as http.server does
-try:
-    s.bind(("127.0.0.1", int(sys.argv[1])))
-except OSError:
-    sys.exit(1)
-EOF
-  then
-    log "port $WHEELS_PORT on 127.0.0.1 is busy; set WHEELS_PORT"; exit 1
+  # network namespace through --network host), on a port the kernel picks (a fixed
+  # one may be held by anything) unless WHEELS_PORT names one. The server reads its
+  # stdin, a pipe from this script, and exits at its end: whatever ends this script,
+  # a signal or SIGKILL included, the server goes with it.
+  coproc WHEELSRV { "$PY" -c '
+import functools, http.server, sys, threading
+handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=sys.argv[1])
+handler.log_message = lambda *a: None
+srv = http.server.ThreadingHTTPServer(("127.0.0.1", int(sys.argv[2])), handler)
+print(srv.server_address[1], flush=True)
+threading.Thread(target=srv.serve_forever, daemon=True).start()
+sys.stdin.read()
+' "$WHEELS" "$WHEELS_PORT" 2>/dev/null 9>&-; }
+  server_pid=$WHEELSRV_PID
+  if ! read -r -t 30 WHEELS_PORT <&"${WHEELSRV[0]}"; then
+    log "the wheelhouse server did not start (port ${WHEELS_PORT} on 127.0.0.1 busy? set WHEELS_PORT=0)"; exit 1
   fi
-  "$PY" -m http.server --bind 127.0.0.1 --directory "$WHEELS" "$WHEELS_PORT" >/dev/null 2>&1 9>&- &
-  server_pid=$!
-  for _ in $(seq 50); do
-    "$PY" -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:$WHEELS_PORT/', timeout=1)" 2>/dev/null && break
-    sleep 0.1
-  done
+  log "wheelhouse served on 127.0.0.1:$WHEELS_PORT"
   build_args+=(--network host --build-arg "PIP_FIND_LINKS=http://127.0.0.1:$WHEELS_PORT/" --build-arg PIP_NO_INDEX=1)
 fi
 t2=$(date +%s)

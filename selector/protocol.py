@@ -15,13 +15,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from swarm.bus.convert import estimate_from_full, select_msg
-from swarm.bus.messages import Fault, Keys
-from swarm.protocol import Event, Outbox, Query, Send, Wait, WorldLost
 from swarmcore.agent import filter_params
 from swarmcore.graphs import scenario_graph
 from swarmcore.scenario import Scenario
 from swarmcore.selection import choose_pairs, mask_dead
+from swarmrt.bus.convert import estimate_from_full, select_msg
+from swarmrt.bus.messages import Fault, Keys
+from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost
 
 __all__ = ["SelectorProtocol"]
 
@@ -29,8 +29,11 @@ log = logging.getLogger("selector")
 
 
 class SelectorProtocol:
-    def __init__(self, sc: Scenario, run: str, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, sc: Scenario, run: str, clock: Callable[[], float] = time.monotonic, plans_from_estimate: bool = True):
         self.sc = sc
+        # With an estimator that keeps no whole-swarm estimate (the decentralized ones fly
+        # only state-free strategies), the selector plans without one, as the simulator does.
+        self.plans_from_estimate = plans_from_estimate
         self.clock = clock
         self._startup_deadline = clock() + sc.emulator.startup_timeout_s
         self.n = sc.n_sats
@@ -87,6 +90,14 @@ class SelectorProtocol:
         # went with a router (killed, a client failing over) never gets its reply, and the
         # world takes the selection only select_timeout_s after the bus is back.
         em = sc.emulator
+        if not self.plans_from_estimate:
+            obs, tgt = choose_pairs(sc, k, self.G, None, None, mask_dead(self.camera_ok, self.alive))
+            self.outbox.clear()
+            yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
+                                                      strategy=sc.selection.strategy, ref_agent=ref,
+                                                      select_ms=(time.perf_counter() - t0) * 1e3))
+            self.planned.add(k)
+            return
         deadline = self.clock() + em.step_timeout_s
         while msg is None:
             msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
@@ -108,6 +119,10 @@ class SelectorProtocol:
         agent publishes its prior once, when it initialises, and a selector that came up
         later (or whose subscription was still propagating) never sees it."""
         self._asked_first = ref
+        if not self.plans_from_estimate:
+            if not self.clock_seen:
+                yield from self.plan(0, ref)
+            return
         msg = yield Query(self.keys.cov(ref), "full_est", 2.0)
         if msg is None or msg.own != ref:
             return  # not initialised yet: its prior will arrive as an event, or we ask again

@@ -32,6 +32,11 @@ def no_data_reason(summary: dict) -> str:
     if intr:
         return (f"the run ended at step {intr.get('last_step')} of {intr.get('steps_planned', 0) - 1} "
                 f"({intr.get('reason')}): no estimate to compare")
+    est = summary.get("estimator", "full")
+    others = (summary.get("rms") or {}).get("others") or {}
+    own = (summary.get("rms") or {}).get("self") or {}
+    if est != "full" and all(v == v for v in own.values()) and any(v != v for v in others.values()):
+        return f"estimator {est!r} claims no estimate of the other satellites (it tracks its own)"
     return "no filter estimated those steps (every agent dead, or nothing recorded)"
 
 

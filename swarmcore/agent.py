@@ -36,6 +36,7 @@ from .mekf import (
     predict,
     update,
 )
+from .reference import chief_of, force_model_of
 from .scenario import Scenario
 from .sensors import relative_noise_cov
 
@@ -53,11 +54,22 @@ __all__ = [
 def filter_params(sc: Scenario, own: int) -> FilterParams:
     """The filter of satellite ``own`` as the scenario configures it."""
     f = sc.filter
+    j2_frame = sc.orbit.model == "j2"
+    bearing = sc.sensors.relative.model == "bearing"
+    j2 = sc.filter_dynamics() == "j2"
+    drag = j2 and sc.orbit.drag.enabled
     return FilterParams(
         n=sc.n_sats,
         own=own,
         dt=sc.dt_s,
-        mean_motion=sc.orbit.mean_motion_rad_s,
+        mean_motion=sc.orbit.mean_motion(),
+        chief=chief_of(sc) if j2_frame else None,
+        dynamics="j2" if j2 else "hcw",
+        force=force_model_of(sc.orbit) if j2 else None,
+        orbit_step_s=sc.orbit.step_s,
+        ballistic=sc.ballistic() if drag else None,
+        chief_ballistic=sc.orbit.drag.chief_ballistic_m2_kg if drag else None,
+        relative_kind="bearing" if bearing else "pose",
         J=sc.spacecraft.J(),
         arw=sc.sensors.gyro.arw_rad_sqrt_s,
         rrw=sc.sensors.gyro.rrw_rad_s15,
@@ -65,7 +77,7 @@ def filter_params(sc: Scenario, own: int) -> FilterParams:
         accel=sc.disturbances.accel_sigma_m_s15,
         att_rw_other=f.att_rw_other_rad_sqrt_s,
         pos_rw=f.pos_rw_m_sqrt_s,
-        gate_threshold=f.gate.threshold(),
+        gate_threshold=f.gate.threshold(dof=2 if bearing else 6),
         update_method=f.update,
         rk4_substeps=f.rk4_substeps,
         max_iterations=f.max_iterations,
@@ -126,6 +138,9 @@ class SyntheticPoseEstimator:
 
     def __init__(self, sc: Scenario):
         self.rel = sc.sensors.relative
+        # Bearings are shared in I, turned with the observer's own predicted attitude: both
+        # the simulator and sat_agent predict before they measure and always hand the
+        # prediction over, so no image-pipeline path (``needs_prediction``) is needed.
 
     @classmethod
     def from_relative(cls, rel) -> SyntheticPoseEstimator:
@@ -139,6 +154,8 @@ class SyntheticPoseEstimator:
         if dets is None or not len(dets):
             return RelativeMeasurements.empty(), np.zeros(0, dtype=int)
         m = len(dets)
+        if self.rel.model == "bearing":
+            return self._bearings(observer, dets, predicted)
         rel = RelativeMeasurements(
             np.full(m, observer, dtype=int),
             np.asarray(dets.target, dtype=int),
@@ -147,6 +164,44 @@ class SyntheticPoseEstimator:
             relative_noise_cov(self.rel, dets.r_ij_Bi),
         )
         return rel, np.asarray(dets.camera, dtype=int)
+
+    def _bearings(self, observer: int, dets: Detections, predicted: SwarmEstimate | None):
+        return inertial_bearings(observer, dets, predicted, self.rel.bearing.sigma_rad)
+
+
+def _bearing_row(predicted: SwarmEstimate, observer: int) -> int | None:
+    """The observer's row in a prediction (a full-swarm one holds every id in order)."""
+    return observer if predicted.n > observer else None
+
+
+def bearing_noise_layout(sigma_rad: float, m: int) -> np.ndarray:
+    """(m, 6, 6) covariance of m bearings in the 6-row layout of a pose measurement
+    (:func:`swarmcore.mekf.bearing_residuals_padded`): σ² I₂ on the tangent-plane residual,
+    identity on the four unused rows."""
+    R = np.broadcast_to(np.eye(6), (m, 6, 6)).copy()
+    R[:, 0:2, 0:2] = sigma_rad**2 * np.eye(2)
+    return R
+
+
+def inertial_bearings(observer: int, dets: Detections, predicted: SwarmEstimate | None, sigma_rad: float):
+    """A camera's lines of sight (unit, B_i) → the inertial unit vectors an observer shares:
+    ``ũ_I = T(q̂_i)ᵀ ũ_B`` with its own predicted attitude, and R = (σ² + σ_a²) I₂ with σ_a²
+    the mean variance of that attitude (isotropic attitude error seen in the tangent
+    plane). Without a prediction (a restarted agent's first step) nothing is shared."""
+    from .quat import attitude_matrix
+
+    m = len(dets)
+    row = None if predicted is None else _bearing_row(predicted, observer)
+    if predicted is None or row is None or m == 0:
+        return RelativeMeasurements.empty(), np.zeros(0, dtype=int)
+    T = attitude_matrix(predicted.q_BI[row])
+    u_I = np.asarray(dets.r_ij_Bi, dtype=float) @ T
+    a = 12 * row
+    var_att = float(np.mean(np.diag(predicted.P[a : a + 3, a : a + 3])))
+    ident = np.tile(np.array([0.0, 0.0, 0.0, 1.0]), (m, 1))
+    rel = RelativeMeasurements(np.full(m, observer, dtype=int), np.asarray(dets.target, dtype=int), ident, u_I,
+                               bearing_noise_layout(float(np.sqrt(sigma_rad**2 + var_att)), m))
+    return rel, np.asarray(dets.camera, dtype=int)
 
 
 def face_cameras_of(r_ij_Bi: np.ndarray) -> np.ndarray:

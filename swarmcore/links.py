@@ -35,10 +35,10 @@ from typing import Any
 
 import numpy as np
 
-from .scenario import Latency, Links, Loss
+from .scenario import Latency, Links, Loss, Scenario
 from .streams import stream
 
-__all__ = ["LinkModel", "Delivery", "LinkCounters", "SPEED_OF_LIGHT_M_S", "ge_probabilities"]
+__all__ = ["scenario_link_model", "LinkModel", "Delivery", "LinkCounters", "SPEED_OF_LIGHT_M_S", "ge_probabilities"]
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 _JITTER = {"none": 0, "uniform": 1, "normal": 2, "exponential": 3}
@@ -404,3 +404,12 @@ def _half_normal_ppf(u: float) -> float:
     from scipy.special import ndtri
 
     return float(ndtri(0.5 + 0.5 * u))
+
+
+def scenario_link_model(sc: Scenario) -> LinkModel | None:
+    """The radio channel of a scenario (None: ``links.enabled`` is false, the ideal radio).
+    A line of sight is blocked by a sphere of the cube's corner radius around each body.
+    The one place a world (in-process or distributed) builds its channel."""
+    if not sc.links.enabled:
+        return None
+    return LinkModel(sc.links, sc.n_sats, sc.seed, float(sc.spacecraft.half_size_m * np.sqrt(3.0)))

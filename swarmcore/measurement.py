@@ -1,11 +1,13 @@
 """How relative measurements come to be: a camera model on the world (truth) side and a
 pose estimator on the agent (flight) side, handed to the simulators as values.
 
-The core knows only these interfaces and the synthetic models of chapters 4 and 6
-(:class:`swarmcore.world.SyntheticCameras`, :class:`swarmcore.agent.SyntheticPoseEstimator`);
-rendered cameras and the AprilTag / stereo pipelines (:mod:`swarmvision`) implement the
-same two interfaces, and the application layer picks the pair a scenario asks for
-(:func:`swarm.models.measurement_model`). Observations cross from one side to the other
+This module holds only the interfaces, so that flight software can name them without
+importing the world. The synthetic models of chapters 4 and 6 implement them in the core
+(:class:`swarmcore.world.SyntheticCameras`, :class:`swarmcore.agent.SyntheticPoseEstimator`;
+both halves together: :mod:`swarmcore.synthetic`); rendered cameras and the AprilTag /
+stereo pipelines (:mod:`swarmvision`) implement the same two interfaces; the runtime
+picks the half each role needs (:func:`swarmrt.truth.camera_model` for the world,
+:func:`swarmrt.flight.pose_estimator` for an agent). Observations cross from one side to the other
 only as what a real camera would deliver (detections, or images): never the truth.
 """
 
@@ -18,9 +20,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from .mekf import RelativeMeasurements, SwarmEstimate
-from .scenario import Scenario
 
-__all__ = ["CameraModel", "PoseEstimator", "MeasurementModel", "synthetic_model", "synthetic_batch"]
+__all__ = ["CameraModel", "PoseEstimator", "MeasurementModel"]
 
 
 class CameraModel(Protocol):
@@ -56,28 +57,3 @@ class MeasurementModel:
 
     cameras: Callable[[], CameraModel]
     estimator: Callable[[], PoseEstimator]
-
-
-def synthetic_model(sc: Scenario) -> MeasurementModel:
-    """The synthetic camera model (``vision.pipeline: none``)."""
-    from .agent import SyntheticPoseEstimator
-    from .world import SyntheticCameras, world_params
-
-    if sc.vision.pipeline != "none":
-        raise ValueError(
-            f"vision.pipeline: {sc.vision.pipeline!r} renders images; build its measurement model with "
-            "swarm.models.measurement_model(scenario)"
-        )
-    return MeasurementModel(cameras=lambda: SyntheticCameras(world_params(sc)), estimator=lambda: SyntheticPoseEstimator(sc))
-
-
-def synthetic_batch(wp, truth, observer, target) -> RelativeMeasurements:
-    """Every observer's synthetic relative measurements of the given pairs, with the
-    covariance each agent attaches, in canonical order: the two halves of the synthetic
-    model in one call (benchmarks and tests)."""
-    from .agent import SyntheticPoseEstimator
-    from .world import SyntheticCameras
-
-    seen = SyntheticCameras(wp).observe(truth, observer, target)
-    est = SyntheticPoseEstimator.from_relative(wp.rel)
-    return RelativeMeasurements.concat([est.measure(i, seen[i])[0] for i in sorted(seen)]).canonical()

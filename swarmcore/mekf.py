@@ -72,7 +72,10 @@ __all__ = [
     "SOLVERS",
     "attitude_phi_q",
     "state_jacobian_blocks",
+    "translation_step",
+    "bearing_residuals_padded",
     "reframe",
+    "apply_correction",
 ]
 
 BLOCK = 12
@@ -108,6 +111,15 @@ class FilterParams:
     max_iterations: int = 1
     iterate_above_rad: float = 0.01
     missing_gyro_rate_sigma: float = 1e-3  # rad/s: uncertainty of the held rate when a gyro sample is missing
+    # The reference orbit (:class:`swarmcore.reference.Chief`): its Hill frame is H. None: the
+    # uniformly turning HCW frame of ``mean_motion``.
+    chief: object | None = None
+    dynamics: str = "hcw"  # translation model: "hcw" (closed form) or "j2" (relmotion, exact STM)
+    force: object | None = None  # orbit.ForceModel of the j2 model
+    orbit_step_s: float = 10.0
+    ballistic: np.ndarray | None = None  # (n_sats,) C_D A / m of the j2 model (None: no drag)
+    chief_ballistic: float | None = None
+    relative_kind: str = "pose"  # "pose" (6-dof relative pose) or "bearing" (unit line of sight, 2 dof)
     # Derived constants (filled in __post_init__).
     J_inv: np.ndarray = field(init=False, repr=False)
     phi_trans: np.ndarray = field(init=False, repr=False)
@@ -123,6 +135,21 @@ class FilterParams:
         object.__setattr__(self, "J_inv", np.linalg.inv(J))
         object.__setattr__(self, "phi_trans", hcw_phi(self.mean_motion, self.dt))
         object.__setattr__(self, "q_trans", hcw_noise_cov(self.mean_motion, self.dt, self.accel, self.pos_rw))
+        if self.dynamics not in ("hcw", "j2"):
+            raise ValueError(f"unknown translation model {self.dynamics!r}")
+        if self.dynamics == "j2" and self.chief is None:
+            raise ValueError("dynamics j2 needs the chief (swarmcore.reference.chief_of)")
+        if self.relative_kind not in ("pose", "bearing"):
+            raise ValueError(f"unknown relative measurement kind {self.relative_kind!r}")
+
+    def T_IH(self, t: float) -> np.ndarray:
+        """Hill → inertial at time ``t``: the chief's frame, or HCW's uniform turn."""
+        return self.chief.T_IH(t) if self.chief is not None else T_IH(self.mean_motion, t)  # type: ignore[attr-defined]
+
+    @property
+    def rel_dof(self) -> int:
+        """Degrees of freedom of one relative measurement (6: pose, 2: bearing)."""
+        return 2 if self.relative_kind == "bearing" else 6
 
     def with_own(self, own: int) -> FilterParams:
         return replace(self, own=own)
@@ -331,8 +358,30 @@ def attitude_phi_q(
     return phi, 0.5 * (Q + np.swapaxes(Q, -1, -2))
 
 
-def state_jacobian_blocks(est: SwarmEstimate, params: FilterParams, omega_own: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Φ and Q_k blocks (n, 12, 12) and the rates used (n, 3) for one propagation."""
+def translation_step(est: SwarmEstimate, params: FilterParams) -> tuple[np.ndarray, np.ndarray]:
+    """Every satellite's ``[r_H, v_H]`` after ``dt`` (n, 6) and its transition (n, 6, 6) or (6, 6).
+
+    ``hcw``: the closed form (one Φ for all). ``j2``: :func:`swarmcore.relmotion.propagate_relative`
+    about the chief at step ``est.step`` (its state from :mod:`swarmcore.reference`), with each
+    satellite's ballistic coefficient when the filter tracks the whole swarm (a filter of a
+    subset — ci, pairwise, own — uses their mean: it does not know which ids it holds)."""
+    if params.dynamics != "j2":
+        return np.concatenate([est.r_H, est.v_H], axis=1) @ params.phi_trans.T, params.phi_trans
+    from .relmotion import propagate_relative
+
+    r_c, v_c = params.chief.state(est.step)  # type: ignore[attr-defined]
+    bc: np.ndarray | float | None = params.ballistic
+    if params.ballistic is not None and len(params.ballistic) != est.n:
+        bc = float(np.mean(params.ballistic))
+    st = propagate_relative(r_c, v_c, est.r_H, est.v_H, params.dt, params.force,  # type: ignore[arg-type]
+                            step_s=params.orbit_step_s, ballistic_m2_kg=bc, chief_ballistic_m2_kg=params.chief_ballistic)
+    return np.concatenate([st.r_H_m, st.v_H_m_s], axis=1), st.phi  # type: ignore[return-value]
+
+
+def state_jacobian_blocks(est: SwarmEstimate, params: FilterParams, omega_own: np.ndarray,
+                          phi_trans: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Φ and Q_k blocks (n, 12, 12) and the rates used (n, 3) for one propagation.
+    ``phi_trans``: the translation's transition from :func:`translation_step`, when the caller has it."""
     n = est.n
     own_mask = np.zeros(n, dtype=bool)
     own_mask[params.own] = True
@@ -343,7 +392,9 @@ def state_jacobian_blocks(est: SwarmEstimate, params: FilterParams, omega_own: n
     Q = np.zeros((n, BLOCK, BLOCK))
     phi[:, 0:6, 0:6] = phi_att
     Q[:, 0:6, 0:6] = q_att
-    phi[:, 6:12, 6:12] = params.phi_trans
+    if phi_trans is None:
+        phi_trans = params.phi_trans if params.dynamics != "j2" else translation_step(est, params)[1]
+    phi[:, 6:12, 6:12] = phi_trans
     Q[:, 6:12, 6:12] = params.q_trans
     return phi, Q, omega_hat
 
@@ -371,16 +422,17 @@ def predict(est: SwarmEstimate, params: FilterParams, gyro_rate_B: np.ndarray | 
     own = params.own
     dt = params.dt
     omega_own = est.omega_BI_B[own] if gyro_rate_B is None else np.asarray(gyro_rate_B, float) - est.bias_B
-    phi, Q, _omega_hat = state_jacobian_blocks(est, params, omega_own)
+    rv, phi_trans = translation_step(est, params)
+    phi, Q, _omega_hat = state_jacobian_blocks(est, params, omega_own, phi_trans)
 
     # States: others' attitude and rate by RK4 on Euler's equations (torque-free mean),
-    # own attitude by the exact constant-rate step, translation by closed-form HCW.
+    # own attitude by the exact constant-rate step, translation by closed-form HCW (or the
+    # J2 relative model, :func:`translation_step`).
     out = kernels.rk4_free(est.q_BI, est.omega_BI_B, params.J, params.J_inv, dt, params.rk4_substeps)
     q_new, w_new = rk4_attitude(est.q_BI, est.omega_BI_B, params.J, dt, params.rk4_substeps) if out is None else out
     q_own = kernels.propagate_constant_rate(est.q_BI[own], omega_own, dt)
     q_new[own] = quat.propagate_constant_rate(est.q_BI[own], omega_own, dt) if q_own is None else q_own
     w_new[own] = omega_own
-    rv = np.concatenate([est.r_H, est.v_H], axis=1) @ params.phi_trans.T
     if gyro_rate_B is None:
         # No gyro sample: the held rate is uncertain, and so is the attitude it turns through.
         Q[own, 0:3, 0:3] += (params.missing_gyro_rate_sigma * dt) ** 2 * np.eye(3)
@@ -407,7 +459,9 @@ def relative_residuals(est: SwarmEstimate, params: FilterParams, meas: RelativeM
     the Δω/Δβ and Δv columns are zero. Compiled (:func:`swarmcore.kernels.relative_residuals`)
     when numba is present; :func:`relative_residuals_numpy` is the same in numpy.
     """
-    out = kernels.relative_residuals(est.q_BI, est.r_H, T_IH(params.mean_motion, est.t), meas.observer, meas.target,
+    if params.relative_kind == "bearing":
+        return bearing_residuals_padded(est, params, meas)
+    out = kernels.relative_residuals(est.q_BI, est.r_H, params.T_IH(est.t), meas.observer, meas.target,
                                      meas.q_BjBi.reshape(-1, 4), meas.r_ij_Bi.reshape(-1, 3))
     return relative_residuals_numpy(est, params, meas) if out is None else out
 
@@ -418,7 +472,7 @@ def relative_residuals_numpy(est: SwarmEstimate, params: FilterParams, meas: Rel
     T_all = quat.attitude_matrix(est.q_BI)  # (n,3,3) I→B per satellite, computed once
     T_i = T_all[i]
     T_j = T_all[j]
-    C_all = T_all @ T_IH(params.mean_motion, est.t)  # H→B per satellite
+    C_all = T_all @ params.T_IH(est.t)  # H→B per satellite
     C = C_all[i]
     dr_H = est.r_H[j] - est.r_H[i]
     r_hat = (C @ dr_H[:, :, None])[:, :, 0]
@@ -434,6 +488,36 @@ def relative_residuals_numpy(est: SwarmEstimate, params: FilterParams, meas: Rel
     Hi[:, 3:6, 3:6] = -C
     Hj[:, 3:6, 3:6] = C
     return np.concatenate([y_att, y_pos], axis=1), Hi, Hj
+
+
+def bearing_residuals_padded(est: SwarmEstimate, params: FilterParams, meas: RelativeMeasurements):
+    """Angles-only measurements (``relative_kind: bearing``) in the 6-row layout of a pose.
+
+    A bearing batch carries the measured unit line of sight ``ũ`` in the INERTIAL frame I in
+    ``r_ij_Bi`` (the observer turned its camera's direction with its own attitude estimate,
+    :func:`swarmcore.agent.inertial_bearings`; ``q_BjBi`` unused) and its 2×2 tangent-plane
+    covariance in ``R_Bi[:2, :2]`` (identity below). The residual ``y = Eᵀ ũ`` and its
+    Jacobians (:func:`swarmcore.bearing.bearing_residuals` with an identity attitude: on
+    ``r_i`` and ``r_j`` only, no attitude) fill rows 0–1; rows 2–5 are zero residual
+    with zero Jacobian and unit, uncorrelated noise, so they add no information, no gate
+    distance and no NIS: every update form, the gate and the iterated update treat the
+    bearing exactly as a 2-row measurement (the χ² threshold and NIS dof use 2)."""
+    from .bearing import bearing_residuals
+
+    i, j = meas.observer, meas.target
+    m = len(meas)
+    y = np.zeros((m, 6))
+    Hi = np.zeros((m, 6, 6))
+    Hj = np.zeros((m, 6, 6))
+    if m == 0:
+        return y, Hi, Hj
+    ident = np.zeros((m, 4))
+    ident[:, 3] = 1.0
+    y2, _Ha, Hro, Hrt, _E = bearing_residuals(meas.r_ij_Bi, ident, params.T_IH(est.t), est.r_H[i], est.r_H[j])
+    y[:, 0:2] = y2
+    Hi[:, 0:2, 3:6] = Hro
+    Hj[:, 0:2, 3:6] = Hrt
+    return y, Hi, Hj
 
 
 _H_ABS = np.eye(6)
@@ -527,7 +611,7 @@ def linearize(est: SwarmEstimate, params: FilterParams, absolute: AbsoluteMeasur
     return Linearized(params.own, relative.observer, relative.target, y, Hi, Hj, relative.R_Bi, ya, Ha, Ra)
 
 
-def _apply_correction(est: SwarmEstimate, params: FilterParams, dx: np.ndarray, P: np.ndarray) -> SwarmEstimate:
+def apply_correction(est: SwarmEstimate, params: FilterParams, dx: np.ndarray, P: np.ndarray) -> SwarmEstimate:
     """Multiplicative attitude reset and additive corrections of every other state."""
     n = est.n
     d = dx.reshape(n, BLOCK)
@@ -730,12 +814,12 @@ def update(
     if method == "information" and blocks is not None:
         solve = partial(_solve_information, blocks=blocks)
     dx, P, nis = solve(est.P, n, lin)
-    dof = 6 * int(lin.observer.size) + (0 if lin.ya is None else int(lin.ya.size))
+    dof = params.rel_dof * int(lin.observer.size) + (0 if lin.ya is None else int(lin.ya.size))
     iterations = 1
     for _ in range(params.max_iterations - 1):
         if np.max(np.abs(dx.reshape(n, BLOCK)[:, A_SL]), initial=0.0) <= params.iterate_above_rad:
             break
-        point = _apply_correction(est, params, dx, est.P)
+        point = apply_correction(est, params, dx, est.P)
         lin_i = linearize(point, params, absolute, kept).shifted(dx, n)
         dx_new, P, nis = solve(est.P, n, lin_i)  # the NIS at the last linearisation
         iterations += 1
@@ -744,7 +828,7 @@ def update(
         if converged:
             break
     report = UpdateReport(d2=d2, accepted=accepted, method=method, nis=nis, nis_dof=dof, iterations=iterations)
-    return _apply_correction(est, params, dx, P), report
+    return apply_correction(est, params, dx, P), report
 
 
 def reframe(est: SwarmEstimate, old_own: int, new_own: int, sigma_bias_rad_s: float, sigma_rate_rad_s: float) -> SwarmEstimate:

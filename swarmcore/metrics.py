@@ -9,7 +9,11 @@ import numpy as np
 from . import quat
 from .mekf import observed_indices
 
-__all__ = ["pose_errors", "pose_nees", "pose_cov_blocks", "summarize"]
+__all__ = [
+    "estimator_summary",
+    "relative_pose_errors",
+    "relative_errors_of",
+    "run_summary","pose_errors", "pose_nees", "pose_cov_blocks", "summarize"]
 
 
 def pose_errors(q_hat, r_hat, q_true, r_true):
@@ -19,6 +23,34 @@ def pose_errors(q_hat, r_hat, q_true, r_true):
     """
     a = quat.local(q_true, q_hat)
     dr = r_true - r_hat
+    return a, dr
+
+
+def relative_errors_of(q_hat, r_hat, own: int, q_true, r_true):
+    """One filter's estimate of every satellite relative to its own satellite ``own``,
+    against the truth: ``a_rel`` (…, n, 3), the error of ``q_BjBown = q_j ⊗ q_own⁻¹``
+    (``q_rel = δq(a_rel) ⊗ q̂_rel``, in B_j), and ``dr_rel`` (…, n, 3), the error of
+    ``r_j − r_own`` (H); NaN on the own row. Estimates and truth (…, n, 4 | 3)."""
+    def rel(q, r):
+        qo = np.broadcast_to(q[..., own : own + 1, :], q.shape)
+        return quat.qmul(q, quat.qconj(qo)), r - r[..., own : own + 1, :]
+
+    q_rel_hat, r_rel_hat = rel(np.asarray(q_hat, float), np.asarray(r_hat, float))
+    q_rel, r_rel = rel(np.broadcast_to(q_true, np.shape(q_hat)), np.broadcast_to(r_true, np.shape(r_hat)))
+    a_rel = quat.local(q_rel, q_rel_hat)
+    dr_rel = r_rel - r_rel_hat
+    a_rel[..., own, :] = np.nan
+    dr_rel[..., own, :] = np.nan
+    return a_rel, dr_rel
+
+
+def relative_pose_errors(q_hat, r_hat, q_true, r_true):
+    """:func:`relative_errors_of` of every filter f (axis −3, whose own satellite is f):
+    estimates (…, F, n, 4 | 3), truth (…, n, 4 | 3) → (…, F, n, 3) each."""
+    a = np.full(np.shape(r_hat), np.nan)
+    dr = np.full(np.shape(r_hat), np.nan)
+    for f in range(np.shape(q_hat)[-3]):
+        a[..., f, :, :], dr[..., f, :, :] = relative_errors_of(q_hat[..., f, :, :], r_hat[..., f, :, :], f, q_true, r_true)
     return a, dr
 
 
@@ -110,3 +142,65 @@ def _summarize(n_sats, dt, seed, att_err, pos_err, nees, gate_accepted, gate_rej
     if extra:
         out.update(extra)
     return out
+
+
+def estimator_summary(kind: str, dt: float, rel_att_err, rel_pos_err, rel_nees, bytes_sent, cpu_ms, alive=None) -> dict:
+    """The blocks of ``summary.json`` every estimator shares, whatever it keeps.
+
+    ``relative``: time-RMS of each filter's estimate of its peers relative to itself
+    (attitude and position, averaged over filters and the peers it tracks; full run and
+    second half) and the mean NEES of those estimates against the relative covariance the
+    estimator claims (6 dof). ``traffic``: bytes each satellite put on its radio (its
+    batch and its estimator's message) per second, mean and max over satellites.
+    ``cpu``: CPU time of a filter step (predict and update, the thread's), median and p95. Arrays (K, F, n) / (K, n); NaN where nothing was
+    estimated or sent; ``alive`` (K, F) masks steps a filter did not run.
+    """
+    out: dict = {"estimator": kind}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        if rel_att_err is not None and rel_pos_err is not None and rel_nees is not None:
+            ra, rp, rn = rel_att_err, rel_pos_err, rel_nees
+            if alive is not None:
+                m = ~np.asarray(alive)[:, :, None]
+                ra, rp, rn = (np.where(m, np.nan, x) for x in (ra, rp, rn))
+            K = ra.shape[0]
+
+            def rms(x, start):
+                per_filter = np.sqrt(np.nanmean(x[start:].reshape(K - start, x.shape[1], -1) ** 2, axis=(0, 2)))
+                return float(np.nanmean(per_filter))
+
+            out["relative"] = {
+                "rms": {"att_rad": rms(ra, 0), "pos_m": rms(rp, 0)},
+                "rms_second_half": {"att_rad": rms(ra, K // 2), "pos_m": rms(rp, K // 2)},
+                "nees": {"mean": float(np.nanmean(rn)), "dof": 6},
+            }
+        if bytes_sent is not None and np.isfinite(bytes_sent).any():
+            per_sat = np.nansum(bytes_sent, axis=0) / (np.isfinite(bytes_sent).sum(axis=0).clip(1) * dt)
+            out["traffic"] = {"bytes_per_sat_per_s_mean": float(np.mean(per_sat)), "bytes_per_sat_per_s_max": float(np.max(per_sat))}
+        if cpu_ms is not None and np.isfinite(cpu_ms).any():
+            out["cpu"] = {"filter_step_cpu_ms_median": float(np.nanmedian(cpu_ms)), "filter_step_cpu_ms_p95": float(np.nanpercentile(cpu_ms, 95))}
+    return out
+
+
+def run_summary(sc, *, att_err, pos_err, nees, gate_accepted, gate_rejected, step_ms, nis, nis_dof, taken, estimator: str,
+                rel_att_err=None, rel_pos_err=None, rel_nees=None, bytes_sent=None, cpu_ms=None, late=None, alive=None,
+                extra=None) -> dict:
+    """``summary.json`` of a run, the one assembly ``swarm sim`` (:class:`swarmcore.sim.SimResult`)
+    and ``swarm run`` (the recording, :mod:`swarm.record.recording`) share: :func:`summarize`
+    plus the scenario, ``measurements_per_step_mean`` (relative measurements in the batches
+    the agents put on the radio, per step: ``taken`` (K, n, n)), the estimator's blocks
+    (:func:`estimator_summary`), the late deliveries (``late`` = (used, dropped, replayed),
+    (K, F) each, with links) and ``extra`` (what only one of the two knows)."""
+    blocks = {
+        "scenario": sc.name,
+        "mode": sc.filter.mode,
+        "measurements_per_step_mean": float(np.asarray(taken).sum(axis=(1, 2)).mean()),
+        **estimator_summary(estimator, sc.dt_s, rel_att_err, rel_pos_err, rel_nees, bytes_sent, cpu_ms, alive),
+    }
+    if late is not None and sc.links.enabled:
+        used, dropped, replayed = late
+        blocks["late"] = {"used": int(np.sum(used)), "dropped": int(np.sum(dropped)), "replayed_steps": int(np.sum(replayed))}
+    blocks.update(extra or {})
+    return summarize(n_sats=sc.n_sats, dt=sc.dt_s, seed=sc.seed, att_err=att_err, pos_err=pos_err, nees=nees,
+                     gate_accepted=gate_accepted, gate_rejected=gate_rejected, step_ms=step_ms, nis=nis, nis_dof=nis_dof,
+                     alive=alive, extra=blocks)

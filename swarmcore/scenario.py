@@ -1,7 +1,7 @@
 """Typed, validated scenario model: the only place defaults live.
 
 Defaults follow the dissertation's Table 4.1 (LEO, ~622 km). Pure: no file I/O here;
-:mod:`swarm.scenario_files` loads YAML and applies ``--set`` overrides.
+:mod:`swarmrt.scenario_files` loads YAML and applies ``--set`` overrides.
 """
 
 from __future__ import annotations
@@ -9,21 +9,82 @@ from __future__ import annotations
 from typing import Annotated, Literal, get_args
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
-from scipy.special import gammaincinv
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
-from .vision_config import VisionConfig
-
-PosFloat = Annotated[float, Field(gt=0)]
-NonNegFloat = Annotated[float, Field(ge=0)]
+from .config_types import CameraAxes, NonNegFloat, PosFloat
+from .config_types import ConfigModel as _Model
+from .vision_config import VisionConfig, mono_tag_problem
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+class Drag(_Model):
+    """Atmospheric drag of the truth (``orbit.model: j2``): an exponential atmosphere
+    (:class:`swarmcore.orbit.ExponentialAtmosphere`; defaults: Vallado Table 8-4, 500 km band)
+    and each satellite's ballistic coefficient ``C_D A / m``."""
+
+    enabled: bool = Field(False, description="add drag to the truth (and to a j2 filter's model)")
+    ballistic_m2_kg: NonNegFloat | list[NonNegFloat] = Field(
+        0.01, description="C_D A / m (m²/kg): one value for every satellite or one per satellite"
+    )
+    chief_ballistic_m2_kg: NonNegFloat = Field(
+        0.01, description="the chief (the reference point every agent knows, not a satellite): its C_D A / m"
+    )
+    rho0_kg_m3: PosFloat = Field(6.967e-13, description="density at h0_m")
+    h0_m: NonNegFloat = Field(500e3, description="reference altitude of the band")
+    scale_height_m: PosFloat = Field(63.822e3, description="scale height H_s")
+    co_rotating: bool = Field(True, description="the air turns with the Earth")
 
 
 class Orbit(_Model):
-    mean_motion_rad_s: PosFloat = Field(1.08e-3, description="HCW mean motion n (1/s); 622 km LEO")
+    """The reference orbit. ``hcw`` (default): the Hill-Clohessy-Wiltshire model about a
+    circular orbit of mean motion ``mean_motion_rad_s`` (every earlier result). ``j2``: the
+    truth propagates each satellite's ECI state under two-body + J2 (+ drag) with
+    :func:`swarmcore.orbit.propagate`; relative truth is each satellite in the Hill frame of
+    a *chief* (a reference orbit given by its elements, propagated with the same model,
+    known to every agent) — ``docs/long-range-core.md``."""
+
+    model: Literal["hcw", "j2"] = Field("hcw", description="hcw: HCW truth (mean_motion_rad_s); j2: J2 (+ drag) truth")
+    mean_motion_rad_s: PosFloat = Field(1.08e-3, description="HCW mean motion n (1/s); 622 km LEO (model hcw only)")
+    altitude_m: PosFloat | None = Field(
+        None, description="j2: the chief's semi-major axis minus the Earth's equatorial radius (default 550 km); "
+        "give this or semi_major_axis_m"
+    )
+    semi_major_axis_m: PosFloat | None = Field(None, description="j2: the chief's semi-major axis (m)")
+    eccentricity: float = Field(0.0, ge=0.0, lt=0.2, description="j2: the chief's eccentricity")
+    inclination_deg: float = Field(97.6, ge=0.0, le=180.0, description="j2: inclination")
+    raan_deg: float = Field(0.0, description="j2: right ascension of the ascending node")
+    argp_deg: float = Field(0.0, description="j2: argument of perigee")
+    true_anomaly_deg: float = Field(0.0, description="j2: true anomaly at t = 0")
+    j2: NonNegFloat = Field(1.08262668e-3, description="j2: the Earth's J2 (0: two-body)")
+    step_s: PosFloat = Field(10.0, le=60.0, description="j2: RK8 step of the orbit propagator (at most this; dt_s is cut into equal steps)")
+    drag: Drag = Drag()
+
+    @model_validator(mode="after")
+    def _elements(self):
+        if self.altitude_m is not None and self.semi_major_axis_m is not None:
+            raise ValueError("orbit.altitude_m and orbit.semi_major_axis_m: give one of them, not both")
+        if self.model == "j2":
+            a = self.semi_major_axis()
+            r_p = a * (1.0 - self.eccentricity)
+            if r_p < 6378137.0 + 100e3:
+                raise ValueError(
+                    f"orbit.eccentricity: perigee radius {r_p / 1e3:.0f} km is less than 100 km above the Earth "
+                    "(raise orbit.altitude_m or lower orbit.eccentricity)"
+                )
+        if self.model == "hcw" and (self.drag.enabled or self.altitude_m is not None or self.semi_major_axis_m is not None):
+            raise ValueError("orbit.model: hcw has no chief orbit elements or drag (set orbit.model: j2)")
+        return self
+
+    def semi_major_axis(self) -> float:
+        """The chief's semi-major axis (m)."""
+        if self.semi_major_axis_m is not None:
+            return float(self.semi_major_axis_m)
+        return 6378137.0 + (550e3 if self.altitude_m is None else float(self.altitude_m))
+
+    def mean_motion(self) -> float:
+        """n (rad/s): ``mean_motion_rad_s`` (hcw) or the chief's ``√(μ/a³)`` (j2)."""
+        if self.model == "hcw":
+            return float(self.mean_motion_rad_s)
+        return float(np.sqrt(3.986004418e14 / self.semi_major_axis() ** 3))
 
 
 class Spacecraft(_Model):
@@ -72,7 +133,12 @@ class Spacecraft(_Model):
 
 
 class Initial(_Model):
-    position_max_m: NonNegFloat = Field(10.0, description="truth positions uniform in ±this per H axis")
+    layout: Literal["random", "lattice", "train"] = Field(
+        "random", description="random: positions uniform in ±position_max_m; lattice: a nominal grid of spacing_m (as cubic as "
+        "n allows, centred on the origin) plus a uniform offset in ±position_max_m per axis (large swarms; graph.kind nearest); "
+        "train: an along-track train, satellite i at y = −i·spacing_m (satellite 0 leads, on the chief) plus the offset")
+    spacing_m: PosFloat = Field(20.0, description="lattice: distance between neighbouring nominal positions (m)")
+    position_max_m: NonNegFloat = Field(10.0, description="truth positions uniform in ±this per H axis (lattice: the offset)")
     velocity_max_m_s: NonNegFloat = Field(0.005, description="truth velocities uniform in ±this per axis")
     rate_max_rad_s: NonNegFloat = Field(0.006, description="truth body rates uniform in ±this per axis")
     drift_free: bool = Field(False, description="set v_y = −2 n x so no satellite drifts along-track")
@@ -104,31 +170,55 @@ class StarTracker(_Model):
 class GPS(_Model):
     enabled: bool = True
     sigma_m: PosFloat = Field(0.01, description="σ_gps per H axis")
+    satellites: list[Annotated[int, Field(ge=0)]] | None = Field(
+        None, description="only these satellites have a GPS receiver (null: every satellite graph.absolute names; the star "
+        "tracker is unaffected)"
+    )
+
+
+class BearingSensor(_Model):
+    """Angles-only camera (``sensors.relative.model: bearing``, :mod:`swarmcore.bearing`):
+    observer i measures only the unit line of sight to target j. Each satellite has six
+    face cameras (``swarmcore.cameras``); the one nearest the line of sight takes the image.
+    Noise: isotropic angular noise σ_px / f_px in the tangent plane (the upper bound of
+    :func:`swarmcore.bearing.bearing_noise_cov`, exact on the boresight)."""
+
+    sigma_px: PosFloat = Field(1.0, description="centroid noise (pixels, 1σ per image axis)")
+    f_px: PosFloat = Field(5000.0, description="focal length (pixels)")
+    half_fov_deg: float = Field(60.0, gt=0.0, lt=90.0, description="half field of view of each face camera")
+    min_size_px: PosFloat | None = Field(None, description="resolved-target detection: apparent size ≥ this (null: off)")
+    limiting_magnitude: float | None = Field(
+        None, description="unresolved detection: visual magnitude ≤ this (lit diffuse sphere; null: off)"
+    )
+    sun_exclusion_deg: NonNegFloat = Field(30.0, lt=180.0, description="no image within this angle of the Sun")
+    sun_direction_I: list[float] = Field([1.0, 0.0, 0.0], min_length=3, max_length=3, description="Sun direction in I (fixed)")
+    target_size_m: PosFloat = Field(0.3, description="each target's size (resolved test)")
+    target_area_m2: PosFloat = Field(0.06, description="each target's cross-section (brightness)")
+    target_albedo: PosFloat = Field(0.2, description="each target's albedo")
+
+    @property
+    def sigma_rad(self) -> float:
+        return float(self.sigma_px / self.f_px)
 
 
 class Relative(_Model):
     """Synthetic relative pose measurements (chapter 4 isotropic, or chapter 6 camera-frame)."""
 
-    model: Literal["isotropic", "camera"] = Field("isotropic", description="noise model")
+    model: Literal["isotropic", "camera", "bearing"] = Field(
+        "isotropic", description="noise model; bearing: angles-only (unit line of sight, see bearing)")
+    bearing: BearingSensor = BearingSensor()
     sigma_att_rad: PosFloat = Field(0.03, description="σ_q: isotropic relative attitude noise")
     sigma_pos_m: PosFloat = Field(0.01, description="σ_p: isotropic relative position noise")
-    sigma_pos_camera_m: list[PosFloat] = Field(
+    sigma_pos_camera_m: CameraAxes = Field(
         [0.25, 0.25, 0.12], description="camera model: position σ along camera x, y, z at the reference range"
     )
-    sigma_att_camera_rad: list[PosFloat] = Field(
+    sigma_att_camera_rad: CameraAxes = Field(
         [0.03, 0.03, 0.03], description="camera model: attitude σ about camera x, y, z at the reference range"
     )
     range_exponent: NonNegFloat = Field(
         2.0, description="camera model: σ grows as (range / reference_range_m) ** range_exponent"
     )
     reference_range_m: PosFloat = Field(10.0, description="camera model: range at which σ is as given")
-
-    @field_validator("sigma_pos_camera_m", "sigma_att_camera_rad")
-    @classmethod
-    def _three(cls, v):
-        if len(v) != 3:
-            raise ValueError(f"needs 3 values (camera x, y, z), got {len(v)}")
-        return v
 
 
 class Sensors(_Model):
@@ -141,8 +231,9 @@ class Sensors(_Model):
 class Graph(_Model):
     """Which relative measurements exist (G(i, j) = 1: i measures j); diagonal = absolute."""
 
-    kind: Literal["complete", "star", "chain", "duplex_chain", "matrix"] = "complete"
+    kind: Literal["complete", "star", "chain", "duplex_chain", "matrix", "nearest"] = "complete"
     landmark: int = Field(0, ge=0, description="star: the satellite every other one measures")
+    neighbors: int = Field(3, ge=1, description="nearest: each satellite measures its k nearest by nominal position (initial.layout: lattice)")
     matrix: list[list[int]] | None = Field(None, description="matrix: explicit n×n incidence (0/1)")
     absolute: Literal["all", "none"] | list[int] = Field(
         "all", description="satellites with star tracker + GPS (for kind=matrix the diagonal decides)"
@@ -153,10 +244,13 @@ class Gate(_Model):
     enabled: bool = True
     probability: float = Field(0.999, gt=0.5, lt=1.0, description="χ²(6) quantile of the threshold")
 
-    def threshold(self) -> float | None:
-        """The χ²(6) quantile: ``2 · gammaincinv(3, p)``, exactly what ``scipy.stats.chi2.ppf``
-        computes (importing scipy.stats would cost every process ~1 s of start-up)."""
-        return float(2 * gammaincinv(6 / 2, self.probability)) if self.enabled else None
+    def threshold(self, dof: int = 6) -> float | None:
+        """The χ²(dof) quantile (6: a pose; 2: a bearing): ``2 · gammaincinv(dof/2, p)``, exactly
+        what ``scipy.stats.chi2.ppf`` computes (importing scipy.stats would cost every process
+        ~1 s of start-up)."""
+        from scipy.special import gammaincinv  # here, not at import: the CLI's start-up needs no scipy
+
+        return float(2 * gammaincinv(dof / 2, self.probability)) if self.enabled else None
 
 
 class InitialSigma(_Model):
@@ -196,6 +290,11 @@ class Filter(_Model):
         0.01, description="iterate only when the first pass turns some attitude by more than this"
     )
     rk4_substeps: int = Field(1, ge=1, le=100, description="RK4 steps per dt for the others' attitude")
+    dynamics: Literal["auto", "hcw", "j2"] = Field(
+        "auto", description="translation model of the filter: hcw (closed-form HCW about the chief's mean motion), j2 "
+        "(swarmcore.relmotion: the differenced J2 (+ drag) equations about the chief, exact STM; needs orbit.model: j2); "
+        "auto: the truth's orbit.model"
+    )
     late: Literal["replay", "drop"] = Field(
         "replay", description="a relative measurement older than the current step (delivered late by the "
         "links): replay inserts it at its own step and re-runs the filter from there; drop discards it"
@@ -218,6 +317,11 @@ StrategyName = Literal[
 ]
 #: The strategies that need no state estimate (a selector's fallback).
 FallbackStrategy = Literal["random_tree", "random", "complete"]
+#: Every selection strategy by name (the one list: the CLI, compare and the benches read it).
+STRATEGIES: tuple[str, ...] = tuple(s for s in get_args(StrategyName) if s != "none")
+#: Those that plan without a state estimate, and those that plan from the full-swarm covariance.
+STATE_FREE: tuple[str, ...] = get_args(FallbackStrategy)
+NEEDS_STATE: tuple[str, ...] = tuple(s for s in STRATEGIES if s not in STATE_FREE)
 
 
 class Selection(_Model):
@@ -281,7 +385,7 @@ class LinkOverride(_Model):
     """Parameters of one directed link (``from`` transmits, ``to`` receives) that differ
     from the defaults; a field left out keeps the default."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, populate_by_name=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, populate_by_name=True, allow_inf_nan=False)
 
     src: int = Field(ge=0, alias="from", description="transmitting satellite")
     dst: int = Field(ge=0, alias="to", description="receiving satellite")
@@ -426,9 +530,35 @@ class Emulator(_Model):
     )
     security: bool = Field(
         True, description="on (default): every process authenticates to the router with its own credential and "
-        "the router's access rules say who may put, subscribe and query what (swarm/security.py); "
+        "the router's access rules say who may put, subscribe and query what (swarmrt/security.py); "
         "off: anyone reaching the router may publish anything (debugging, measuring the cost; loud in logs and summary)"
     )
+    agent_start: Literal["fork", "spawn"] = Field(
+        "fork", description="how swarm run starts the Python agents: fork (from one fork server that has imported and compiled "
+        "everything once: fast, shared memory; swarm/supervise/forkserver.py) or spawn (one fresh interpreter each)"
+    )
+    agent_commands: dict[int, str] = Field(
+        default_factory=dict, description="satellites flown by another program than the Python sat_agent: {satellite id: "
+        "command line} (docs/agent-contract.md: what it is given and what it owes the swarm); `swarm run --agent I=CMD`"
+    )
+
+
+class EstimatorConfig(_Model):
+    """Which estimator every agent flies, and its parameters (the fields beside ``kind``).
+
+    Built in: ``full`` (the full-swarm MEKF, the reference), ``ci`` (covariance
+    intersection, Carrillo-Arce et al. 2013; split CI), ``pairwise`` (Luft et al. 2018).
+    A plug-in package adds kinds through the ``swarm_coloc.estimators`` entry-point group
+    (``docs/estimators.md``). Each kind validates its own parameters when the scenario
+    is loaded; an unknown kind or field is an error naming it."""
+
+    model_config = ConfigDict(extra="allow", validate_assignment=True, allow_inf_nan=False)
+
+    kind: str = Field("full", pattern=r"^[a-z][a-z0-9_\-]*$", description="the estimator's name")
+
+    def params(self) -> dict:
+        """The parameters: every field but ``kind``."""
+        return dict(self.model_extra or {})
 
 
 class Scenario(_Model):
@@ -454,10 +584,22 @@ class Scenario(_Model):
     emulator: Emulator = Emulator()
     links: Links = Field(default_factory=Links, description="inter-satellite links (delay, data rate, loss, range)")
     faults: list[FaultSpec] = Field(default_factory=list, description="time-tagged faults (distributed runs)")
+    estimator: EstimatorConfig = Field(default_factory=EstimatorConfig, description="the estimator every agent flies")
 
     @property
     def steps(self) -> int:
         return round(self.duration_s / self.dt_s) + 1
+
+    def filter_dynamics(self) -> str:
+        """The filter's translation model: ``filter.dynamics``, ``auto`` resolved to ``orbit.model``."""
+        return self.orbit.model if self.filter.dynamics == "auto" else self.filter.dynamics
+
+    def ballistic(self) -> np.ndarray:
+        """Every satellite's ``C_D A / m`` (m²/kg), zeros when drag is off."""
+        d = self.orbit.drag
+        if not d.enabled:
+            return np.zeros(self.n_sats)
+        return np.broadcast_to(np.asarray(d.ballistic_m2_kg, dtype=float), (self.n_sats,)).copy()
 
     @model_validator(mode="after")
     def _cross_checks(self):
@@ -465,6 +607,11 @@ class Scenario(_Model):
         g = self.graph
         if g.kind == "star" and g.landmark >= n:
             raise ValueError(f"graph.landmark: {g.landmark} is not a satellite id (0..{n - 1})")
+        if g.kind == "nearest":
+            if self.initial.layout != "lattice":
+                raise ValueError("graph.kind: nearest measures the nearest neighbours of a nominal formation: set initial.layout: lattice")
+            if g.neighbors >= n:
+                raise ValueError(f"graph.neighbors: {g.neighbors} of a swarm of {n} (at most {n - 1})")
         if g.kind == "matrix":
             if g.matrix is None:
                 raise ValueError("graph.matrix: required when graph.kind is 'matrix'")
@@ -481,13 +628,26 @@ class Scenario(_Model):
             raise ValueError(f"selection.sat_weights: needs {n} values, got {len(self.selection.sat_weights)}")
         if len(self.selection.state_weights) != 12:
             raise ValueError("selection.state_weights: needs 12 values (one per error state)")
+        gps_sats = self.sensors.gps.satellites
+        if gps_sats is not None and (bad := [i for i in gps_sats if i >= n]):
+            raise ValueError(f"sensors.gps.satellites: unknown satellite ids {bad} (0..{n - 1})")
+        if self.filter.dynamics == "j2" and self.orbit.model != "j2":
+            raise ValueError("filter.dynamics: j2 needs a chief orbit (set orbit.model: j2)")
+        if self.orbit.model == "j2" and self.vision.pipeline != "none":
+            raise ValueError("orbit.model: j2 is not wired into the rendered cameras (vision.pipeline must be none)")
+        if isinstance(self.orbit.drag.ballistic_m2_kg, list) and len(self.orbit.drag.ballistic_m2_kg) != n:
+            raise ValueError(
+                f"orbit.drag.ballistic_m2_kg: needs one value or {n} (one per satellite), got {len(self.orbit.drag.ballistic_m2_kg)}"
+            )
+        if self.sensors.relative.model == "bearing" and self.vision.pipeline != "none":
+            raise ValueError("sensors.relative.model: bearing is the synthetic angles-only camera (vision.pipeline must be none)")
+        if self.sensors.relative.model == "bearing" and self.selection.strategy not in ("none", "complete", "random", "random_tree"):
+            raise ValueError("selection.strategy: the covariance-driven strategies plan 6-dof pose measurements, not bearings "
+                             "(use none, complete, random or random_tree with sensors.relative.model: bearing)")
         if self.duration_s < self.dt_s:
             raise ValueError("duration_s: must be at least dt_s")
-        if self.vision.pipeline == "mono":
-            if n > 97:
-                raise ValueError(f"vision.pipeline: mono needs a unique AprilTag per face; 36h11 has 587 tags, enough for 97 satellites, not {n}")
-            if self.vision.mono.tag_size_m >= 2 * self.spacecraft.half_size_m:
-                raise ValueError("vision.mono.tag_size_m: the tag must be smaller than the cube face")
+        if self.vision.pipeline == "mono" and (why := mono_tag_problem(self.vision, n, self.spacecraft.half_size_m)):
+            raise ValueError(why)
         for idx, o in enumerate(self.links.overrides):
             for end, v in (("from", o.src), ("to", o.dst)):
                 if v >= n:
@@ -497,6 +657,11 @@ class Scenario(_Model):
         pairs = [(o.src, o.dst) for o in self.links.overrides]
         if len(set(pairs)) != len(pairs):
             raise ValueError("links.overrides: each directed link may be listed once")
+        for sat, cmd in self.emulator.agent_commands.items():
+            if not 0 <= sat < n:
+                raise ValueError(f"emulator.agent_commands.{sat}: not a satellite id (0..{n - 1})")
+            if not cmd.strip():
+                raise ValueError(f"emulator.agent_commands.{sat}: an empty command")
         for idx, f in enumerate(self.faults):
             if f.target is not None and f.target >= n:
                 raise ValueError(f"faults.{idx}.target: {f.target} is not a satellite id (0..{n - 1})")

@@ -109,7 +109,6 @@ and 28 % at m = 49, but no less at n = 10 (pruning removes few pairs there).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import get_args
 
 import numpy as np
 from scipy.sparse.csgraph import connected_components
@@ -117,8 +116,10 @@ from scipy.sparse.csgraph import connected_components
 from . import quat
 from .cameras import Intrinsics, best_camera, visible_cameras
 from .mekf import BLOCK, FilterParams, RelativeMeasurements, SwarmEstimate, observed_indices, relative_residuals
-from .scenario import FallbackStrategy, StrategyName
-from .sensors import relative_noise_cov, relative_pose
+from .scenario import NEEDS_STATE as _NEEDS_STATE
+from .scenario import STATE_FREE as _STATE_FREE
+from .scenario import STRATEGIES as _STRATEGIES
+from .sensors import relative_noise_cov, relative_pose_T
 
 __all__ = [
     "STRATEGIES",
@@ -148,11 +149,11 @@ __all__ = [
 ]
 
 #: Every strategy (their names are declared once, with the scenario's ``selection.strategy``).
-STRATEGIES: tuple[str, ...] = tuple(s for s in get_args(StrategyName) if s != "none")
+STRATEGIES = _STRATEGIES
 #: Strategies that need no state estimate (usable as a fallback by a selector without one).
-STATE_FREE: tuple[str, ...] = get_args(FallbackStrategy)
+STATE_FREE = _STATE_FREE
 #: Strategies that plan from a filter's estimate (the selector fetches it).
-NEEDS_STATE: tuple[str, ...] = tuple(s for s in STRATEGIES if s not in STATE_FREE)
+NEEDS_STATE = _NEEDS_STATE
 
 
 @dataclass(frozen=True)
@@ -210,7 +211,7 @@ class Candidates:
 
 def predicted_relative(est: SwarmEstimate, params: FilterParams, observer, target):
     """Predicted ``q_BjBi`` (m, 4) and ``r_ij_Bi`` (m, 3) m from the estimate (no noise)."""
-    return relative_pose(params.mean_motion, est.t, est.q_BI, est.r_H, np.asarray(observer), np.asarray(target))
+    return relative_pose_T(params.T_IH(est.t), est.q_BI, est.r_H, np.asarray(observer), np.asarray(target))
 
 
 def candidate_mask(

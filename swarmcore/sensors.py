@@ -20,7 +20,7 @@ from . import quat
 from .cameras import T_CB, best_camera
 from .dynamics import T_IH
 
-__all__ = ["relative_pose", "camera_axis_variances", "camera_to_body", "relative_noise_cov"]
+__all__ = ["relative_pose", "relative_pose_T", "camera_axis_variances", "camera_to_body", "relative_noise_cov"]
 
 
 def relative_pose(mean_motion: float, t: float, q_BI, r_H, observer, target) -> tuple[np.ndarray, np.ndarray]:
@@ -29,8 +29,14 @@ def relative_pose(mean_motion: float, t: float, q_BI, r_H, observer, target) -> 
     ``q_BjBi = q_Bj ⊗ q_Biᶜ`` (rotation from B_i to B_j); ``r_ij_Bi = T(q_Bi) T_IH(t) (r_j − r_i)``.
     Evaluated on the truth by the world, on an estimate by an agent or the selector.
     """
+    return relative_pose_T(T_IH(mean_motion, t), q_BI, r_H, observer, target)
+
+
+def relative_pose_T(T_IH_: np.ndarray, q_BI, r_H, observer, target) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`relative_pose` with the Hill → inertial matrix given (the chief's frame,
+    :mod:`swarmcore.reference`)."""
     T_i = quat.attitude_matrix(q_BI[observer])
-    C = T_i @ T_IH(mean_motion, t)
+    C = T_i @ T_IH_
     r = np.einsum("mab,mb->ma", C, r_H[target] - r_H[observer])
     q = quat.qmul(q_BI[target], quat.qconj(q_BI[observer]))
     return quat.normalize(q), r

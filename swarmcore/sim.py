@@ -23,17 +23,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .agent import AgentFilter, filter_params
+from .estimators import EstimateView, Estimator, Received, StepInputs, StepReport, builtin_estimator
 from .graphs import scenario_graph
-from .links import LinkCounters, LinkModel
-from .measurement import MeasurementModel, synthetic_model
-from .mekf import RelativeMeasurements, SwarmEstimate, UpdateReport
-from .metrics import pose_cov_blocks, pose_errors, pose_nees, summarize
+from .links import LinkCounters, LinkModel, scenario_link_model
+from .measurement import MeasurementModel
+from .mekf import RelativeMeasurements
+from .metrics import pose_errors, pose_nees, relative_errors_of, run_summary
 from .scenario import Scenario
 from .selection import choose_pairs
+from .synthetic import synthetic_model
 from .world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
 
-__all__ = ["SimResult", "simulate", "make_filters", "link_summary", "late_summary", "link_body_radius"]
+__all__ = ["SimResult", "SimStep", "simulate", "make_estimators", "link_summary", "late_summary"]
 
 
 @dataclass
@@ -58,13 +59,17 @@ class SimResult:
     link_series: np.ndarray | None = None  # (K, 6) cumulative sent, delivered, late, lost, dropped, unreachable
     queue_bytes: np.ndarray | None = None  # (K, n) each transmitter's backlog at the step (bytes)
     link_latencies: list | None = None  # (sender, receiver, sent step, latency s) of each delivered batch
+    rel_att_err: np.ndarray | None = None  # (K, F, n) rad: filter f's estimate of j relative to itself
+    rel_pos_err: np.ndarray | None = None  # (K, F, n) m
+    rel_nees: np.ndarray | None = None  # (K, F, n) against the relative covariance f claims
+    bytes_sent: np.ndarray | None = None  # (K, n) bytes each satellite put on its radio per step
+    taken: np.ndarray | None = None  # (K, n, n) bool: relative measurements in the batches put on the radio
+    estimator: str = "full"
+    cpu_ms: np.ndarray | None = None  # (K, F) CPU time of each filter step (thread time: predict + update)
 
     def summary(self) -> dict:
-        sc = self.scenario
-        return summarize(
-            n_sats=sc.n_sats,
-            dt=sc.dt_s,
-            seed=sc.seed,
+        return run_summary(
+            self.scenario,
             att_err=self.att_err,
             pos_err=self.pos_err,
             nees=self.nees,
@@ -73,16 +78,33 @@ class SimResult:
             step_ms=self.step_ms,
             nis=self.nis,
             nis_dof=self.nis_dof,
-            extra={
-                "scenario": sc.name,
-                "mode": sc.filter.mode,
-                "measurements_per_step_mean": float(self.schedule.sum(axis=(1, 2)).mean()),
-                **(late_summary(self.late_used, self.late_dropped, self.replayed)
-                   if sc.links.enabled and self.late_used is not None and self.late_dropped is not None and self.replayed is not None
-                   else {}),
-                **self.extra,
-            },
+            taken=self.taken if self.taken is not None else self.schedule,
+            estimator=self.estimator,
+            rel_att_err=self.rel_att_err,
+            rel_pos_err=self.rel_pos_err,
+            rel_nees=self.rel_nees,
+            bytes_sent=self.bytes_sent,
+            cpu_ms=self.cpu_ms,
+            late=None if self.late_used is None or self.late_dropped is None or self.replayed is None
+            else (self.late_used, self.late_dropped, self.replayed),
+            extra=self.extra,
         )
+
+
+@dataclass
+class SimStep:
+    """What one step of the simulator saw and did, handed to ``simulate(on_step=...)`` (the
+    3-D scene of ``swarm sim`` is built from it): the truth, every filter's view after the
+    step, the relative measurements each observer put on the radio (``taken[i, j]``) and,
+    with links, the cumulative per-link counters (:class:`~swarmcore.links.LinkCounters`)."""
+
+    k: int
+    t: float
+    q_BI: np.ndarray  # (n, 4) true attitudes
+    r_H: np.ndarray  # (n, 3) true positions (m, HCW)
+    views: list[EstimateView]  # the view after step k of every filter that stepped (``view.own``: whose)
+    taken: np.ndarray  # (n, n) bool
+    links: LinkCounters | None = None
 
 
 class Recorder:
@@ -114,17 +136,26 @@ class Recorder:
         self.nis = np.full((K, F), np.nan)
         self.nis_dof = np.zeros((K, F), dtype=int)
         self.step_ms = np.full((K, F), nan)
+        self.cpu_ms = np.full((K, F), nan)
         self.schedule = np.zeros((K, n, n), dtype=bool)
+        self.taken = np.zeros((K, n, n), dtype=bool)
         self.late_used = np.zeros((K, F), dtype=int)
         self.late_dropped = np.zeros((K, F), dtype=int)
         self.replayed = np.zeros((K, F), dtype=int)
+        self.rel_att_err = np.full((K, F, n), nan)
+        self.rel_pos_err = np.full((K, F, n), nan)
+        self.rel_nees = np.full((K, F, n), nan)
+        self.bytes_sent = np.full((K, n), nan)  # bytes each satellite put on its radio per step
+        self.kind = "full"
+        self.n = n
         self.link_series = np.zeros((K, 6), dtype=int)  # cumulative sent, delivered, late, lost, dropped, unreachable
         self.queue_bytes = np.zeros((K, n), dtype=int)  # each transmitter's backlog at the step
 
-    def late_at(self, k, f, lrep) -> None:
-        self.late_used[k, f] = lrep.used
-        self.late_dropped[k, f] = lrep.dropped
-        self.replayed[k, f] = lrep.replayed_steps
+    def sent_at(self, k, sizes: dict[int, int] | None) -> None:
+        """Bytes each satellite put on its radio at step k (batch and estimator message)."""
+        if sizes is not None:
+            for i, b in sizes.items():
+                self.bytes_sent[k, i] = b
 
     def links_at(self, k, lm) -> None:
         c = lm.counters
@@ -137,23 +168,41 @@ class Recorder:
         for key in self.truth:
             self.truth[key][k] = getattr(truth, key)
 
-    def estimate_at(self, k, f, est: SwarmEstimate, report: UpdateReport | None, ms: float | None):
+    def estimate_at(self, k, f, view: EstimateView, report: StepReport | None, ms: float | None):
+        """Filter f's claim at step k against the truth of step k: its own and tracked peers'
+        errors and NEES, and its estimate of each peer relative to itself."""
         e = self.est
-        e["q_BI"][k, f] = est.q_BI
-        e["omega_BI_B"][k, f] = est.omega_BI_B
-        e["r_H"][k, f] = est.r_H
-        e["v_H"][k, f] = est.v_H
-        e["bias_B"][k, f] = est.bias_B
-        e["P_diag"][k, f] = np.diag(est.P)
-        a, dr = pose_errors(est.q_BI, est.r_H, self.truth["q_BI"][k], self.truth["r_H"][k])
-        self.att_err[k, f] = np.linalg.norm(a, axis=-1)
-        self.pos_err[k, f] = np.linalg.norm(dr, axis=-1)
-        self.nees[k, f] = pose_nees(a, dr, pose_cov_blocks(est.P, est.n))
+        ids = view.ids
+        e["q_BI"][k, f, ids] = view.q_BI
+        e["omega_BI_B"][k, f, ids] = view.omega_BI_B
+        e["r_H"][k, f, ids] = view.r_H
+        e["v_H"][k, f, ids] = view.v_H
+        e["bias_B"][k, f] = view.bias_B
+        if ids.size == self.n:
+            e["P_diag"][k, f] = view.P_diag
+        else:
+            e["P_diag"][k, f, (12 * ids[:, None] + np.arange(12)).ravel()] = view.P_diag
+        q_true, r_true = self.truth["q_BI"][k], self.truth["r_H"][k]
+        a, dr = pose_errors(view.q_BI, view.r_H, q_true[ids], r_true[ids])
+        self.att_err[k, f, ids] = np.linalg.norm(a, axis=-1)
+        self.pos_err[k, f, ids] = np.linalg.norm(dr, axis=-1)
+        self.nees[k, f, ids] = pose_nees(a, dr, view.P_pose)
+        own_row = view.row(f)
+        if own_row is not None and ids.size > 1:
+            a_rel, dr_rel = relative_errors_of(view.q_BI, view.r_H, own_row, q_true[ids], r_true[ids])
+            others = ids != f
+            oi = ids[others]
+            self.rel_att_err[k, f, oi] = np.linalg.norm(a_rel[others], axis=-1)
+            self.rel_pos_err[k, f, oi] = np.linalg.norm(dr_rel[others], axis=-1)
+            self.rel_nees[k, f, oi] = pose_nees(a_rel[others], dr_rel[others], view.P_rel_pose[others])
         if report is not None:
-            self.gate_accepted[k, f] = report.n_accepted
-            self.gate_rejected[k, f] = report.n_rejected
+            self.gate_accepted[k, f] = report.gate_accepted
+            self.gate_rejected[k, f] = report.gate_rejected
             self.nis[k, f] = report.nis
             self.nis_dof[k, f] = report.nis_dof
+            self.late_used[k, f] = report.late_used
+            self.late_dropped[k, f] = report.late_dropped
+            self.replayed[k, f] = report.replayed_steps
         if ms is not None:
             self.step_ms[k, f] = ms
 
@@ -178,79 +227,144 @@ class Recorder:
             replayed=self.replayed,
             link_series=self.link_series,
             queue_bytes=self.queue_bytes,
+            rel_att_err=self.rel_att_err,
+            rel_pos_err=self.rel_pos_err,
+            rel_nees=self.rel_nees,
+            bytes_sent=self.bytes_sent,
+            taken=self.taken,
+            cpu_ms=self.cpu_ms,
+            estimator=self.kind,
         )
 
 
-def link_body_radius(sc: Scenario) -> float:
-    """The sphere that blocks a line of sight (links.line_of_sight): the cube's corner radius."""
-    return float(sc.spacecraft.half_size_m * np.sqrt(3.0))
+def make_estimators(sc: Scenario, truth, factory: EstimatorFactory | None = None) -> list[Estimator]:
+    """Every satellite's estimator at the world's prior (:func:`swarmcore.world.initial_estimate`
+    over the satellites each one starts from)."""
+    factory = factory or builtin_estimator
+    out = []
+    for i in range(sc.n_sats):
+        e = factory(sc, i)
+        e.start(initial_estimate(sc, truth, i, e.prior_ids()))
+        out.append(e)
+    return out
 
 
-def make_filters(sc: Scenario, truth) -> list[AgentFilter]:
-    """Every satellite's filter at its prior, with the history its late handling needs."""
-    f = sc.filter
-    hist = int(np.ceil(f.history_s / sc.dt_s)) if sc.links.enabled and f.late == "replay" else 0
-    return [AgentFilter(filter_params(sc, i), initial_estimate(sc, truth, i), f.mode, late=f.late, history_steps=hist)
-            for i in range(sc.n_sats)]
-
-
-WireSize = Callable[[int, int, float, RelativeMeasurements, np.ndarray], int]
+#: ``wire_size(observer, k, t, rel, cameras, message)``: bytes of an observer's batch and
+#: its estimator's message on the radio.
+WireSize = Callable[[int, int, float, RelativeMeasurements, np.ndarray, object], int]
+EstimatorFactory = Callable[[Scenario, int], Estimator]
 
 
 def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Callable[[int, int], None] | None = None,
-             wire_size: WireSize | None = None) -> SimResult:
-    """Run every satellite's filter over the scenario in this process.
+             wire_size: WireSize | None = None, estimator_factory: EstimatorFactory | None = None,
+             outages: dict[int, tuple[int, int | None]] | None = None,
+             on_step: Callable[[SimStep], None] | None = None) -> SimResult:
+    """Run every satellite's estimator over the scenario in this process.
 
     ``model``: the relative-measurement model (default: the synthetic one; scenarios that
-    render need :func:`swarm.models.measurement_model`). ``wire_size(observer, k, t, rel,
-    cameras)``: the encoded size of an observer's batch on the bus, which the link model
-    needs when ``links.enabled`` (:func:`swarm.models.batch_wire_size`)."""
+    render need :func:`swarm.simulation.measurement_model`). ``wire_size``: the encoded size
+    of an observer's batch and estimator message on the bus, which the link model needs
+    when ``links.enabled`` (:func:`swarmrt.bus.convert.batch_wire_size`).
+    ``estimator_factory(sc, own)``: each satellite's estimator (default: the scenario's
+    built-in ``estimator.kind``; plug-ins come through :func:`swarmrt.estimators.estimator_factory`).
+
+    ``outages`` ``{sat: (kill step, restart step or None)}``: an agent killed and restarted,
+    emulated in-process (studies; the scenario's ``faults`` are for distributed runs):
+    from the kill step its estimator neither measures, sends nor steps, and its peers hear
+    nothing of it (its satellite still flies and is measured); at the restart step it
+    starts again as a restarted ``sat_agent`` does — from the lowest-id live peer's estimate
+    (``warm_rejoin``) or cold from its own sensors — and resumes. ``on_step``: called after
+    every step with its :class:`SimStep` (it changes no number)."""
     n, K = sc.n_sats, sc.steps
     model = model or synthetic_model(sc)
     wp = world_params(sc)
     G = scenario_graph(sc)
     camera_ok = np.ones((n, 6), dtype=bool)
     truth = initial_truth(sc)
-    filters = make_filters(sc, truth)
-    lm = None
-    if sc.links.enabled:
-        if wire_size is None:
-            raise ValueError("links.enabled: the link model needs each batch's encoded size (pass wire_size, "
-                             "see swarm.models.batch_wire_size)")
-        lm = LinkModel(sc.links, n, sc.seed, link_body_radius(sc))
+    ests = make_estimators(sc, truth, estimator_factory)
+    lm = scenario_link_model(sc)
+    if lm is not None and wire_size is None:
+        raise ValueError("links.enabled: the link model needs each batch's encoded size (pass wire_size, "
+                         "see swarmrt.bus.convert.batch_wire_size)")
     cameras = model.cameras()
-    estimator = model.estimator()
+    pose = model.estimator()
     rec = Recorder(K, n, n)
+    rec.kind = ests[0].kind
     gyro = None
+    outages = outages or {}
+    down: set[int] = set()  # agents dead now
+    cold: set[int] = set()  # restarted agents waiting for a cold start
     try:
         for k in range(K):
             if k > 0:
                 truth, gyro = step_truth(wp, truth)
             rec.truth_at(k, truth)
             absm = absolute_measurements(wp, truth)
-            obs, tgt = choose_pairs(sc, k, G, filters[0].est, filters[0].params, camera_ok)
+            for i, (kill, back) in outages.items():
+                if k == kill:
+                    down.add(i)
+                elif back is not None and k == back and i in down:
+                    down.discard(i)
+                    live = [j for j in range(n) if j not in down and j != i]
+                    ests[i] = (estimator_factory or builtin_estimator)(sc, i)  # a new process: nothing remembered
+                    if ests[i].warm_rejoin and live:
+                        ests[i].rejoin(ests[live[0]].rejoin_state(), live[0], None)
+                    else:
+                        cold.add(i)
+            up = [i for i in range(n) if i not in down]
+            cam_ok = camera_ok.copy()
+            cam_ok[sorted(down)] = False  # a dead agent's satellite measures nothing
+            ref = ests[min(up)].selection_reference() if up else None
+            obs, tgt = choose_pairs(sc, k, G, None if ref is None else ref[0], None if ref is None else ref[1], cam_ok)
             rec.schedule[k, obs, tgt] = True
             ms_pred = np.zeros(n)
-            if estimator.needs_prediction and k > 0:
-                # Image pipelines start from each observer's prediction (ICP seed, ambiguity).
-                for i, f in enumerate(filters):
-                    t0 = time.perf_counter()
-                    f.predict_to(k, None if gyro is None else gyro[i])
-                    ms_pred[i] = (time.perf_counter() - t0) * 1e3
-            seen = cameras.observe(truth, obs, tgt, camera_ok, predicted=[f.est for f in filters])
+            running = [i for i in up if i not in cold]
+            cpu_pred = np.zeros(n)
+            for i in running:  # each prior of step k (image pipelines start from it)
+                t0, c0 = time.perf_counter(), time.thread_time()
+                ests[i].predict(k, None if gyro is None else gyro[i])
+                ms_pred[i] = (time.perf_counter() - t0) * 1e3
+                cpu_pred[i] = (time.thread_time() - c0) * 1e3
+            seen = cameras.observe(truth, obs, tgt, cam_ok, predicted=[e.prediction() if i in running else None for i, e in enumerate(ests)])
+            # Each observer's pose estimator turns its own observation into measurements (those
+            # the cameras delivered nothing to measure nothing), in observer order.
+            none = (RelativeMeasurements.empty(), np.zeros(0, dtype=int))
+            own = {i: pose.measure(i, seen[i], ests[i].prediction() if i in running else None, k) if i in seen and i in up else none
+                   for i in range(n)}
+            for i in up:
+                rec.taken[k, i, own[i][0].target] = True
+            sent = {i: ests[i].transmit(k) if i in running else None for i in range(n)}
+            peers_of: dict[int, RelativeMeasurements] = {}
             if lm is None:
-                rel = RelativeMeasurements.concat([estimator.measure(i, seen[i], filters[i].est, k)[0] for i in sorted(seen)])
-                inputs = dict.fromkeys(range(n), (rel, None))
+                every = [Received(j, k, own[j][0], sent[j]) for j in up]
+                received = {i: [r for r in every if r.sender != i] for i in range(n)}
+                batch = RelativeMeasurements.concat([r.measurements for r in every])
+                peers_of = {i: batch.subset(batch.observer != i) for i in up}
             else:
                 assert wire_size is not None  # checked with the link model
-                inputs = _through_links(lm, k, truth, seen, estimator, filters, wire_size, rec)
-            for i, f in enumerate(filters):
-                t0 = time.perf_counter()
-                rel_i, late_i = inputs[i]
-                rep, lrep = f.step(k, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, rel_i, late=late_i)
+                received = _through_links(lm, k, truth, own, sent, wire_size, rec, up)
+            views = []
+            for i in up:
+                e = ests[i]
+                t0, c0 = time.perf_counter(), time.thread_time()
+                inputs = StepInputs(k, truth.t, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, own[i][0],
+                                    received[i], peers_of.get(i))
+                if i in cold:
+                    if not e.cold_start(inputs):
+                        continue
+                    cold.discard(i)
+                    rep = None
+                else:
+                    rep = e.step(inputs)
                 ms = (time.perf_counter() - t0) * 1e3 + ms_pred[i]
-                rec.estimate_at(k, i, f.est, rep, ms)
-                rec.late_at(k, i, lrep)
+                rec.cpu_ms[k, i] = (time.thread_time() - c0) * 1e3 + cpu_pred[i]
+                views.append(e.view())
+                rec.estimate_at(k, i, views[-1], rep, ms)
+            if wire_size:
+                rec.sent_at(k, {i: wire_size(i, k, truth.t, own[i][0], own[i][1], sent[i]) for i in up})
+            if on_step is not None:
+                on_step(SimStep(k, truth.t, truth.q_BI, truth.r_H, views, rec.taken[k].copy(),
+                                None if lm is None else lm.counters))
             if progress is not None:
                 progress(k + 1, K)
     finally:
@@ -262,27 +376,23 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
     return res
 
 
-def _through_links(lm: LinkModel, k: int, truth, seen, estimator, filters, wire_size: WireSize, rec: Recorder):
-    """Every observer's batch through the radio; what each receiver holds at step k: its
-    own batch and the copies that arrived (on time), and the late ones by their step."""
-    n = len(filters)
-    own = {i: estimator.measure(i, seen.get(i), filters[i].est, k) for i in range(n)}
+def _through_links(lm: LinkModel, k: int, truth, own: dict, sent: dict, wire_size: WireSize, rec: Recorder,
+                   up: list[int] | None = None) -> dict[int, list[Received]]:
+    """Every (live) observer's batch and estimator message through the radio; what each
+    receiver holds at step k: the copies that arrived by t_k, of this step (on time) or
+    earlier (late)."""
+    n = len(own)
     lm.at_step(k, truth.r_H)
-    for i in range(n):
+    for i in (range(n) if up is None else up):
         rel_i, cams_i = own[i]
-        lm.send(i, range(n), rel_i, wire_size(i, k, truth.t, rel_i, cams_i), truth.t, key=k)
-    inputs = {}
-    arrived = lm.due(truth.t)
+        lm.send(i, range(n), (rel_i, sent[i]), wire_size(i, k, truth.t, rel_i, cams_i, sent[i]), truth.t, key=k)
+    out: dict[int, list[Received]] = {i: [] for i in range(n)}
+    for d in lm.due(truth.t):
+        out[d.receiver].append(Received(d.sender, d.sent_step, d.payload[0], d.payload[1]))
     for i in range(n):
-        mine = [d for d in arrived if d.receiver == i]
-        on_time = RelativeMeasurements.concat([own[i][0], *[d.payload for d in mine if d.sent_step == k]])
-        late: dict[int, list] = {}
-        for d in mine:
-            if d.sent_step < k:
-                late.setdefault(d.sent_step, []).append(d.payload)
-        inputs[i] = (on_time, {s: RelativeMeasurements.concat(b) for s, b in late.items()})
+        out[i].sort(key=lambda r: (r.step, r.sender))
     rec.links_at(k, lm)
-    return inputs
+    return out
 
 
 def late_summary(used: np.ndarray, dropped: np.ndarray, replayed: np.ndarray) -> dict:

@@ -7,13 +7,12 @@ the dissertation's 2000² is one ``--set`` away).
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Literal
 
-import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import Field, model_validator
 
-PosFloat = Annotated[float, Field(gt=0)]
-NonNegFloat = Annotated[float, Field(ge=0)]
+from .config_types import MAX_TAGGED_SATELLITES, TAG_FAMILY, TAG_FAMILY_CODES, CameraAxes, Direction3, NonNegFloat, PosFloat
+from .config_types import ConfigModel as _Model
 
 __all__ = [
     "VisionConfig",
@@ -25,11 +24,8 @@ __all__ = [
     "StereoConfig",
     "CovarianceConfig",
     "RenderConfig",
+    "mono_tag_problem",
 ]
-
-
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
 
 class MonoCameraConfig(_Model):
@@ -61,7 +57,7 @@ class StereoCameraConfig(_Model):
 
 
 class LightingConfig(_Model):
-    sun_direction: list[float] = Field(
+    sun_direction: Direction3 = Field(
         [1.0, 0.3, 0.2], description="unit vector pointing at the Sun (normalised on use)"
     )
     sun_frame: Literal["I", "H"] = Field(
@@ -74,13 +70,6 @@ class LightingConfig(_Model):
         "scattered light); 0 = solar only"
     )
     shadows: bool = Field(True, description="directional shadow mapping (satellites shadow each other)")
-
-    @field_validator("sun_direction")
-    @classmethod
-    def _three(cls, v):
-        if len(v) != 3 or float(np.linalg.norm(v)) == 0.0:
-            raise ValueError("needs 3 components, not all zero")
-        return v
 
 
 class NoiseConfig(_Model):
@@ -171,20 +160,13 @@ class CovarianceConfig(_Model):
         None, description="fitted: error-model JSON (`swarm fit-noise`); a bare file name is looked up in "
         "swarmvision/data; default: the one shipped for the pipeline and camera"
     )
-    sigma_pos_camera_m: list[PosFloat] = Field([0.02, 0.02, 0.06], description="fixed: σ along camera x, y, z")
-    sigma_att_camera_rad: list[PosFloat] = Field([0.02, 0.02, 0.01], description="fixed: σ about camera x, y, z")
+    sigma_pos_camera_m: CameraAxes = Field([0.02, 0.02, 0.06], description="fixed: σ along camera x, y, z")
+    sigma_att_camera_rad: CameraAxes = Field([0.02, 0.02, 0.01], description="fixed: σ about camera x, y, z")
     reference_range_m: PosFloat = 5.0
     range_exponent: NonNegFloat = 2.0
     min_sigma_pos_m: PosFloat = Field(0.003, description="floor on every position σ")
     min_sigma_att_rad: PosFloat = Field(0.002, description="floor on every attitude σ")
     inflation: PosFloat = Field(1.0, description="multiply every variance by this")
-
-    @field_validator("sigma_pos_camera_m", "sigma_att_camera_rad")
-    @classmethod
-    def _three(cls, v):
-        if len(v) != 3:
-            raise ValueError(f"needs 3 values (camera x, y, z), got {len(v)}")
-        return v
 
 
 class RenderConfig(_Model):
@@ -227,6 +209,17 @@ class VisionConfig(_Model):
             raise ValueError("stereo.block_size: must be odd")
         if self.stereo.max_disparity % 16:
             raise ValueError("stereo.max_disparity: must be a multiple of 16")
-        if self.mono.tag_size_m >= 0.5:
-            raise ValueError("mono.tag_size_m: leaves no quiet zone on a 40 cm face")
         return self
+
+
+def mono_tag_problem(cfg: VisionConfig, n_sats: int, half_size_m: float) -> str | None:
+    """Why the monocular pipeline cannot tag this swarm (naming the field), or None: every
+    face needs a unique tag of the family, smaller than the face (a white quiet zone
+    around the black square)."""
+    if n_sats > MAX_TAGGED_SATELLITES:
+        return (f"vision.pipeline: mono needs a unique AprilTag per face; {TAG_FAMILY} has {TAG_FAMILY_CODES} tags, "
+                f"enough for {MAX_TAGGED_SATELLITES} satellites, not {n_sats}")
+    if cfg.mono.tag_size_m >= 2 * half_size_m:
+        return (f"vision.mono.tag_size_m: {cfg.mono.tag_size_m:g} m leaves no quiet zone on the {2 * half_size_m:g} m "
+                "cube face (it must be smaller than 2 · spacecraft.half_size_m)")
+    return None

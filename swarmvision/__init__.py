@@ -19,9 +19,10 @@ __all__ = ["measurement_model"]
 
 
 def measurement_model(sc: Scenario) -> MeasurementModel:
-    """Rendered cameras (world side) and the pose pipelines (agent side) of a scenario."""
+    """Rendered cameras (world side) and the pose pipelines (agent side) of a scenario: both
+    halves, for whatever runs both (the in-process simulator, benchmarks). A role builds
+    only its own half (:mod:`swarmrt.truth`, :mod:`swarmrt.flight`)."""
     from .camera_sim import RenderedCameras
     from .pose_estimator import VisionPoseEstimator
 
-    args = (sc.vision, sc.n_sats, sc.spacecraft.half_size_m, sc.seed, sc.orbit.mean_motion_rad_s)
-    return MeasurementModel(cameras=lambda: RenderedCameras(*args), estimator=lambda: VisionPoseEstimator(*args))
+    return MeasurementModel(cameras=lambda: RenderedCameras.from_scenario(sc), estimator=lambda: VisionPoseEstimator.from_scenario(sc))

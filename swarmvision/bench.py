@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import platform
 import time
+from typing import Any
 
 import numpy as np
 
@@ -38,13 +39,13 @@ def bench_vision(cfg: VisionConfig | None = None, repeats: int = 10, log=None) -
     from .mono import MonoPipeline
     from .noise import apply_noise
     from .render import SceneRenderer
-    from .stereo import StereoPipeline, stereo_intrinsics
-    from .views import face_intrinsics
+    from .stereo import StereoPipeline
+    from .views import face_intrinsics, pair_intrinsics
 
     cfg = cfg or VisionConfig()
     say = log or (lambda s: None)
     rng = np.random.default_rng(0)
-    out = {
+    out: dict[str, Any] = {
         "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version(),
                     "LP_NUM_THREADS": os.environ.get("LP_NUM_THREADS"), "opencv_threads": cv2.getNumThreads(),
                     "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")},
@@ -76,7 +77,7 @@ def bench_vision(cfg: VisionConfig | None = None, repeats: int = 10, log=None) -
         f"detection + pose of {n_poses} targets {t_mono:.1f} ms")
     # Stereo: the spacecraft at 10 m and 20 m.
     s = cfg.stereo_camera
-    sintr = stereo_intrinsics(s.width_px, s.height_px, s.focal_px)
+    sintr = pair_intrinsics(cfg)
     parts = list(spacecraft_model(0))
     pts, nrm = reference_cloud(cfg.stereo.model_points)
     sp = StereoPipeline(cfg.stereo, sintr, s.baseline_m, pts, nrm, model_radius(parts))
@@ -97,7 +98,7 @@ def bench_vision(cfg: VisionConfig | None = None, repeats: int = 10, log=None) -
         t_pair_render, _ = _median_ms(pair, max(3, repeats // 2))
         left, right = pair()
         R_true = quat.attitude_matrix(qs).T
-        infos = []
+        infos: list[dict] = []
 
         def proc(left=left, right=right, R_true=R_true, p=p, infos=infos):
             res = sp.measure(left, right, R_true, p + 0.05, np.random.default_rng(1))
@@ -126,8 +127,12 @@ def scenario_rtf(scenarios, steps: int = 10, log=None) -> list[dict]:
     rows = []
     for path, sc in scenarios:
         sc = sc.model_copy(update={"duration_s": steps * sc.dt_s})
-        stamps = []
-        simulate(sc, measurement_model(sc), progress=lambda k, K, stamps=stamps: stamps.append(time.perf_counter()))
+        stamps: list[float] = []
+
+        def tick(_k: int, _K: int, stamps: list[float] = stamps) -> None:
+            stamps.append(time.perf_counter())
+
+        simulate(sc, measurement_model(sc), progress=tick)
         wall = stamps[-1] - stamps[0]  # steps 1..K (step 0 excluded)
         step_s = np.diff(stamps)
         row = {

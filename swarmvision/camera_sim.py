@@ -17,6 +17,7 @@ What leaves this module is only what a camera delivers (:class:`swarmvision.view
 from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -28,29 +29,20 @@ from swarmcore.streams import stream
 from swarmcore.vision_config import VisionConfig
 
 from .noise import apply_noise
-from .views import STEREO_BASE, Observation, View, body_radius, face_intrinsics, sun_direction_I
+from .views import STEREO_BASE, Observation, View, VisionSide, sun_direction_I
+
+if TYPE_CHECKING:
+    from .render import SceneRenderer
 
 __all__ = ["RenderedCameras"]
 
 
-class RenderedCameras:
+class RenderedCameras(VisionSide):
     """World side of the vision chain: implements :class:`swarmcore.measurement.CameraModel`."""
 
     def __init__(self, cfg: VisionConfig, n_sats: int, half_size_m: float, seed: int, mean_motion: float):
-        if cfg.pipeline == "none":
-            raise ValueError("RenderedCameras needs vision.pipeline 'mono' or 'stereo'")
-        self.cfg = cfg
-        self.n = n_sats
-        self.half = half_size_m
-        self.seed = seed
-        self.mean_motion = mean_motion
-        self.face_intr = face_intrinsics(cfg)
-        from .stereo import stereo_intrinsics
-
-        sc = cfg.stereo_camera
-        self.stereo_intr = stereo_intrinsics(sc.width_px, sc.height_px, sc.focal_px)
-        self.body_radius = body_radius(cfg, half_size_m)
-        self._renderer = None
+        super().__init__(cfg, n_sats, half_size_m, seed, mean_motion)
+        self._renderer: SceneRenderer | None = None  # made at the first render
         self.render_ms: list[float] = []
 
     def _bodies(self):
@@ -63,7 +55,7 @@ class RenderedCameras:
         return [parts for _ in range(self.n)]
 
     @property
-    def renderer(self):
+    def renderer(self) -> SceneRenderer:
         if self._renderer is None:
             from .render import SceneRenderer
 
@@ -103,8 +95,8 @@ class RenderedCameras:
 
     def cameras_seeing(self, r_ij_Bi: np.ndarray) -> list[int]:
         """Face cameras whose frustum reaches a body of radius ``body_radius`` at ``r_ij_Bi``."""
-        intr = self.face_intr
-        rad = self.body_radius
+        intr = self.cameras.face
+        rad = self.cameras.body_radius
         out = []
         for c in range(6):
             p = T_CB[c] @ (r_ij_Bi - self.half * BORESIGHT_B[c])
@@ -114,7 +106,7 @@ class RenderedCameras:
             # frustum widened by the sphere's angular radius.
             hx = np.arctan2(max(intr.cx, intr.width - 1 - intr.cx) + 0.5, intr.fx)
             hy = np.arctan2(max(intr.cy, intr.height - 1 - intr.cy) + 0.5, intr.fy)
-            dist = np.linalg.norm(p)
+            dist = float(np.linalg.norm(p))
             ang_r = np.arcsin(min(1.0, rad / max(dist, 1e-9)))
             ax = np.arctan2(abs(p[0]), p[2])
             ay = np.arctan2(abs(p[1]), p[2])
@@ -155,11 +147,11 @@ class RenderedCameras:
                     r_C_B = self.half * BORESIGHT_B[c]
                     p_I = r_I[i] + T_BI[i].T @ r_C_B
                     t0 = time.perf_counter()
-                    img = rend.render(T_CI, p_I, self.face_intr)
+                    img = rend.render(T_CI, p_I, self.cameras.face)
                     img = apply_noise(img, noise, stream(self.seed, "camera", step, i, c))
                     ms = 1e3 * (time.perf_counter() - t0)
                     self.render_ms.append(ms)
-                    views[(i, c)] = View(i, c, step, t, (img,), T_CB[c].copy(), r_C_B, self.face_intr, render_ms=ms)
+                    views[(i, c)] = View(i, c, step, t, (img,), T_CB[c].copy(), r_C_B, self.cameras.face, render_ms=ms)
             return views
         # stereo: one tracking pair per scheduled target, own body hidden
         from .stereo import tracking_camera_T_CB
@@ -174,14 +166,14 @@ class RenderedCameras:
             vis[i] = False
             rend.set_visible(vis)
             t0 = time.perf_counter()
-            left = rend.render(T_CI, r_I[i], self.stereo_intr)
-            right = rend.render(T_CI, r_I[i] + T_CI.T @ np.array([b, 0.0, 0.0]), self.stereo_intr)
+            left = rend.render(T_CI, r_I[i], self.cameras.pair)
+            right = rend.render(T_CI, r_I[i] + T_CI.T @ np.array([b, 0.0, 0.0]), self.cameras.pair)
             rng = stream(self.seed, "camera", step, i, STEREO_BASE + j)
             left = apply_noise(left, noise, rng)
             right = apply_noise(right, noise, rng)
             ms = 1e3 * (time.perf_counter() - t0)
             self.render_ms.append(ms / 2)
             views[(i, STEREO_BASE + j)] = View(i, STEREO_BASE + j, step, t, (left, right), Tcb, np.zeros(3),
-                                               self.stereo_intr, target=j, baseline_m=b, render_ms=ms)
+                                               self.cameras.pair, target=j, baseline_m=b, render_ms=ms)
         rend.set_visible(np.ones(self.n, dtype=bool))
         return views

@@ -24,6 +24,7 @@ import json
 import time
 from itertools import pairwise
 from pathlib import Path
+from typing import Any, Literal
 
 import numpy as np
 
@@ -31,7 +32,10 @@ from swarmcore import quat
 from swarmcore.streams import stream
 from swarmcore.vision_config import VisionConfig
 
-__all__ = ["fit_error_model", "plot_error_model", "flown_geometry", "characterize", "characterize_cell", "fibonacci_sphere", "summarize_samples", "plot", "camera_signature", "table_name", "write"]
+from .catalogue import camera_signature, model_name, table_name
+from .error_model import camera_error
+
+__all__ = ["fit_error_model", "plot_error_model", "flown_geometry", "characterize", "characterize_cell", "fibonacci_sphere", "summarize_samples", "plot", "write"]
 
 AXES = ["att_x", "att_y", "att_z", "pos_x", "pos_y", "pos_z"]
 
@@ -43,23 +47,6 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     r = np.sqrt(1.0 - z * z)
     phi = np.pi * (3.0 - np.sqrt(5.0)) * i
     return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
-
-
-def camera_signature(cfg: VisionConfig, pipeline: str) -> dict:
-    from .stereo import stereo_intrinsics
-    from .views import face_intrinsics
-
-    if pipeline == "mono":
-        k = face_intrinsics(cfg)
-        return {"width_px": k.width, "height_px": k.height, "focal_px": round(float(k.fx), 3)}
-    s = cfg.stereo_camera
-    k = stereo_intrinsics(s.width_px, s.height_px, s.focal_px)
-    return {"width_px": k.width, "height_px": k.height, "focal_px": round(float(k.fx), 3), "baseline_m": s.baseline_m}
-
-
-def table_name(pipeline: str, cam: dict) -> str:
-    """File name of a characterization table: pipeline and camera (size, focal length)."""
-    return f"characterization-{pipeline}-{cam['width_px']}x{cam['height_px']}-f{cam['focal_px']:g}.json"
 
 
 def _attitudes(n: int, seed: int) -> np.ndarray:
@@ -75,13 +62,6 @@ def _attitudes(n: int, seed: int) -> np.ndarray:
         roll = rng.uniform(-np.pi, np.pi)
         out.append(quat.normalize(quat.qmul(quat.rotvec_to_quat(roll * z), quat.rotvec_to_quat(tilt))))
     return np.array(out)
-
-
-def _camera_error(R_est, p_est, R_true, p_true):
-    import cv2
-
-    a, _ = cv2.Rodrigues(R_est @ R_true.T)
-    return np.r_[a.ravel(), np.asarray(p_est) - np.asarray(p_true)]
 
 
 def _sequential(fn, jobs: dict, progress=None) -> dict:
@@ -104,7 +84,7 @@ def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir:
     from .mono import MonoPipeline
     from .noise import apply_noise
     from .render import SceneRenderer
-    from .views import face_intrinsics
+    from .views import face_intrinsics, pair_intrinsics
 
     cfg = VisionConfig.model_validate(cfg_data)
     atts, suns = np.asarray(atts, float), np.asarray(suns, float)
@@ -117,14 +97,13 @@ def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir:
         mp = MonoPipeline(cfg.mono, intr, half, 1)
     elif pipeline == "stereo":
         from .models import model_radius, reference_cloud, spacecraft_model
-        from .stereo import StereoPipeline, stereo_intrinsics
+        from .stereo import StereoPipeline
 
         parts = list(spacecraft_model(0))
         bodies = [parts]
-        s = cfg.stereo_camera
-        intr = stereo_intrinsics(s.width_px, s.height_px, s.focal_px)
+        intr = pair_intrinsics(cfg)
         pts, nrm = reference_cloud(cfg.stereo.model_points)
-        sp = StereoPipeline(cfg.stereo, intr, s.baseline_m, pts, nrm, model_radius(parts))
+        sp = StereoPipeline(cfg.stereo, intr, cfg.stereo_camera.baseline_m, pts, nrm, model_radius(parts))
     else:
         raise ValueError(f"pipeline must be mono or stereo, got {pipeline!r}")
     L = cfg.lighting
@@ -149,7 +128,7 @@ def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir:
                     poses = mp.poses_in_image(img, 0, None, {0: R_pred})
                     if 0 in poses:
                         P = poses[0]
-                        ok, err = True, _camera_error(P.R_CBj, P.p_C, R_true, p_true)
+                        ok, err = True, camera_error(P.R_CBj, P.p_C, R_true, p_true)
                         extra = {"tags": P.n_tags, "rms_px": P.reproj_rms_px, "ambiguous": P.ambiguous,
                                  "q": quantities(P.R_CBj, P.p_C, sun, rms_px=P.reproj_rms_px, n_tags=P.n_tags)}
                 else:
@@ -157,7 +136,7 @@ def characterize_cell(pipeline: str, cfg_data: dict, illum: str, amb: float, ir:
                     right = apply_noise(rend.render(np.eye(3), np.array([cfg.stereo_camera.baseline_m, 0, 0]), intr), cfg.noise, rng)
                     res = sp.measure(left, right, R_pred, p_pred, rng)
                     if res is not None:
-                        ok, err = True, _camera_error(res.R_CBj, res.p_C, R_true, p_true)
+                        ok, err = True, camera_error(res.R_CBj, res.p_C, R_true, p_true)
                         extra = {"fitness": res.fitness, "points": res.n_points, "rmse_m": res.rmse_m,
                                  "q": quantities(res.R_CBj, res.p_C, sun, fitness=res.fitness, rmse_m=res.rmse_m,
                                                  n_points=res.n_points)}
@@ -179,12 +158,10 @@ def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_
     that ``mapper(fn, jobs, progress)`` runs — ``jobs`` maps a cell's key to its arguments;
     the mapper returns results by key and calls ``progress(cells done, cells)``. The default
     runs them here in order; the application injects a process pool or a Dask cluster
-    (:mod:`swarm.executor`). A cell missing from the mapper's answer (it failed) is listed
+    (:mod:`swarm.studies.executor`). A cell missing from the mapper's answer (it failed) is listed
     under ``missing_cells``. ``progress(done, total)`` counts samples."""
-    if pipeline not in ("mono", "stereo"):
-        raise ValueError(f"pipeline must be mono or stereo, got {pipeline!r}")
     cfg = (cfg or VisionConfig()).model_copy(deep=True)
-    cfg.pipeline = pipeline
+    cfg.pipeline = _camera_pipeline(pipeline)
     ranges = np.linspace(3.0, 33.0, 11) if ranges is None else np.asarray(ranges, float)
     atts = _attitudes(n_orient, seed)
     suns = fibonacci_sphere(n_sun)
@@ -207,7 +184,7 @@ def characterize(pipeline: str, cfg: VisionConfig | None = None, ranges=None, n_
                 log(f"{pipeline} {illum} range {rng_m:.1f} m: {okn}/{len(cells[key])} ok")
             else:
                 log(f"{pipeline} {illum} range {rng_m:.1f} m: failed, no samples")
-    out = {
+    out: dict[str, Any] = {
         "pipeline": pipeline,
         "camera": camera_signature(cfg, pipeline),
         "axes": AXES,
@@ -243,7 +220,7 @@ SUN_EDGES_DEG = np.arange(0, 181, 30)
 
 def summarize_samples(samples: list, ranges, sun_edges=SUN_EDGES_DEG) -> dict:
     """Statistics per range bin and per Sun-angle bin (what the filter's R is built from)."""
-    rows = {"range_m": [], "count": [], "success_rate": [], "mean": [], "var": [], "mse": [], "mse_trimmed": [], "outlier_frac": []}
+    rows: dict[str, list[Any]] = {"range_m": [], "count": [], "success_rate": [], "mean": [], "var": [], "mse": [], "mse_trimmed": [], "outlier_frac": []}
     mse_by_range = {}
     for r in ranges:
         ss = [s for s in samples if s["range_m"] == float(r)]
@@ -357,8 +334,17 @@ def vision_config_for(pipeline: str, vision: VisionConfig | None = None) -> Visi
     """The VisionConfig to characterize: a scenario's ``vision`` section or the defaults,
     with ``pipeline`` forced."""
     cfg = (vision or VisionConfig()).model_copy(deep=True)
-    cfg.pipeline = pipeline
+    cfg.pipeline = _camera_pipeline(pipeline)
     return cfg
+
+
+def _camera_pipeline(pipeline: str) -> Literal["mono", "stereo"]:
+    """``pipeline`` as a VisionConfig pipeline with cameras (ValueError for any other)."""
+    if pipeline == "mono":
+        return "mono"
+    if pipeline == "stereo":
+        return "stereo"
+    raise ValueError(f"pipeline must be mono or stereo, got {pipeline!r}")
 
 
 def run_cli(pipeline: str, out: Path, vision: VisionConfig | None = None, ranges=None, orientations: int = 6,
@@ -380,7 +366,6 @@ def run_cli(pipeline: str, out: Path, vision: VisionConfig | None = None, ranges
         except TooFewSamples as exc:
             log(f"no error model fitted: {exc} (characterise more ranges, orientations or Sun angles)")
     if m is not None:
-        from .error_model import model_name
 
         ss = [s_ for s_ in res["samples"] if s_.get("ok") and s_.get("q") and s_["illumination"] == m.meta["illumination"]]
         files["model"] = str(m.write(Path(out) / model_name(pipeline, res["camera"])))
@@ -423,11 +408,11 @@ def flown_geometry(sc) -> dict:
         for m in range(obs.size):
             rngs.append(float(np.linalg.norm(r[m])))
             suns.append(sun_angle_deg(r[m], T[m] @ s_I))
-    rngs, suns = np.array(rngs), np.array(suns)
-    return {"scenario": sc.name, "range_m": [float(rngs.min()), float(np.percentile(rngs, 50)), float(rngs.max())],
-            "sun_deg": [float(suns.min()), float(np.percentile(suns, 50)), float(suns.max())],
-            "range_hist": np.histogram(rngs, bins=np.arange(0, 45, 3))[0].tolist(),
-            "sun_hist": np.histogram(suns, bins=np.arange(0, 181, 30))[0].tolist()}
+    R, S = np.array(rngs), np.array(suns)
+    return {"scenario": sc.name, "range_m": [float(R.min()), float(np.percentile(R, 50)), float(R.max())],
+            "sun_deg": [float(S.min()), float(np.percentile(S, 50)), float(S.max())],
+            "range_hist": np.histogram(R, bins=np.arange(0, 45, 3))[0].tolist(),
+            "sun_hist": np.histogram(S, bins=np.arange(0, 181, 30))[0].tolist()}
 
 
 def fit_error_model(result: dict, illumination: str | None = None, log=None):
@@ -491,6 +476,7 @@ def plot_error_model(model, qs: list[dict], E: np.ndarray, out_path: Path, title
         for row, x, xl, edges_x in ((1, rng_m, "range (m)", np.unique(np.round(rng_m / 3.0) * 3.0)),
                                     (2, sun, "Sun angle to line of sight (deg)", np.arange(0, 181, 20))):
             ax = axs[row, k]
+            centers: np.ndarray
             if row == 1:
                 centers = edges_x
                 idx = [ok & (np.abs(x - c) <= 1.5) for c in centers]

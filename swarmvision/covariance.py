@@ -29,23 +29,13 @@ import numpy as np
 from swarmcore.sensors import camera_axis_variances, camera_to_body
 from swarmcore.vision_config import CovarianceConfig
 
+from .catalogue import DATA, default_table_path, model_name
+
 __all__ = ["resolve_model_path", "camera_to_body", "floor_cov", "fixed_cov_C", "CharacterizedNoise", "load_table", "default_table_path", "sun_angle_deg"]
-
-DATA = Path(__file__).parent / "data"
-
-
-def default_table_path(pipeline: str, camera: dict) -> Path:
-    """The shipped table for this pipeline and camera (see ``swarmvision/data``)."""
-    from .characterize import table_name
-
-    return DATA / table_name(pipeline, camera)
-
 
 def resolve_model_path(model: str | None, pipeline: str, camera: dict) -> Path:
     """The fitted error model a scenario names (``vision.covariance.model``): a path, a bare
     file name in ``swarmvision/data``, or (None) the one shipped for this pipeline and camera."""
-    from .error_model import model_name
-
     if model is None:
         p = DATA / model_name(pipeline, camera)
     else:

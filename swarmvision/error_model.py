@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["ErrorModel", "FEATURES", "quantities", "feature_matrix", "fit", "autocorrelation", "load_model",
-           "model_name", "fit_robust", "GATE_Z2", "LOG_CHI2_1_MEAN", "CHI2_1_MEDIAN", "fit_from_samples"]
+__all__ = ["ErrorModel", "FEATURES", "camera_error", "quantities", "feature_matrix", "fit", "autocorrelation", "load_model",
+           "fit_robust", "GATE_Z2", "LOG_CHI2_1_MEAN", "CHI2_1_MEDIAN", "fit_from_samples"]
 
 #: E[log z²] for z ~ N(0, 1): ψ(½) + log 2.
 LOG_CHI2_1_MEAN = -1.2703628454614782
@@ -61,9 +61,13 @@ FEATURES = {
 class TooFewSamples(ValueError):
     """A characterisation too small to fit the model's coefficients."""
 
-def model_name(pipeline: str, cam: dict) -> str:
-    """File name of a fitted error model: pipeline and camera (size, focal length)."""
-    return f"error-model-{pipeline}-{cam['width_px']}x{cam['height_px']}-f{cam['focal_px']:g}.json"
+def camera_error(R_est, p_est, R_true, p_true) -> np.ndarray:
+    """The camera-frame error vector ``[a_C, e_C]`` of an estimated pose against the true one:
+    ``R_est = exp([a_C×]) R_true``, ``p_est = p_true + e_C`` (rad, m)."""
+    import cv2
+
+    a, _ = cv2.Rodrigues(R_est @ R_true.T)
+    return np.r_[a.ravel(), np.asarray(p_est) - np.asarray(p_true)]
 
 
 def quantities(R_CBj: np.ndarray, p_C: np.ndarray, sun_C: np.ndarray | None, **quality) -> dict:

@@ -79,7 +79,10 @@ def _box_faces(center, half_extents, R_BP=None, uv_scale=0.5):
         (c + h[1] * ey, -ex, ez, h[0], h[2]),  # +y
         (c - h[1] * ey, ex, ez, h[0], h[2]),  # -y
     ]
-    P, N, UV, I = [], [], [], []
+    P: list[np.ndarray] = []
+    N: list[np.ndarray] = []
+    UV: list[np.ndarray] = []
+    I: list[np.ndarray] = []
     for q in quads:
         p, n, uv, idx = _quad(*q, uv_scale=uv_scale)
         I.append(idx + 4 * len(P))

@@ -37,7 +37,7 @@ def apply_noise(img: np.ndarray, cfg: NoiseConfig, rng: np.random.Generator) -> 
         return img
     import cv2
 
-    x = img.astype(np.float32)
+    x: np.ndarray = img.astype(np.float32)
     if cfg.blur_sigma_px > 0:
         x = cv2.GaussianBlur(x, (0, 0), cfg.blur_sigma_px, borderType=cv2.BORDER_REPLICATE)
     var = None
@@ -49,6 +49,7 @@ def apply_noise(img: np.ndarray, cfg: NoiseConfig, rng: np.random.Generator) -> 
     if var is not None:
         z = np.empty(x.shape, np.float32)
         cv2.setRNGSeed(int(rng.integers(1, 2**31 - 1)))
-        cv2.randn(z, 0.0, 1.0)
+        # OpenCV's stubs type mean and stddev as arrays only; cv2.randn takes scalars (a cv::Scalar).
+        cv2.randn(z, 0.0, 1.0)  # type: ignore[call-overload]
         x = x + np.sqrt(var) * z
     return np.clip(np.rint(x), 0, 255).astype(np.uint8)

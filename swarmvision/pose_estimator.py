@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,7 +23,12 @@ from swarmcore.vision_config import VisionConfig
 
 from .covariance import CharacterizedNoise, default_table_path, fixed_cov_C, floor_cov, load_table, sun_angle_deg
 from .error_model import quantities
-from .views import STEREO_BASE, Observation, body_radius, face_intrinsics, sun_direction_I
+from .views import STEREO_BASE, Observation, VisionSide, sun_direction_I
+
+if TYPE_CHECKING:
+    from .error_model import ErrorModel
+    from .mono import MonoPipeline
+    from .stereo import StereoPipeline
 
 __all__ = ["VisionPoseEstimator", "MeasureReport"]
 
@@ -37,35 +43,25 @@ class MeasureReport:
     details: dict = field(default_factory=dict)
 
 
-class VisionPoseEstimator:
+class VisionPoseEstimator(VisionSide):
     """Agent side of the vision chain (one per agent; in-process, one for all observers:
     its per-observer state — tag tracks — is keyed by observer)."""
 
     needs_prediction = True
 
     def __init__(self, cfg: VisionConfig, n_sats: int, half_size_m: float, seed: int, mean_motion: float):
-        if cfg.pipeline == "none":
-            raise ValueError("VisionPoseEstimator needs vision.pipeline 'mono' or 'stereo'")
+        super().__init__(cfg, n_sats, half_size_m, seed, mean_motion)
         from . import tags
 
         if cfg.pipeline == "mono" and n_sats > tags.max_satellites():
             raise ValueError(f"n_sats={n_sats}: the 36h11 family tags at most {tags.max_satellites()} satellites")
         if cfg.pipeline == "mono" and cfg.mono.tag_size_m >= 2 * half_size_m:
             raise ValueError("vision.mono.tag_size_m: must be smaller than the cube face (2 · half_size_m)")
-        self.cfg = cfg
-        self.n = n_sats
-        self.half = half_size_m
-        self.seed = seed
-        self.mean_motion = mean_motion
-        self.face_intr = face_intrinsics(cfg)
-        from .stereo import stereo_intrinsics
-
-        sc = cfg.stereo_camera
-        self.stereo_intr = stereo_intrinsics(sc.width_px, sc.height_px, sc.focal_px)
-        self._mono = None
-        self._stereo = None
-        self._char = None
-        self._fitted = None
+        # Built when first needed (the tag detector, the model cloud, the noise tables).
+        self._mono: MonoPipeline | None = None
+        self._stereo: StereoPipeline | None = None
+        self._char: CharacterizedNoise | None = None
+        self._fitted: ErrorModel | None = None
         #: When a list: one dict per measurement (step, observer, target, camera pose, the
         #: quantities the error model reads, the variances attached) — ``swarm sim
         #: --measurements`` turns them into residuals against the truth.
@@ -78,22 +74,22 @@ class VisionPoseEstimator:
             _ = self.fitted  # likewise the error model
 
     @property
-    def mono(self):
+    def mono(self) -> MonoPipeline:
         if self._mono is None:
             from .mono import MonoPipeline
 
-            self._mono = MonoPipeline(self.cfg.mono, self.face_intr, self.half, self.n)
+            self._mono = MonoPipeline(self.cfg.mono, self.cameras.face, self.half, self.n)
         return self._mono
 
     @property
-    def stereo(self):
+    def stereo(self) -> StereoPipeline:
         if self._stereo is None:
             from .models import reference_cloud
             from .stereo import StereoPipeline
 
             pts, nrm = reference_cloud(self.cfg.stereo.model_points)
-            self._stereo = StereoPipeline(self.cfg.stereo, self.stereo_intr, self.cfg.stereo_camera.baseline_m, pts, nrm,
-                                          body_radius(self.cfg, self.half))
+            self._stereo = StereoPipeline(self.cfg.stereo, self.cameras.pair, self.cfg.stereo_camera.baseline_m, pts, nrm,
+                                          self.cameras.body_radius)
         return self._stereo
 
     def warm_up(self) -> None:
@@ -123,10 +119,10 @@ class VisionPoseEstimator:
         return {int(j): (q[k], r[k]) for k, j in enumerate(tg)}
 
     @property
-    def fitted(self):
+    def fitted(self) -> ErrorModel:
         """The fitted error model (``covariance.source: fitted``), loaded once."""
         if self._fitted is None:
-            from .characterize import camera_signature
+            from .catalogue import camera_signature
             from .covariance import resolve_model_path
             from .error_model import load_model
 
@@ -147,7 +143,7 @@ class VisionPoseEstimator:
             return floor_cov(pnp_cov_C, cc)
         if cc.source == "characterized":
             if self._char is None:
-                from .characterize import camera_signature
+                from .catalogue import camera_signature
 
                 cam = camera_signature(self.cfg, self.cfg.pipeline)
                 path = cc.table or str(default_table_path(self.cfg.pipeline, cam))

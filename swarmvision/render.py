@@ -27,8 +27,10 @@ import contextlib
 import os
 import subprocess
 import sys
+from typing import Any
 
 import numpy as np
+import numpy.typing as npt
 
 __all__ = ["select_platform", "SceneRenderer", "gl_camera_pose", "cv_to_gl_principal"]
 
@@ -78,7 +80,8 @@ def _import_pyrender():
     # pyrender 0.1.45 still uses np.infty (removed in NumPy 2): restore the alias before
     # importing it (it is read at call time in Mesh.bounds, so the alias must stay).
     if not hasattr(np, "infty"):
-        np.infty = np.inf  # noqa: NPY201 - the very alias pyrender reads
+        # NumPy 2's stubs no longer declare the alias: setting it is the point.
+        np.infty = np.inf  # type: ignore[attr-defined]  # noqa: NPY201 - the very alias pyrender reads
     import pyrender
 
     return pyrender
@@ -127,7 +130,7 @@ class SceneRenderer:
 
     def __init__(self, bodies, ambient: float = 0.0, sun_intensity: float = 4.0, shadows: bool = True,
                  znear: float = 0.05, zfar: float = 200.0, platform: str = "auto"):
-        self._renderers: dict[tuple[int, int], object] = {}
+        self._renderers: dict[tuple[int, int], Any] = {}  # pyrender.OffscreenRenderer (untyped)
         self.platform = select_platform(platform)
         pr = _import_pyrender()
         self._pr = pr
@@ -187,7 +190,7 @@ class SceneRenderer:
             M[:3, 3] = r_I[k]
             self.scene.set_pose(node, M)
 
-    def set_sun(self, sun_I: np.ndarray) -> None:
+    def set_sun(self, sun_I: npt.ArrayLike) -> None:
         """Sun direction (unit vector towards the Sun) in I."""
         z = np.asarray(sun_I, float)
         z = z / np.linalg.norm(z)

@@ -24,7 +24,7 @@ Z_CLIP = 5.0
 def residuals(records: list[dict], truth: dict, t: np.ndarray, mean_motion: float) -> dict:
     """Arrays over the recorded measurements: step, observer, target (N,), err (N, 6)
     camera frame, var (N, 6) attached, and the quantities (list of dicts)."""
-    from .characterize import _camera_error
+    from .error_model import camera_error
     from .mono import camera_pose_from_truth
 
     n = len(records)
@@ -33,7 +33,7 @@ def residuals(records: list[dict], truth: dict, t: np.ndarray, mean_motion: floa
         k, i, j = rc["step"], rc["observer"], rc["target"]
         q, r = relative_pose(mean_motion, float(t[k]), truth["q_BI"][k], truth["r_H"][k], np.array([i]), np.array([j]))
         R_true, p_true = camera_pose_from_truth(q[0], r[0], rc["T_CB"], rc["r_C_B"])
-        err[m] = _camera_error(rc["R_CBj"], rc["p_C"], R_true, p_true)
+        err[m] = camera_error(rc["R_CBj"], rc["p_C"], R_true, p_true)
     return {
         "step": np.array([rc["step"] for rc in records], dtype=int),
         "observer": np.array([rc["observer"] for rc in records], dtype=int),

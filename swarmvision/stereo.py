@@ -28,11 +28,9 @@ import numpy as np
 from swarmcore.cameras import Intrinsics
 from swarmcore.vision_config import StereoConfig
 
+from .views import stereo_intrinsics  # the cameras' intrinsics live with the views; kept importable here
+
 __all__ = ["StereoPipeline", "StereoResult", "tracking_camera_T_CB", "stereo_intrinsics"]
-
-
-def stereo_intrinsics(width: int, height: int, focal_px: float) -> Intrinsics:
-    return Intrinsics(width, height, focal_px, focal_px, (width - 1) / 2.0, (height - 1) / 2.0)
 
 
 def tracking_camera_T_CB(r_B: np.ndarray) -> np.ndarray:
@@ -140,6 +138,7 @@ class StereoPipeline:
         pad = dmin + num
         L = cv2.copyMakeBorder(left, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
         R = cv2.copyMakeBorder(right, 0, 0, pad, 0, cv2.BORDER_CONSTANT, value=0)
+        m: cv2.StereoMatcher
         if cfg.matcher == "bm":
             m = cv2.StereoBM.create(numDisparities=num, blockSize=cfg.block_size)
             m.setMinDisparity(dmin)
@@ -204,6 +203,8 @@ class StereoPipeline:
             est = reg.TransformationEstimationPointToPlane(reg.TukeyLoss(k=dist))
             res = reg.registration_icp(src, self.target, dist, T, est, crit)
             T = res.transformation
+        if res is None:
+            raise ValueError("stereo.icp_distances_m is empty: no ICP pass to run")
         T_CBj = np.linalg.inv(T)
         return T_CBj[:3, :3].copy(), T_CBj[:3, 3].copy(), float(res.fitness), float(res.inlier_rmse)
 

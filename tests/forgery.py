@@ -8,10 +8,10 @@ import threading
 import numpy as np
 import zenoh
 
-from swarm.bus import messages as M
-from swarm.bus.convert import batch_msg
-from swarm.bus.session import BusConfig
 from swarmcore.mekf import RelativeMeasurements
+from swarmrt.bus import messages as M
+from swarmrt.bus.convert import batch_msg
+from swarmrt.bus.session import BusConfig
 
 MARK_K = 1_000_000  # a step no run reaches: marks the test's own messages
 

@@ -1,10 +1,10 @@
-"""Drive a role's protocol machine (:mod:`swarm.protocol`) without a bus: scripted events
-in, the messages it sends out, a fake clock. What :meth:`swarm.node.Node.drive` does with a
+"""Drive a role's protocol machine (:mod:`swarmrt.protocol`) without a bus: scripted events
+in, the messages it sends out, a fake clock. What :meth:`swarmrt.node.Node.drive` does with a
 real Zenoh session, done by hand so tests can say exactly what arrives and when."""
 
 from __future__ import annotations
 
-from swarm.protocol import Event, Query, Send, Wait
+from swarmrt.protocol import Event, Query, Send, Wait
 
 
 class FakeClock:

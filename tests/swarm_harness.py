@@ -6,8 +6,8 @@ import threading
 
 import numpy as np
 
-from swarm.launch import LocalSwarm
-from swarm.recording import load_recording
+from swarm.record.recording import load_recording
+from swarm.supervise.launch import LocalSwarm
 from swarmcore.scenario import Scenario
 
 
@@ -43,12 +43,18 @@ def run_swarm(sc: Scenario, out, during=None, timeout: float = 600.0, run_id: st
     return rec, rec.summary(sc), codes, sw
 
 
+def within_3sigma_per_observer(rec, observers, target, k_from=0, k_to=None) -> dict[int, float]:
+    """For each observer alone: the fraction of its (step, component) errors on ``target``
+    within 3σ over ``k_from ≤ k < k_to``."""
+    return {o: within_3sigma_fraction(rec, [o], target, k_from, k_to)[0] for o in observers}
+
+
 def within_3sigma_fraction(rec, observers, target, k_from=0, k_to=None):
     """Fraction of (step, observer, component) with |error| ≤ 3σ for one target, over
     steps ``k_from ≤ k < k_to``."""
     a, dr, *_ = rec.errors()
     steps = slice(k_from, k_to)
     e = np.concatenate([a, dr], axis=-1)[steps, observers, target]  # (K', F', 6)
-    sd = np.sqrt(np.diagonal(rec.P_pose[steps, observers, target], axis1=-2, axis2=-1))
+    sd = np.sqrt(rec.pose_var[steps, observers, target])
     ok = np.isfinite(e) & np.isfinite(sd)
     return float(np.mean(np.abs(e[ok]) <= 3 * sd[ok])), int(ok.sum())

@@ -2,6 +2,7 @@
 
 import json
 import re
+import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -9,8 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarm.scenario_files import load_scenario
 from swarmcore.sim import simulate
+from swarmrt.scenario_files import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SWARM = [sys.executable, "-m", "swarm.cli"]
@@ -60,9 +61,9 @@ def _readme_commands() -> dict[tuple[str, ...], str]:
         if ln.startswith("```"):
             fence = ln[3:].strip() if fence is None else None
         elif fence in ("sh", "bash", "console", "") and ln.startswith("swarm "):
-            lines.append(ln.split(" #", 1)[0].strip())
+            lines.append(ln.split(" #", 1)[0].strip().rstrip("\\").strip())
     lines += re.findall(r"`(swarm [a-z][^`]*)`", text)
-    return {ln: tuple(ln.split()[1:]) for ln in lines}
+    return {ln: tuple(shlex.split(ln)[1:]) for ln in lines}  # as the shell splits it: quoted commands are one word
 
 
 def _options(cmd) -> dict:

@@ -3,7 +3,7 @@ interrupted studies resumed.
 
 The cluster tests start a real scheduler and two real worker processes with Dask's own
 commands (``python -m dask scheduler`` / ``python -m dask worker``, on 127.0.0.1; see
-:class:`swarm.dask_local.LocalDaskProcesses`) and run ``swarm mc`` / ``swarm compare`` /
+:class:`swarm.studies.dask_local.LocalDaskProcesses`) and run ``swarm mc`` / ``swarm compare`` /
 ``swarm characterize`` as processes against them. Nothing is mocked; every process is
 stopped at the end of its test, whatever happens.
 """
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from swarm.executor import ResultStore, fingerprint
+from swarm.studies.executor import ResultStore, fingerprint
 
 ROOT = Path(__file__).resolve().parents[1]
 SWARM = [sys.executable, "-m", "swarm.cli"]
@@ -38,15 +38,15 @@ def swarm(*args, check=True, timeout=600, env=None):
 
 
 def _no_timing(summary: dict) -> dict:
-    """A run summary without its wall-clock fields (the only ones that may differ)."""
-    return {k: v for k, v in summary.items() if k != "timing"}
+    """A run summary without its wall-clock and CPU-time fields (the only ones that may differ)."""
+    return {k: v for k, v in summary.items() if k not in ("timing", "cpu")}
 
 
 def _mc_numbers(out: Path) -> dict:
     """Everything in an MC folder that must not depend on where the runs ran."""
     mc = json.loads((out / "mc.json").read_text())
     runs = {p.name: _no_timing(json.loads((p / "summary.json").read_text())) for p in sorted(out.glob("run_*"))}
-    stats = {k: v for k, v in mc["stats"].items() if not k.startswith("timing.")}
+    stats = {k: v for k, v in mc["stats"].items() if not k.startswith(("timing.", "cpu."))}
     return {"seeds": mc["seeds"], "per_run": mc["per_run"], "stats": stats, "failed": mc["failed"], "runs": runs}
 
 
@@ -138,7 +138,7 @@ def test_pool_processes_die_with_a_killed_study(tmp_path):
 
 @pytest.mark.integration
 def test_unreachable_cluster_is_a_clear_error(tmp_path):
-    from swarm.launch import free_port
+    from swarm.supervise.launch import free_port
 
     p = swarm("mc", *DEMO, "--runs", "1", "--out", str(tmp_path / "x"), "--cluster", f"tcp://127.0.0.1:{free_port()}",
               "--set", "duration_s=2", check=False, timeout=120)
@@ -152,7 +152,7 @@ def test_unreachable_cluster_is_a_clear_error(tmp_path):
 @pytest.fixture
 def cluster(tmp_path):
     pytest.importorskip("distributed")
-    from swarm.dask_local import LocalDaskProcesses
+    from swarm.studies.dask_local import LocalDaskProcesses
 
     c = LocalDaskProcesses(2, workdir=tmp_path / "dask")
     c.start()
@@ -176,6 +176,34 @@ def test_cluster_mc_gives_the_local_pools_numbers(cluster, tmp_path):
     a, b = _mc_numbers(local), _mc_numbers(remote)
     assert a["seeds"] == [7, 8, 9, 10] and len(a["runs"]) == 4
     assert a == b  # bit for bit, every field but wall-clock timings
+
+
+@pytest.mark.integration
+@pytest.mark.slow
+def test_workers_started_by_hand_from_a_clean_environment_give_the_local_pools_numbers(tmp_path):
+    """Workers started as the README says, from an environment that knows nothing of the
+    project (no OPENBLAS_*): with the project's nanny preload they compute the local pool's
+    numbers bit for bit; without it, on a CPU whose OpenBLAS would pick other kernels, every
+    task is refused with a message naming the preload (never numbers 1e-7 off)."""
+    from swarm.studies.dask_local import LocalDaskProcesses
+
+    clean = {"PATH": os.environ["PATH"], "HOME": os.environ.get("HOME", "/root"), "LANG": "C.UTF-8"}
+    args = ["mc", "scenarios/baseline.yaml", "--runs", "2", "--seed", "77", "--set", "n_sats=4", "--set", "duration_s=20"]
+    local = tmp_path / "local"
+    swarm(*args, "--workers", "1", "--out", str(local))
+    with LocalDaskProcesses(1, workdir=tmp_path / "dask-pre", env=clean, nanny=True,
+                            worker_args=("--preload-nanny", "swarm.studies.dask_preload")) as c:
+        swarm(*args, "--cluster", c.address, "--out", str(tmp_path / "pre"))
+    assert _mc_numbers(local) == _mc_numbers(tmp_path / "pre")
+    with LocalDaskProcesses(1, workdir=tmp_path / "dask-bare", env=clean, nanny=True) as c:
+        p = swarm(*args, "--cluster", c.address, "--out", str(tmp_path / "bare"), check=False)
+    if p.returncode == 0:  # this CPU's OpenBLAS picks the pinned kernels anyway
+        assert _mc_numbers(local) == _mc_numbers(tmp_path / "bare")
+    else:
+        assert p.returncode == 1
+        text = " ".join((p.stdout + p.stderr).split())
+        assert "--preload-nanny swarm.studies.dask_preload" in text or "NumbersEnvironmentError" in text, text[-2000:]
+        assert not (tmp_path / "bare" / "run_0000" / "summary.json").exists()
 
 
 @pytest.mark.integration
@@ -217,9 +245,9 @@ def test_a_worker_killed_mid_run_costs_only_its_task(cluster, tmp_path):
     completes with every seed, and the numbers are those of the same seeds in-process."""
     from distributed import Client
 
-    from swarm.dask_local import TASK_TOPIC, TaskEvents, parse_key
-    from swarm.scenario_files import load_scenario
-    from swarmcore.sim import simulate
+    from swarm.simulation import simulate_scenario
+    from swarm.studies.dask_local import TASK_TOPIC, TaskEvents, parse_key
+    from swarmrt.scenario_files import load_scenario
 
     events: list[dict] = []
     started_on_w0 = threading.Event()
@@ -255,7 +283,8 @@ def test_a_worker_killed_mid_run_costs_only_its_task(cluster, tmp_path):
     mc = json.loads((out / "mc.json").read_text())
     assert mc["runs_ok"] == runs and mc["failed"] == [] and [r["seed"] for r in mc["per_run"]] == list(range(3, 3 + runs))
     for i, seed in enumerate(mc["seeds"]):
-        ref = simulate(load_scenario(ROOT / "scenarios/demo.yaml", ["duration_s=120"], seed=seed)).summary()
+        # what `swarm sim` computes (the radio's bytes included)
+        ref = simulate_scenario(load_scenario(ROOT / "scenarios/demo.yaml", ["duration_s=120"], seed=seed)).summary()
         got = json.loads((out / f"run_{i:04d}" / "summary.json").read_text())
         assert _no_timing(got) == _no_timing(json.loads(json.dumps(ref))), f"seed {seed}"
 
@@ -268,7 +297,7 @@ def test_an_interrupted_cluster_study_resumes_without_redoing_finished_runs(clus
     that were not finished (counted from the workers' own task events), each once."""
     from distributed import Client
 
-    from swarm.dask_local import TASK_TOPIC, TaskEvents, parse_key, scheduler_task_count
+    from swarm.studies.dask_local import TASK_TOPIC, TaskEvents, parse_key, scheduler_task_count
 
     out = tmp_path / "mc"
     args = ["mc", *DEMO, "--runs", "8", "--seed", "20", "--cluster", cluster.address, "--out", str(out), "--set", "duration_s=40"]
@@ -326,12 +355,13 @@ def test_cluster_characterize_gives_the_same_samples_as_in_process(cluster, tmp_
 def test_compose_cluster_profile_runs_a_study(tmp_path):
     """`docker compose --profile cluster up -d dask-scheduler dask-worker`: a scheduler and
     two workers from swarm-coloc:latest; a tiny MC from the host against it gives the local
-    pool's numbers; the default services are not started."""
+    pool's numbers; the default services are not started, the keys service neither (the
+    cluster needs no keys: none are made)."""
     import shutil
     import uuid
 
-    from swarm.executor import connect
-    from swarm.launch import free_port
+    from swarm.studies.executor import connect
+    from swarm.supervise.launch import free_port
 
     if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_output=True).returncode != 0:
         pytest.skip("no docker daemon")
@@ -345,7 +375,8 @@ def test_compose_cluster_profile_runs_a_study(tmp_path):
     assert b.returncode == 0, b.stdout[-3000:] + b.stderr[-3000:]
     port = free_port()
     project = f"swc{uuid.uuid4().hex[:8]}"
-    env = dict(os.environ, SWARM_DASK_PORT=str(port), SWARM_DASK_WORKERS="2", COMPOSE_PROJECT_NAME=project)
+    keys = tmp_path / "keys"  # does not exist, and must not after
+    env = dict(os.environ, SWARM_DASK_PORT=str(port), SWARM_DASK_WORKERS="2", COMPOSE_PROJECT_NAME=project, SWARM_KEYS=str(keys))
     dc = [*compose, "-f", str(ROOT / "compose.yaml"), "-p", project]
 
     def run(*args, timeout=600):
@@ -359,6 +390,7 @@ def test_compose_cluster_profile_runs_a_study(tmp_path):
             c.wait_for_workers(2, timeout=180)
         running = run("ps", "--services", "--filter", "status=running").stdout.split()
         assert sorted(running) == ["dask-scheduler", "dask-worker"]
+        assert not keys.exists()
         sets = ["--set", "duration_s=8"]
         swarm("mc", *DEMO, "--runs", "3", "--seed", "11", "--out", str(tmp_path / "local"), *sets)
         p = swarm("mc", *DEMO, "--runs", "3", "--seed", "11", "--out", str(tmp_path / "cluster"), *sets,

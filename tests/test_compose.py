@@ -6,6 +6,7 @@ the first time). Marked ``docker``: ``pytest -m docker`` runs them alone.
 
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -40,22 +41,30 @@ def image():
 
 
 class Compose:
-    def __init__(self, out: Path, env: dict, files=("compose.yaml",)):
-        from swarm.launch import free_port
-        from swarm.security import make_keys
+    def __init__(self, out: Path, env: dict, files=("compose.yaml",), root: Path = ROOT, keys: bool = True):
+        """A compose project of the checkout ``root``; ``keys``: the test makes the swarm's
+        credentials itself (else compose's keys service makes them in ``root``/keys)."""
+        from swarm.supervise.launch import free_port
+        from swarmrt.security import make_keys
 
         self.cmd = _compose_cmd()
         self.project = f"swt{uuid.uuid4().hex[:8]}"
-        self.files = [a for f in files for a in ("-f", str(ROOT / f))]
-        # The swarm's credentials, as `swarm keys` makes them (TLS for router, localhost, 127.0.0.1).
-        self.keys = make_keys(out.parent / "keys", 16, tls_hosts=["router", "localhost", "127.0.0.1"])
+        self.root = root
+        self.files = [a for f in files for a in ("-f", str(root / f))]
         env = {"SWARM_TLS_PORT": str(free_port()), **env}
-        self.env = dict(os.environ, SWARM_OUT=str(out), COMPOSE_PROJECT_NAME=self.project, SWARM_KEYS=str(self.keys), **env)
+        self.env = dict(os.environ, SWARM_OUT=str(out), COMPOSE_PROJECT_NAME=self.project, **env)
+        if keys:
+            # The swarm's credentials, as `swarm keys` makes them (TLS for router, localhost, 127.0.0.1).
+            self.keys = make_keys(out.parent / "keys", 16, tls_hosts=["router", "localhost", "127.0.0.1"])
+            self.env["SWARM_KEYS"] = str(self.keys)
+        else:
+            self.keys = root / "keys"
+            self.env.pop("SWARM_KEYS", None)
         self.out = out
         out.mkdir(parents=True, exist_ok=True)
 
     def __call__(self, *args, timeout=900, check=True):
-        p = subprocess.run([*self.cmd, *self.files, "-p", self.project, *args], cwd=ROOT, env=self.env, capture_output=True, text=True, timeout=timeout)
+        p = subprocess.run([*self.cmd, *self.files, "-p", self.project, *args], cwd=self.root, env=self.env, capture_output=True, text=True, timeout=timeout)
         if check and p.returncode != 0:
             raise AssertionError(f"{' '.join(args)}: {p.stdout[-3000:]}\n{p.stderr[-3000:]}")
         return p
@@ -64,14 +73,31 @@ class Compose:
         self("down", "-v", "--remove-orphans", "-t", "5", check=False, timeout=300)
 
 
+def _git(root: Path, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=60)
+
+
+def _checkout_copy(dest: Path) -> Path:
+    """What `docker compose up` reads of a checkout (the compose files, scenarios/, the ignore
+    files), from the working tree, as a git repository of its own with all of it committed."""
+    files = _git(ROOT, "ls-files", "--", "compose*.yaml", "scenarios", ".gitignore", ".dockerignore").stdout.split()
+    assert "compose.yaml" in files and ".gitignore" in files, files
+    for f in files:
+        (dest / f).parent.mkdir(parents=True, exist_ok=True)
+        shutil.copy2(ROOT / f, dest / f)
+    for args in (["init", "-q"], ["add", "-A"], ["-c", "user.name=test", "-c", "user.email=test@localhost", "commit", "-qm", "checkout"]):
+        assert _git(dest, *args).returncode == 0, args
+    return dest
+
+
 def _summary(out):
     return json.loads((out / "summary.json").read_text())
 
 
 def _sim(n, sets):
-    from swarm.models import measurement_model
-    from swarm.scenario_files import load_scenario
+    from swarm.simulation import measurement_model
     from swarmcore.sim import simulate
+    from swarmrt.scenario_files import load_scenario
 
     sc = load_scenario(ROOT / "scenarios" / "demo.yaml", [f"n_sats={n}", *sets])
     return simulate(sc, measurement_model(sc)).summary()
@@ -82,8 +108,8 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
     a stranger, agent 3's and the recorder's credentials) changing nothing."""
     from forgery import check_forgeries, forge
 
-    from swarm.launch import free_port
-    from swarm.scenario_files import load_scenario
+    from swarm.supervise.launch import free_port
+    from swarmrt.scenario_files import load_scenario
 
     port = str(free_port())
     sets = "duration_s=20 emulator.lockstep_max_realtime_factor=2"
@@ -103,7 +129,7 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
     assert s["n_sats"] == 4 and s["steps"] == 21
     # The recording holds the run, not just bytes: truth and every agent's posterior at
     # every step, one measurement batch per satellite and step.
-    from swarm.recording import load_recording
+    from swarm.record.recording import load_recording
 
     rec = load_recording(c.out / "run.mcap", 4, 21)
     assert np.isfinite(rec.t).all() and rec.alive.all()
@@ -112,6 +138,65 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
     ref = _sim(4, sets.split())
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: containers and in-process differ"
+
+
+def test_first_up_makes_the_keys_outside_the_tracked_files(image, tmp_path):
+    """The front door: in a checkout with no keys, `docker compose up` alone runs the default
+    swarm to the end. The keys service made ./keys (what `swarm keys` makes, owned as the
+    checkout) and gave each role only its files; git sees nothing new, and a second run keeps
+    the keys."""
+    import time as _t
+
+    root = _checkout_copy(tmp_path / "checkout")
+    assert not (root / "keys").exists() and _git(root, "status", "--porcelain").stdout == ""
+    c = Compose(tmp_path / "out", {"SWARM_N": "3", "SWARM_SET_EXTRA": "duration_s=15"}, root=root, keys=False)
+    roles = {}
+    try:
+        t0 = _t.monotonic()
+        c("up", timeout=900)  # attached, as typed: returns when every container has exited
+        print(f"docker compose up from a checkout without keys: {_t.monotonic() - t0:.0f} s", flush=True)
+        logs = c("logs", "--no-color", check=False).stdout
+        for role in ("router", "world", "selector", "recorder", "agent"):
+            p = subprocess.run(["docker", "run", "--rm", "-v", f"{c.project}_keys-{role}:/v:ro", "--entrypoint", "ls", image, "-A", "/v"],
+                               capture_output=True, text=True, timeout=120)
+            assert p.returncode == 0, p.stderr
+            roles[role] = sorted(p.stdout.split())
+        before = {f.name: f.read_bytes() for f in c.keys.iterdir()}
+        again = c("up", "keys", timeout=300)  # the keys service alone, as every later `up` runs it
+        again_logs = again.stdout + again.stderr + c("logs", "--no-color", "keys", check=False).stdout
+    finally:
+        c.down()
+    assert "made ./keys" in logs and "gave agent, live, recorder, router, selector, world their credentials" in logs, logs[-3000:]
+    s = _summary(c.out)
+    assert s["n_sats"] == 3 and s["steps"] == 16 and "interrupted" not in s
+    # Every role: its credential and the CA, no one else's (the router: the dictionary, its certificate).
+    assert roles == {"router": ["passwords", "router.json", "router.key", "router.pem"], "world": ["agents.json", "ca.pem", "world.json"],
+                     "selector": ["ca.pem", "selector.json"], "recorder": ["ca.pem", "recorder.json"], "agent": ["ca.pem", "claimant.json"]}, roles
+    # ./keys: what `swarm keys` makes, owner-only, belonging to the checkout's owner.
+    keys = c.keys
+    assert {"passwords", "cli.json", "observer.json", "claimant.json", "ca.pem", "router.pem", "agent-99.json"} <= set(os.listdir(keys))
+    assert keys.stat().st_mode & 0o777 == 0o700 and (keys / "cli.json").stat().st_mode & 0o777 == 0o600
+    st = (root / "scenarios").stat()
+    assert all((f.stat().st_uid, f.stat().st_gid) == (st.st_uid, st.st_gid) for f in [keys, *keys.iterdir()])
+    names = subprocess.run(["openssl", "x509", "-in", str(keys / "router.pem"), "-noout", "-ext", "subjectAltName"],
+                           capture_output=True, text=True).stdout
+    assert "DNS:router" in names and "DNS:localhost" in names and "IP Address:127.0.0.1" in names, names
+    # Nothing for git to add: ./keys is ignored.
+    assert _git(root, "status", "--porcelain", "--untracked-files=all").stdout == ""
+    assert _git(root, "check-ignore", "-q", "keys/passwords").returncode == 0
+    # Kept by the next run.
+    assert "using the keys in ./keys" in again_logs, again_logs[-2000:]
+    assert {f.name: f.read_bytes() for f in keys.iterdir()} == before
+
+
+def test_the_image_holds_no_keys(image):
+    """No credential file anywhere in the image (./keys is kept out of the build context)."""
+    names = ["passwords", "claimant.json", "agents.json", "world.json", "router.key", "mesh.json", "cli.json", "observer.json"]
+    expr = " -o ".join(f"-name {n}" for n in [*names, "demo.yaml"])  # demo.yaml: the search works
+    p = subprocess.run(["docker", "run", "--rm", "--entrypoint", "sh", image, "-c", f"find / -xdev \\( {expr} \\) -print"],
+                       capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert p.stdout.split() == ["/app/scenarios/demo.yaml"], p.stdout
 
 
 def _fault(c: Compose, *args):
@@ -135,8 +220,8 @@ def _wait_step(c: Compose, k: int, timeout=300):
     """Block until the world has reached step k (watching the bus from the host)."""
     import zenoh
 
-    from swarm.bus.messages import Clock
-    from swarm.bus.session import BusConfig
+    from swarmrt.bus.messages import Clock
+    from swarmrt.bus.session import BusConfig
 
     seen = threading.Event()
     cfg = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{c.env['SWARM_BUS_PORT']}"], connect_timeout_ms=60_000,
@@ -150,8 +235,8 @@ def _wait_step(c: Compose, k: int, timeout=300):
 
 @pytest.mark.slow
 def test_container_faults_kill_restart_camera_partition(image, tmp_path):
-    from swarm.launch import free_port
-    from swarm.recording import load_recording
+    from swarm.record.recording import load_recording
+    from swarm.supervise.launch import free_port
     from swarmcore.scenario import Scenario
 
     port = str(free_port())
@@ -194,8 +279,8 @@ def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     # The restarted agent is back.
     assert rec.alive[k1 + 5 :, 2].mean() > 0.9
     # Camera 0 of satellite 1 produced nothing after the fault.
-    from swarm.bus.messages import decode
-    from swarm.mcaplog import iter_messages
+    from swarm.record.mcaplog import iter_messages
+    from swarmrt.bus.messages import decode
 
     after = sum(
         sum(1 for cam in m.camera if cam == 0)
@@ -213,6 +298,53 @@ def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     # The recording is complete for the processes that were up: every live survivor, every step.
     assert rec.alive[:, [0, 1]].all()
     assert np.isfinite(rec.t).all()
+
+
+@pytest.mark.slow
+def test_rust_agent_flies_a_satellite_in_compose(image, tmp_path):
+    """compose.rust.yaml: satellite 1 flown by the Rust agent (participants/rust-agent; its own
+    credential, the agent contract's environment from swarm.supervise.exec_agent), satellites
+    0, 2 and 3 by Python replicas that claim theirs (the world never hands out satellite 1);
+    the run's errors are the all-Python in-process run's to 1e-6 relative (the Rust agent's
+    arithmetic differs from numpy's at round-off: tests/test_rust_agent.py)."""
+    import math
+
+    from rust_build import build
+
+    exe = build("rust-agent", "swarm-rust-agent")
+    sets = "duration_s=15"
+    c = Compose(tmp_path / "out", {"SWARM_N": "4", "SWARM_N_LOCAL": "3", "SWARM_RUST_ID": "1", "SWARM_RUST_AGENT": str(exe),
+                                   "SWARM_SET_EXTRA": sets}, files=("compose.yaml", "compose.rust.yaml"))
+    try:
+        c("up", timeout=900)
+        rust = c("logs", "--no-color", "rust_agent", check=False).stdout
+        python = c("logs", "--no-color", "agent", check=False).stdout
+    finally:
+        c.down()
+    assert "on the bus at tcp/router:7447" in rust and "estimator ci, 4 satellites" in rust, rust[-2000:]
+    assert "initialised from the world's prior at step 0" in rust and "done at step 15" in rust, rust[-2000:]
+    given = sorted(int(x) for x in re.findall(r"world gave satellite (\d+)", python))
+    assert given == [0, 2, 3], python[-3000:]
+    s = _summary(c.out)
+    assert s["n_sats"] == 4 and s["steps"] == 16 and s.get("estimator", "ci") == "ci"
+    ref = _sim(4, ["estimator.kind=ci", *sets.split()])
+
+    def flat(d, pre=""):
+        if isinstance(d, dict):
+            return {k: v for key, val in d.items() for k, v in flat(val, f"{pre}.{key}").items()}
+        if isinstance(d, list):
+            return {k: v for i, val in enumerate(d) for k, v in flat(val, f"{pre}[{i}]").items()}
+        return {pre: d}
+
+    for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
+        a, b = flat(s[key]), flat(ref[key])
+        assert a.keys() == b.keys(), key
+        for k in a:
+            x, y = a[k], b[k]
+            if isinstance(x, float) and isinstance(y, float) and not (math.isnan(x) and math.isnan(y)):
+                assert abs(x - y) <= 1e-6 * max(abs(x), abs(y), 1e-300), (key, k, x, y)
+            elif not isinstance(x, float):
+                assert x == y, (key, k, x, y)
 
 
 def test_agent_on_another_site_joins_through_the_router(image, tmp_path):
@@ -246,9 +378,9 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
     slows the run)."""
     from swarm_harness import within_3sigma_fraction
 
-    from swarm.faults import netem_state
-    from swarm.launch import free_port
-    from swarm.recording import load_recording
+    from swarm.record.recording import load_recording
+    from swarm.supervise.faults import netem_state
+    from swarm.supervise.launch import free_port
     from swarmcore.scenario import Scenario
 
     port = str(free_port())
@@ -330,8 +462,8 @@ def test_two_meshed_routers_one_killed_the_run_completes(image, tmp_path):
     """compose.routers2.yaml: two meshed routers, every role given both endpoints; router 0
     (the one every role connected to first) is killed mid-run: the roles fail over to
     router 1, the run completes with the numbers of the in-process run."""
-    from swarm.launch import free_port
-    from swarm.recording import load_recording
+    from swarm.record.recording import load_recording
+    from swarm.supervise.launch import free_port
 
     n, dur = 4, 30
     sets = f"duration_s={dur} emulator.lockstep_max_realtime_factor=3"
@@ -360,7 +492,7 @@ def test_one_router_killed_the_world_exits_non_zero_and_the_summary_says_so(imag
     """One router, killed for good: every container ends within the bound, the world with
     status 3 (what `docker compose up --exit-code-from world` returns), and the recorder's
     summary.json is marked interrupted (bus lost) at the last step it recorded."""
-    from swarm.launch import free_port
+    from swarm.supervise.launch import free_port
 
     sets = "duration_s=300 emulator.lockstep_max_realtime_factor=3 emulator.bus_lost_after_s=5"
     c = Compose(tmp_path / "out", {"SWARM_N": "3", "SWARM_SET_EXTRA": sets, "SWARM_BUS_PORT": str(free_port())})

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from swarm.models import simulate_scenario
+from swarm.simulation import simulate_scenario
 from swarmcore.scenario import Scenario
 
 pytestmark = pytest.mark.slow

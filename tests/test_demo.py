@@ -9,7 +9,7 @@ from pathlib import Path
 
 import yaml
 
-from swarm.scenario_files import load_scenario
+from swarmrt.scenario_files import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "scenarios" / "demo-faults.yaml"

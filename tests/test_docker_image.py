@@ -87,7 +87,7 @@ def test_image_env(image):
     assert env.get("OPENBLAS_NUM_THREADS") == "1"
 
 
-@pytest.mark.parametrize("role", ["world_sim", "sat_agent", "selector", "swarm.recorder", "swarm.router"])
+@pytest.mark.parametrize("role", ["world_sim", "sat_agent", "selector", "swarm.record.recorder", "swarm.supervise.router"])
 def test_role_modules_start(image, role):
     """`docker run IMAGE <module> ...` runs `python -m <module> ...` (docker/entrypoint.sh)."""
     r = docker_run(image, role, "--help")
@@ -97,8 +97,8 @@ def test_role_modules_start(image, role):
 
 def test_image_carries_traffic_control(image):
     """`swarm fault --compose netem` runs tc (iproute2) and, on kernels without netem,
-    iptables and `python -m swarm.netemd` in a helper container of this image."""
-    r = docker_run(image, "sh", "-c", "tc -V && iptables --version && ip -V && python -m swarm.netemd --help")
+    iptables and `python -m swarm.supervise.netemd` in a helper container of this image."""
+    r = docker_run(image, "sh", "-c", "tc -V && iptables --version && ip -V && python -m swarm.supervise.netemd --help")
     assert r.returncode == 0, r.stderr[-2000:]
     assert "iproute2" in r.stdout and "iptables v" in r.stdout and "NFQUEUE" in r.stdout, r.stdout
 
@@ -149,7 +149,7 @@ def _walk(a, b, path=""):
 
 
 # Wall-clock measurements: the only outputs allowed to differ between runs.
-WALL_CLOCK_SUMMARY_KEYS = {"timing"}
+WALL_CLOCK_SUMMARY_KEYS = {"timing", "cpu"}
 WALL_CLOCK_ARRAYS = {"step_ms"}
 
 

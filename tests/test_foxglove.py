@@ -8,7 +8,7 @@ from mcap_protobuf.decoder import DecoderFactory
 from scipy.spatial.transform import Rotation
 from swarm_harness import run_swarm, scenario
 
-from swarm.foxglove import q_BH
+from swarm.record.foxglove import q_BH
 from swarmcore import quat
 from swarmcore.dynamics import T_IH
 
@@ -56,7 +56,7 @@ def test_derived_channels_validate_against_their_schemas(tmp_path):
 
 
 def test_link_states_take_the_worst_event_of_the_step():
-    from swarm.foxglove import LINK_STATES, link_states
+    from swarm.record.foxglove import LINK_STATES, link_states
 
     names = [s for s, _ in LINK_STATES]
     z = np.zeros((3, 3), dtype=int)
@@ -84,11 +84,11 @@ def test_links_channel_shows_each_directed_link_in_the_state_of_its_step(tmp_pat
     """/foxglove/links: one SceneUpdate per step; each directed link with traffic is the half
     segment from the sender's true position to the midpoint, coloured and labelled by the
     state the recorded LinkStats counters give for that step."""
-    from swarm.bus.convert import array
-    from swarm.bus.messages import decode
-    from swarm.foxglove import LINK_STATES, link_states
-    from swarm.mcaplog import iter_messages
-    from swarm.recording import load_recording
+    from swarm.record.foxglove import LINK_STATES, link_states
+    from swarm.record.mcaplog import iter_messages
+    from swarm.record.recording import load_recording
+    from swarmrt.bus.convert import array
+    from swarmrt.bus.messages import decode
 
     links = {
         "enabled": True,

@@ -9,9 +9,9 @@ import pytest
 
 from swarmcore.agent import AgentFilter, filter_params
 from swarmcore.graphs import scenario_graph
-from swarmcore.measurement import synthetic_batch
 from swarmcore.mekf import RelativeMeasurements
 from swarmcore.scenario import Scenario
+from swarmcore.synthetic import synthetic_batch
 from swarmcore.world import absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
 
 
@@ -129,7 +129,7 @@ def test_replay_when_the_current_step_was_predicted_first():
 
 
 def test_bench_late_replays_lag_steps_each_step():
-    from swarm.bench import bench_late
+    from swarm.bench.filter import bench_late
 
     rows = bench_late(n=3, history_s=5.0, lags=(0, 2), steps=12, log=lambda s: None)
     assert [r["lag_steps"] for r in rows] == [0, 2]

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from swarm.models import batch_wire_size, simulate_scenario
+from swarm.simulation import simulate_scenario
 from swarmcore.links import SPEED_OF_LIGHT_M_S, LinkModel, ge_probabilities
 from swarmcore.scenario import Links, Scenario
+from swarmrt.bus.convert import batch_wire_size
 
 
 def model(n=3, seed=0, radius=0.35, **links) -> LinkModel:
@@ -190,9 +191,9 @@ def test_ideal_links_through_the_radio_equal_no_links_bit_for_bit():
 
 
 def test_radio_size_is_the_encoded_batch_less_the_run_id():
-    from swarm.bus.convert import batch_msg
-    from swarm.bus.messages import encode
     from swarmcore.mekf import RelativeMeasurements
+    from swarmrt.bus.convert import batch_msg
+    from swarmrt.bus.messages import encode
 
     rel = RelativeMeasurements(np.array([1]), np.array([2]), np.array([[0, 0, 0, 1.0]]), np.array([[1.0, 2, 3]]),
                                np.eye(6)[None])

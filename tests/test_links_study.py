@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarm.models import simulate_scenario
-from swarm.scenario_files import load_scenario
+from swarm.simulation import simulate_scenario
+from swarmrt.scenario_files import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SCEN = ROOT / "scenarios" / "links-study.yaml"

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from swarm_harness import run_swarm, scenario, within_3sigma_fraction
 
-from swarm.models import simulate_scenario
+from swarm.simulation import simulate_scenario
 from swarmcore import quat
 from swarmcore.mekf import BLOCK
 
@@ -22,15 +22,17 @@ LINKS = {
 }
 
 
-def _sim_3sigma(res) -> float:
-    """Fraction of (step, filter, satellite, component) errors within 3σ of an in-process run."""
+def _sim_3sigma(res) -> np.ndarray:
+    """(F, n): for each (filter, satellite) pair, the fraction of its (step, component)
+    errors within 3σ after step 5, in-process. A pair is held on its own, not in an
+    aggregate that one bad pair could hide in."""
     a = quat.local(res.truth["q_BI"][:, None], res.est["q_BI"])  # (K, F, n, 3)
     dr = res.truth["r_H"][:, None] - res.est["r_H"]
     K, F, n = a.shape[:3]
     P = res.est["P_diag"].reshape(K, F, n, BLOCK)
     sd = np.sqrt(np.concatenate([P[..., 0:3], P[..., 6:9]], axis=-1))
     e = np.concatenate([a, dr], axis=-1)
-    return float(np.mean(np.abs(e[5:]) <= 3 * sd[5:]))
+    return np.mean(np.abs(e[5:]) <= 3 * sd[5:], axis=(0, 3))
 
 
 def test_a_dead_link_leaves_every_filter_estimating_every_satellite_within_3_sigma():
@@ -38,7 +40,10 @@ def test_a_dead_link_leaves_every_filter_estimating_every_satellite_within_3_sig
     res = simulate_scenario(sc)
     s = res.summary()
     assert s["links"]["per_link"]["unreachable"][1][2] == sc.steps and s["links"]["per_link"]["sent"][1][2] == 0
-    assert _sim_3sigma(res) >= 0.97
+    frac = _sim_3sigma(res)
+    # 6 components × 55 steps per pair: a consistent filter leaves ~0.3 % outside 3σ; 95 %
+    # per pair still fails a pair that spends a twentieth of the run overconfident.
+    assert frac.min() >= 0.95, np.round(frac, 3)
     assert s["late"]["used"] > 0
 
 
@@ -94,3 +99,30 @@ def test_a_restarted_agent_gets_its_state_through_the_radio(tmp_path):
     assert back.size and back[0] >= first, (back[:3], first)
     frac, count = within_3sigma_fraction(rec, [2], 2, k_from=int(back[0]) + 3)
     assert count > 0 and frac >= 0.9, frac
+
+
+@pytest.mark.integration
+def test_swarm_run_prints_its_link_table(tmp_path):
+    """`swarm run` ends with the link table, as `swarm sim` does, whether or not the bus had a
+    gap (it used to print it only after a gap)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    import yaml
+
+    scn = tmp_path / "links.yaml"
+    scn.write_text(yaml.safe_dump({"name": "lt", "seed": 2, "n_sats": 3, "duration_s": 8,
+                                   "links": {"enabled": True, "latency": {"fixed_s": 0.5}}}))
+    env = dict(os.environ, COLUMNS="240")
+    run = subprocess.run([sys.executable, "-m", "swarm.cli", "run", str(scn), "--out", str(tmp_path / "run")],
+                         capture_output=True, text=True, timeout=600, env=env)
+    sim = subprocess.run([sys.executable, "-m", "swarm.cli", "sim", str(scn), "--out", str(tmp_path / "sim")],
+                         capture_output=True, text=True, timeout=600, env=env)
+    assert run.returncode == 0 and sim.returncode == 0, run.stderr[-2000:]
+    summary = json.loads((tmp_path / "run" / "summary.json").read_text())
+    assert not summary.get("bus_gaps")
+    for out in (run.stdout + run.stderr, sim.stdout + sim.stderr):
+        assert "links (all directed links)" in out, out[-3000:]
+        assert str(summary["links"]["totals"]["sent"]) in out

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from swarm.mcaplog import CheckpointWriter, compact, iter_messages
+from swarm.record.mcaplog import CheckpointWriter, compact, iter_messages
 
 WRITER = textwrap.dedent(
     """
     import sys, json
-    from swarm.mcaplog import CheckpointWriter
+    from swarm.record.mcaplog import CheckpointWriter
     w = CheckpointWriter(sys.argv[1])
     sid = w.schema("s", "jsonschema", b"{}")
     cid = w.channel("swarm/t/x", sid)

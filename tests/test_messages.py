@@ -3,8 +3,13 @@
 import numpy as np
 import pytest
 
-from swarm.bus import messages as M
-from swarm.bus.convert import (
+from swarmcore import quat
+from swarmcore.mekf import RelativeMeasurements, SwarmEstimate
+from swarmcore.metrics import pose_cov_blocks
+from swarmcore.scenario import Scenario
+from swarmcore.world import initial_truth
+from swarmrt.bus import messages as M
+from swarmrt.bus.convert import (
     array,
     batch_msg,
     estimate_from_full,
@@ -20,11 +25,6 @@ from swarm.bus.convert import (
     step_batches_msg,
     truth_msg,
 )
-from swarmcore import quat
-from swarmcore.mekf import RelativeMeasurements, SwarmEstimate
-from swarmcore.metrics import pose_cov_blocks
-from swarmcore.scenario import Scenario
-from swarmcore.world import initial_truth
 
 RUN = "t-1"
 H = dict(run=RUN, sender="test", k=3, t_s=3.0)
@@ -108,7 +108,7 @@ def test_estimate_arrays_are_bit_exact():
     back = estimate_from_full(M.decode("full_est", M.encode(full_estimate_msg(est, run=RUN, sender="a", own=2))), 4)
     for f in ("q_BI", "omega_BI_B", "r_H", "v_H", "bias_B", "P"):
         np.testing.assert_array_equal(getattr(back, f), getattr(est, f))
-    with pytest.raises(ValueError, match="this swarm has 5"):
+    with pytest.raises(ValueError, match="this swarm of 5"):
         estimate_from_full(M.decode("full_est", M.encode(full_estimate_msg(est, run=RUN, sender="a", own=2))), 5)
     m = M.decode("est", M.encode(estimate_msg(est, run=RUN, sender="a", own=2)))
     np.testing.assert_array_equal(array(m.P_pose), pose_cov_blocks(est.P, 4))
@@ -379,7 +379,7 @@ def _with(a: np.ndarray, index, value) -> np.ndarray:
     return b
 
 def test_compiled_batch_checks_give_the_numpy_verdicts():
-    from swarm.bus import fastcheck as F
+    from swarmrt.bus import fastcheck as F
 
     base = EXAMPLES["meas"]
     q0 = np.asarray(base.q_BjBi).reshape(-1, 4)

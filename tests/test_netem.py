@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarm.bus import messages as M
-from swarm.netem import CLEAR, Netem, NetemError, netemd_args, parse_percent, parse_rate_bit_s, parse_time_s, tc_script
-from swarm.netemd import Delayer
-from swarm.recording import BusTimes
+from swarm.record.recording import BusTimes
+from swarm.supervise.netem import netemd_args, tc_script
+from swarm.supervise.netemd import Delayer
 from swarmcore.scenario import NETWORK_FAULTS, FaultSpec
+from swarmrt.bus import messages as M
+from swarmrt.netem import CLEAR, Netem, NetemError, parse_percent, parse_rate_bit_s, parse_time_s
 
 ROOT = Path(__file__).resolve().parents[1]
 H = dict(run="t-1", sender="cli", k=3, t_s=3.0)
@@ -79,7 +80,7 @@ def test_incomplete_impairments_are_refused():
 
 
 def test_the_fault_message_carries_canonical_netem_arguments():
-    from swarm.netem import validate_field
+    from swarmrt.netem import validate_field
 
     args = validate_field("delay 0.2s 50ms loss 10% rate 1000kbit")
     assert args == "delay 200ms 50ms loss 10% rate 1mbit"
@@ -219,7 +220,7 @@ def _echo(ns, *sizes) -> list[tuple[int, float]]:
 
 def _start_netemd(ns, *args):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "swarm.netemd", *args], stdout=subprocess.PIPE,
+    p = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "swarm.supervise.netemd", *args], stdout=subprocess.PIPE,
                          stderr=subprocess.PIPE, text=True, env=env)
     line = p.stdout.readline()  # blocks until READY (or the process ends)
     assert line.strip() == "READY", p.stderr.read() if p.poll() is not None else line
@@ -230,7 +231,7 @@ def _start_netemd(ns, *args):
 def test_netemd_delays_what_a_namespace_sends_and_leaves_no_trace(two_namespaces):
     """Round trips A → B → A over TCP: with 200 ± 20 ms on A's egress every small round
     trip takes 180–260 ms; 200 kB still flows at TCP's pace (not ~2 packets per delay,
-    which is what holding the kernel's packets would give, see swarm.netemd); after SIGTERM
+    which is what holding the kernel's packets would give, see swarm.supervise.netemd); after SIGTERM
     the rules are gone and round trips are fast again."""
     a, b = two_namespaces
     server = subprocess.Popen(["ip", "netns", "exec", b, sys.executable, "-c", _ECHO, "serve"], stdout=subprocess.PIPE, text=True)

@@ -6,7 +6,7 @@ from numdiff import ATTITUDE, EUCLIDEAN, numerical_generator, numerical_jacobian
 from scipy.linalg import expm
 
 from swarmcore import quat
-from swarmcore.mekf import FilterParams, SwarmEstimate, _apply_correction
+from swarmcore.mekf import FilterParams, SwarmEstimate, apply_correction
 
 
 @pytest.fixture
@@ -124,6 +124,6 @@ def test_swarm_state_retract_and_local_are_inverses_and_match_the_filter_reset(r
     np.testing.assert_allclose(moved.omega_BI_B[own] - est.omega_BI_B[own], -d[12 * own + 3 : 12 * own + 6], atol=1e-15)
     np.testing.assert_allclose(moved.bias_B - est.bias_B, d[12 * own + 3 : 12 * own + 6], atol=1e-15)
     p = FilterParams(n=3, own=own, dt=1.0, mean_motion=1.08e-3, J=np.diag([1.0, 2.0, 3.0]), arw=1e-7, rrw=1e-10, torque=1e-6, accel=1e-8)
-    reset = _apply_correction(est, p, d, est.P)
+    reset = apply_correction(est, p, d, est.P)
     for field in ("q_BI", "omega_BI_B", "r_H", "v_H", "bias_B"):
         np.testing.assert_allclose(getattr(reset, field), getattr(moved, field), rtol=0, atol=1e-15, err_msg=field)

@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarm.bus import messages as M
-from swarm.bus.convert import array
+from swarmrt.bus import messages as M
+from swarmrt.bus.convert import array
 
 ROOT = Path(__file__).resolve().parent.parent
 PROTO = ROOT / "proto"
@@ -102,7 +102,7 @@ def _numbers(text: str, field: str) -> list[float]:
 
 @pytest.mark.integration
 def test_protoc_decode_of_recorded_messages_equals_the_python_values(recording):
-    from swarm.mcaplog import iter_messages
+    from swarm.record.mcaplog import iter_messages
 
     path, rec, _sc = recording
     done = set()
@@ -156,8 +156,8 @@ def test_protoc_decode_of_recorded_messages_equals_the_python_values(recording):
 
 
 def test_a_recording_of_the_json_wire_format_is_refused_with_the_reason(tmp_path):
-    from swarm.mcaplog import CheckpointWriter
-    from swarm.recording import load_recording
+    from swarm.record.mcaplog import CheckpointWriter
+    from swarm.record.recording import load_recording
 
     w = CheckpointWriter(tmp_path / "old.mcap")
     cid = w.channel("swarm/old-run/truth", w.schema("swarm.Truth", "jsonschema", b"{}"))
@@ -169,7 +169,7 @@ def test_a_recording_of_the_json_wire_format_is_refused_with_the_reason(tmp_path
 
 @pytest.mark.integration
 def test_recover_keeps_every_channels_protobuf_schema(recording, tmp_path):
-    from swarm.mcaplog import iter_records, recover
+    from swarm.record.mcaplog import iter_records, recover
 
     path, _rec, _sc = recording
     torn = tmp_path / "torn.mcap"
@@ -184,3 +184,37 @@ def test_recover_keeps_every_channels_protobuf_schema(recording, tmp_path):
         assert (s.name, s.encoding, s.data, ch.message_encoding) == original[ch.topic]
         if ch.topic.startswith("swarm/") and "/est/" in ch.topic:
             assert M.decode("est", m.data).run == M.Header.FromString(m.data).run
+
+
+@pytest.mark.parametrize("kind", ["ci", "pairwise"])
+def test_protoc_decodes_an_estimators_message_in_a_batch_to_the_python_values(kind):
+    """An estimator's message as it rides in a batch (MeasBatch.estimator): what a
+    participant of another language, or protoc, reads of it is the estimator's numbers."""
+    import numpy as np
+
+    from swarmcore.estimators import builtin_estimator
+    from swarmcore.mekf import RelativeMeasurements
+    from swarmcore.scenario import Scenario
+    from swarmcore.world import initial_estimate, initial_truth
+    from swarmrt.bus.convert import batch_msg
+    from swarmrt.estimators import codec_for
+
+    sc = Scenario(n_sats=3, estimator={"kind": kind})
+    e = builtin_estimator(sc, 1)
+    e.start(initial_estimate(sc, initial_truth(sc), 1, e.prior_ids()))
+    if kind == "pairwise":
+        e.sigma[2] = np.arange(144.0).reshape(12, 12) / 7  # type: ignore[attr-defined]
+    payload = e.transmit(0)
+    msg = batch_msg(RelativeMeasurements.empty(), np.zeros(0, dtype=int), run="r", sender="agent-1", k=0, t_s=0.0, observer=1,
+                    estimator=codec_for(sc).to_msg(payload))
+    text = _protoc_decode("MeasBatch", "swarm/v1/measurements.proto", M.encode(msg))
+    assert f'kind: "{kind}"' in text and "version: 1" in text
+    body = text[text.index(f"{kind} {{"):]
+    assert _numbers(body, "q_BI") == payload.q_BI.tolist()
+    assert _numbers(body, "r_H_m") == payload.r_H.tolist()
+    cov = payload.P_pose if kind == "ci" else payload.P
+    name = "P_pose" if kind == "ci" else "P"
+    block = body[body.index(f"{name} {{"): body.index("}", body.index(f"{name} {{"))]
+    assert _numbers(block, "data") == cov.ravel().tolist()
+    if kind == "pairwise":
+        assert _numbers(body, "partners") == [2]

@@ -10,14 +10,15 @@ import pytest
 from protocol_driver import Driver, FakeClock
 
 from sat_agent.protocol import AgentProtocol
-from swarm.bus.convert import batch_msg, detections, full_estimate_msg, sensors_msg, step_batches_msg
-from swarm.bus.messages import CameraOutput, Clock, Fault, Keys
-from swarm.protocol import Event, Query
 from swarmcore.agent import AgentFilter, SyntheticPoseEstimator, filter_params
+from swarmcore.estimators import builtin_estimator
 from swarmcore.graphs import scenario_graph
 from swarmcore.mekf import RelativeMeasurements
 from swarmcore.scenario import Scenario
 from swarmcore.world import SyntheticCameras, absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
+from swarmrt.bus.convert import batch_msg, detections, full_estimate_msg, sensors_msg, step_batches_msg
+from swarmrt.bus.messages import CameraOutput, Clock, Fault, Keys
+from swarmrt.protocol import Event, Query
 
 RUN = "t"
 K = Keys(RUN)
@@ -80,7 +81,7 @@ def test_agent_steps_equal_the_filter_run_directly():
     sc = scenario()
     world = WorldScript(sc)
     clock = FakeClock()
-    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
     d = Driver(a, clock, answer=prior_answer(sc, world.truth))
     assert [q.key for q in d.queries] == [K.init(0)]
     (prior,) = d.sent_on(K.est(0))
@@ -99,7 +100,7 @@ def test_agent_steps_equal_the_filter_run_directly():
         (est,) = d.sent_on(K.est(0))
         (health,) = d.sent_on(K.health(0))
         assert est.k == k and est.batches_used == [1, 2] and health.batches_missing == 0
-        from swarm.bus.convert import relative_from_batches
+        from swarmrt.bus.convert import relative_from_batches
 
         rel = RelativeMeasurements.concat([relative_from_batches([own]), relative_from_batches(peers)])
         absm = absolute_measurements(world.wp, world.truth)[0]
@@ -113,7 +114,7 @@ def test_a_batch_the_radio_did_not_carry_is_missing_and_a_late_one_is_counted():
     sc = scenario()
     world = WorldScript(sc)
     clock = FakeClock()
-    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
     d = Driver(a, clock, answer=prior_answer(sc, world.truth))
     d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), Event(K.alive("agent", 2), "alive", 2, alive=True))
     world.advance(0)
@@ -130,7 +131,7 @@ def test_the_agent_waits_for_the_radio_not_for_a_timeout():
     sc = scenario(emulator={"step_timeout_s": 10.0})
     world = WorldScript(sc)
     clock = FakeClock()
-    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
     d = Driver(a, clock, answer=prior_answer(sc, world.truth))
     d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True))  # 2 never comes up
     world.advance(0)
@@ -152,20 +153,20 @@ def test_restarted_agent_initialises_from_the_freshest_peer():
         assert q.key == K.cov(1)
         return full_estimate_msg(peer_est, run=RUN, sender="agent-1", own=1)
 
-    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), restart=True, clock=clock)
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), restart=True, clock=clock)
     d = Driver(a, clock, answer=answer)
     assert not d.queries, "a restarted agent first waits to hear of a live peer"
     d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True))
     assert [q.key for q in d.queries] == [K.cov(1)]
     (prior,) = d.sent_on(K.est(0))
-    assert prior.phase == "prior" and prior.own == 0 and not a.filter.prior_pending
+    assert prior.phase == "prior" and prior.own == 0 and not a.estimator.prior_pending
 
 
 def test_drop_and_camera_faults_addressed_to_this_agent():
     sc = scenario()
     world = WorldScript(sc)
     clock = FakeClock()
-    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
     d = Driver(a, clock, answer=prior_answer(sc, world.truth))
     d.take()
     cam_off = Fault(run=RUN, sender="cli", k=0, t_s=0.0, phase="command", action="camera", target=0, camera=2, state="off")
@@ -185,7 +186,7 @@ def test_drop_and_camera_faults_addressed_to_this_agent():
 
 def test_unknown_satellite_is_refused():
     with pytest.raises(ValueError, match="not one of this 3-satellite swarm"):
-        AgentProtocol(scenario(), 3, RUN, SyntheticPoseEstimator(scenario()))
+        AgentProtocol(scenario(), 3, RUN, SyntheticPoseEstimator(scenario()), builtin_estimator(scenario(), 0))
 
 
 def test_restart_in_lockstep_asks_every_live_peer_and_takes_the_freshest():
@@ -205,7 +206,7 @@ def test_restart_in_lockstep_asks_every_live_peer_and_takes_the_freshest():
         j = int(q.key.rsplit("/", 1)[1])
         return full_estimate_msg({1: e1, 2: e2}[j], run=RUN, sender=f"agent-{j}", own=j)
 
-    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), restart=True, clock=clock)
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), restart=True, clock=clock)
     d = Driver(a, clock, answer=answer)
     d.feed(Event(K.alive("agent", 2), "alive", 2, alive=True), Event(K.alive("agent", 1), "alive", 1, alive=True))
     assert sorted(q.key for q in d.queries) == [K.cov(1), K.cov(2)]
@@ -217,12 +218,12 @@ def test_bus_back_sends_the_step_again_copies_are_no_news_and_a_lost_world_ends_
     """Issue 16: after a bus gap the agent sends its step's batch, estimate and health again;
     a batch or a world's message sent again is handled as the no-op it is (not a late
     batch); a world gone before the run's end raises WorldLost."""
-    from swarm.protocol import WorldLost
+    from swarmrt.protocol import WorldLost
 
     sc = scenario()
     world = WorldScript(sc)
     clock = FakeClock()
-    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), clock=clock)
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
     d = Driver(a, clock, answer=prior_answer(sc, world.truth))
     d.feed(Event(K.alive("world", 0), "alive", 0, alive=True, role="world"))
     d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True, role="agent"), Event(K.alive("agent", 2), "alive", 2, alive=True, role="agent"))

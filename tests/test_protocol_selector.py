@@ -5,11 +5,11 @@ from __future__ import annotations
 from protocol_driver import Driver, FakeClock
 
 from selector.protocol import SelectorProtocol
-from swarm.bus.convert import estimate_msg, full_estimate_msg
-from swarm.bus.messages import Clock, Keys
-from swarm.protocol import Event, Query
 from swarmcore.scenario import Scenario
 from swarmcore.world import initial_estimate, initial_truth
+from swarmrt.bus.convert import estimate_msg, full_estimate_msg
+from swarmrt.bus.messages import Clock, Keys
+from swarmrt.protocol import Event, Query
 
 RUN = "t"
 K = Keys(RUN)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from protocol_driver import Driver, FakeClock
 
-from swarm.bus.convert import matrix, select_msg
-from swarm.bus.messages import Estimate, Fault, Health, Keys, Matrix, MeasBatch
-from swarm.protocol import Event
-from swarmcore.measurement import synthetic_model
 from swarmcore.scenario import Scenario
+from swarmcore.synthetic import synthetic_model
+from swarmrt.bus.convert import matrix, select_msg
+from swarmrt.bus.messages import Estimate, Fault, Health, Keys, Matrix, MeasBatch
+from swarmrt.protocol import Event
 from world_sim.protocol import WorldProtocol
 
 RUN = "t"
@@ -202,6 +202,14 @@ def test_prior_and_claim_queries():
     assert (a.sat, b.sat) == (0, 1) and w.serve_claim(K.claim("tok-a")).sat == 0
 
 
+def test_claims_never_give_a_satellite_another_program_flies():
+    """emulator.agent_commands: that satellite's program comes with its own id (compose.rust.yaml)."""
+    sc = scenario(n_sats=4, emulator={"agent_commands": {1: "rust-agent"}})
+    w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=FakeClock())
+    got = [w.serve_claim(K.claim(f"tok-{t}")) for t in range(4)]
+    assert [c.sat for c in got[:3]] == [0, 2, 3] and got[3] is None, "three claimable satellites, the fourth claim refused"
+
+
 @pytest.mark.parametrize("bad", [{"at_step": 0, "action": "partition", "target": 1}])
 def test_network_faults_cannot_be_scheduled(bad):
     with pytest.raises(ValueError, match="swarm fault --compose"):
@@ -240,7 +248,7 @@ def test_the_ideal_radio_carries_every_batch_of_a_step_in_one_message():
     """Every agent's batch of step k reaches every agent through the world, the ideal radio
     (links.enabled false): one StepBatches in observer order, whatever the arrival order,
     each batch's rows as sent; a copy sent again after a bus gap is not carried twice."""
-    from swarm.bus.convert import relative_from_batches, relative_from_step
+    from swarmrt.bus.convert import relative_from_batches, relative_from_step
 
     sc = scenario()
     d, _w, _ = started_world(sc)
@@ -262,7 +270,7 @@ def test_the_ideal_radio_carries_every_batch_of_a_step_in_one_message():
 def test_a_dropped_batch_is_not_waited_for():
     """An agent that reported a drop fault from step s loses its batches by the same
     seeded draw the world makes: the radio goes on without the lost ones at once."""
-    from swarm.protocol import DROP_BATCH, message_dropped
+    from swarmrt.protocol import DROP_BATCH, message_dropped
 
     sc = scenario(duration_s=30, emulator={"step_timeout_s": 50.0})
     d, _w, _ = started_world(sc)

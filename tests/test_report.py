@@ -137,8 +137,8 @@ def test_tables_say_no_data_and_why_instead_of_nan():
     """A summary with missing errors (a run cut short) prints "no data" and the reason, never nan."""
     from rich.console import Console
 
-    from swarm.cli import _summary_table as cli_table
-    from swarm.report import _summary_table as html_table
+    from swarm.cli.common import _summary_table as cli_table
+    from swarm.studies.report import _summary_table as html_table
 
     nan = float("nan")
     block = {"self": {"att_rad": 1e-4, "pos_m": 0.01}, "others": {"att_rad": nan, "pos_m": nan}}
@@ -151,3 +151,26 @@ def test_tables_say_no_data_and_why_instead_of_nan():
     for out in (text, page):
         assert "nan" not in out.lower(), out
         assert "no data" in out and "bus lost" in out and "step 7 of 60" in out, out
+
+
+def test_report_of_a_long_range_run_shows_ranges_and_percent_of_range(tmp_path):
+    """A long-range run (starfox: km apart, angles only) gets the range figure, whose
+    percentages are its relative errors over the true ranges; a close-range run does not."""
+    import numpy as np
+
+    from swarm.studies.report import LONG_RANGE_M, load_run
+
+    run = tmp_path / "starfox"
+    swarm("sim", "scenarios/starfox.yaml", "--out", str(run), "--set", "duration_s=200", "--no-scene")
+    swarm("report", str(run))
+    assert (run / "report" / "range.png").is_file()
+    assert "<h2>Range</h2>" in (run / "report" / "report.html").read_text()
+    data = load_run(run)
+    assert data.r_true_H is not None and data.r_true_H.shape == (len(data.t), data.n, 3)
+    ranges = np.linalg.norm(data.r_true_H[:, 1:] - data.r_true_H[:, :1], axis=-1)
+    assert ranges.min() > LONG_RANGE_M
+    close = tmp_path / "demo"
+    swarm("sim", "scenarios/demo.yaml", "--out", str(close), "--set", "duration_s=5", "--no-scene")
+    swarm("report", str(close))
+    assert not (close / "report" / "range.png").exists()
+    assert "<h2>Range</h2>" not in (close / "report" / "report.html").read_text()

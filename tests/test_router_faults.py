@@ -24,12 +24,12 @@ import zenoh
 from swarm_harness import scenario
 from test_run_signals import _gone, _read_json, wait_until
 
-from swarm.bus.messages import Clock, Keys
-from swarm.bus.session import BusConfig
-from swarm.faults import send_fault
-from swarm.launch import LocalSwarm
-from swarm.recording import load_recording
+from swarm.record.recording import load_recording
+from swarm.supervise.faults import send_fault
+from swarm.supervise.launch import LocalSwarm
 from swarmcore.sim import simulate
+from swarmrt.bus.messages import Clock, Keys
+from swarmrt.bus.session import BusConfig
 
 pytestmark = pytest.mark.integration
 
@@ -108,6 +108,13 @@ def test_two_meshed_routers_one_killed_the_run_goes_on(tmp_path):
     assert code == 0
     _assert_same_numbers_as_without_the_fault(rec, summary, sc)
     assert any(f["action"] == "kill-router" and f["phase"] == "done" for f in summary["faults"]), summary["faults"]
+    # The failover happened: the recorder's link to router 0 went with it, and the bus came
+    # back (through router 1) within seconds, after the kill and before the run's end.
+    gaps = summary.get("bus_gaps") or []
+    assert gaps, "no bus gap recorded: the recorder never lost router 0, so nothing failed over"
+    for g in gaps:
+        assert g["duration_s"] is not None and g["duration_s"] < 15.0, g
+        assert 7 <= g["last_step_before"] < sc.steps, g
 
 
 BOUND_S = 5.0  # emulator.bus_lost_after_s of the broken runs
@@ -175,8 +182,8 @@ def test_world_killed_the_run_ends_broken(tmp_path):
 def test_a_wait_without_a_timeout_blocks_until_its_event():
     """`Wait(until, inf)` (the selector when there is nothing to select) waits for its event
     instead of failing: an infinite timeout is no deadline."""
-    from swarm.node import Node
-    from swarm.protocol import Event
+    from swarmrt.node import Node
+    from swarmrt.protocol import Event
 
     n = Node("selector", 0, "t", 3, BusConfig(mode="peer"), announce=False)
     got = []

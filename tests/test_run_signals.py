@@ -5,7 +5,7 @@ follows the run's clock on the bus until it is mid-run, sends the signal, and wa
 a bound, polling the process table) until every process the run recorded in run.json is
 gone. SIGINT and SIGTERM must also leave a closed, indexed run.mcap and a summary.json
 marked as interrupted at the last recorded step; SIGKILL gives the supervisor no chance,
-so its children must notice on their own (swarm/lifeline.py).
+so its children must notice on their own (swarm/supervise/lifeline.py).
 """
 
 from __future__ import annotations
@@ -24,8 +24,8 @@ import yaml
 import zenoh
 from mcap.reader import make_reader
 
-from swarm.bus.messages import Clock, Keys
-from swarm.bus.session import BusConfig
+from swarmrt.bus.messages import Clock, Keys
+from swarmrt.bus.session import BusConfig
 
 pytestmark = pytest.mark.integration
 

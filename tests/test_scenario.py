@@ -5,9 +5,9 @@ import textwrap
 import numpy as np
 import pytest
 
-from swarm.scenario_files import ScenarioError, load_scenario, parse_overrides
 from swarmcore import graphs
 from swarmcore.scenario import Scenario
+from swarmrt.scenario_files import ScenarioError, load_scenario, parse_overrides
 
 
 def test_defaults_follow_table_4_1():

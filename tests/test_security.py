@@ -1,4 +1,4 @@
-"""Who may say what on the bus, for real: a real router (``python -m swarm.router``) with a
+"""Who may say what on the bus, for real: a real router (``python -m swarm.supervise.router``) with a
 run's keys and access rules, real sessions with real credentials, a real swarm.
 
 Negative checks (something must NOT arrive) wait on an event with a timeout, and each is
@@ -17,9 +17,9 @@ import zenoh
 from forgery import Witness, _batch, _open, check_forgeries, forge
 from swarm_harness import run_swarm, scenario
 
-from swarm.bus import messages as M
-from swarm.launch import free_port
-from swarm.security import acl_config, make_keys
+from swarm.supervise.launch import free_port
+from swarmrt.bus import messages as M
+from swarmrt.security import acl_config, make_keys, size_limit_of, size_limits
 
 pytestmark = pytest.mark.integration
 
@@ -30,14 +30,23 @@ RUN = "sec-1"
 def router(tmp_path):
     keys = make_keys(tmp_path / "keys", 4)
     endpoint = f"tcp/127.0.0.1:{free_port()}"
-    p = subprocess.Popen([sys.executable, "-m", "swarm.router", "--listen", endpoint, "--keys", str(keys), "--run", RUN,
-                          "--n-sats", "4"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    # Its log to a file, not a pipe nobody reads while the test runs: a full pipe would
+    # block the router in a write (and then in its shutdown).
+    log = tmp_path / "router.log"
+    with log.open("wb") as err:
+        p = subprocess.Popen([sys.executable, "-m", "swarm.supervise.router", "--listen", endpoint, "--keys", str(keys), "--run", RUN,
+                              "--n-sats", "4"], stdout=subprocess.PIPE, stderr=err)
     try:
-        assert b"READY" in p.stdout.readline(), p.stderr.read()
+        assert b"READY" in p.stdout.readline(), log.read_text()
         yield endpoint, keys
     finally:
         p.terminate()
-        p.wait(10)
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+            raise AssertionError(f"the router did not end within 30 s of SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
 
 
 def _until_seen(put, witness, pred, tries: int = 100) -> bool:
@@ -66,6 +75,7 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
             _open(endpoint, cred["agent-1"]) as a1, _open(endpoint, cred["agent-3"]) as a3:
         everything = Witness(rec, k.everything())
         truth_at_agent = Witness(a1, k.truth())  # an agent asking for the truth is refused
+        clock_at_agent = Witness(a1, k.clock())  # declared after it, on the same session: the control
         meas_at_world = Witness(world, k.meas())  # the world is the radio: it hears every batch
         meas_at_agent = Witness(a1, k.meas())  # an agent hears its peers only through the radio
         radio_at_agent = Witness(a1, k.batches())
@@ -91,9 +101,15 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
         assert _until_seen(lambda: world.put(k.batches(), b"radio"), radio_at_agent, lambda key, p: p == b"radio")
         assert not meas_at_agent.got, "an agent heard a peer's batch straight off the bus"
 
-        # The world puts the truth: the recorder gets it, agent 1 (subscribed) does not.
+        # The world puts the truth: the recorder gets it, agent 1 (subscribed) does not. The
+        # control is at agent 1 itself: its clock subscription, declared after its truth
+        # subscription on the same session, has reached the router (it hears a probe), and
+        # it hears the clock put after the truth, so a truth the router let through would
+        # have reached it first.
+        assert _until_seen(lambda: world.put(k.clock(), b"agent probe"), clock_at_agent, lambda key, p: p == b"agent probe")
         world.put(k.truth(), b"truth")
         world.put(k.clock(), b"control")
+        assert clock_at_agent.wait_for(lambda key, p: p == b"control")
         assert everything.wait_for(lambda key, p: p == b"control")
         assert k.truth() in everything.seen_keys()
         assert not truth_at_agent.got
@@ -108,6 +124,33 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
             rec.put(k.fault(), b"recorder fault")
             assert not clocks.wait_for(lambda key, p: p == b"recorder clock", 1.0)
             assert not faults.got
+
+
+def test_the_router_drops_a_message_over_its_identitys_size_limit(router):
+    """The router's low-pass filter (generated from the grants, sized from the swarm): an
+    estimate one byte over agent 1's limit on est/1 never reaches the recorder; one at the
+    limit, put after it over the same session (in order: the control), does."""
+    endpoint, keys = router
+    k = M.Keys(RUN)
+    limit = size_limit_of("est", 4)
+    with _open(endpoint, str(keys / "recorder.json")) as rec, _open(endpoint, str(keys / "agent-1.json")) as a1:
+        ests = Witness(rec, k.est())
+        assert _until_seen(lambda: a1.put(k.est(1), b"probe"), ests, lambda key, p: p == b"probe")
+        a1.put(k.est(1), b"x" * (limit + 1))
+        a1.put(k.est(1), b"y" * limit)
+        assert ests.wait_for(lambda key, p: len(p) == limit and p[:1] == b"y")
+        assert not any(len(p) > limit for _key, p in ests.got), "a message over the limit got through the router"
+
+
+def test_size_limits_cover_every_key_an_identity_may_put():
+    """Every key some identity may put (but the mesh's) has one limit; estimates, health and
+    fault reports are sized from the swarm, the rest from what receivers accept."""
+    lim = size_limits(RUN, 3)
+    keys = [kx for f in lim for kx in f["key_exprs"]]
+    assert len(keys) == len(set(keys)) and all(f["flows"] == ["ingress"] and f["messages"] == ["put"] for f in lim)
+    k = M.Keys(RUN)
+    assert {k.est(0), k.est(2), k.meas(1), k.health(2), k.clock(), k.batches(), k.fault()} <= set(keys)
+    assert size_limit_of("est", 100) == 64 * 1024 + 200 * 1024 and size_limit_of("img", 3) == M.MAX_PAYLOAD_BYTES["img"]
 
 
 def test_access_rules_follow_the_key_space():
@@ -152,7 +195,7 @@ def test_tls_endpoint_checks_the_router_against_the_keys_ca(tmp_path):
 
     keys = make_keys(tmp_path / "keys", 2, tls_hosts=["router", "127.0.0.1"])
     endpoint = f"tls/127.0.0.1:{free_port()}"
-    p = subprocess.Popen([sys.executable, "-m", "swarm.router", "--listen", endpoint, "--keys", str(keys), "--run", RUN,
+    p = subprocess.Popen([sys.executable, "-m", "swarm.supervise.router", "--listen", endpoint, "--keys", str(keys), "--run", RUN,
                           "--n-sats", "2"], stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     try:
         assert b"READY" in p.stdout.readline(), p.stderr.read()
@@ -191,7 +234,7 @@ def test_swarm_keys_makes_owner_only_credentials_and_prints_rules(tmp_path):
     assert {"passwords", "router.json", "agents.json", "claimant.json", "agent-2.json"} <= names and "agent-3.json" not in names
     assert all(stat.S_IMODE(f.stat().st_mode) == 0o600 for f in out.iterdir()) and stat.S_IMODE(out.stat().st_mode) == 0o700
     users = [line.split(":")[0] for line in (out / "passwords").read_text().splitlines()]
-    from swarm.bus.messages import IDENTITIES
+    from swarmrt.bus.messages import IDENTITIES
 
     assert sorted(users) == sorted([*IDENTITIES, "agent-0", "agent-1", "agent-2"])
     cred = json.loads((out / "agent-2.json").read_text())

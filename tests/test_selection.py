@@ -13,11 +13,11 @@ from swarmcore import graphs, quat
 from swarmcore import selection as sel
 from swarmcore.agent import filter_params
 from swarmcore.cameras import Intrinsics, visible_cameras
-from swarmcore.measurement import synthetic_batch
 from swarmcore.mekf import SOLVERS, Linearized, SwarmEstimate, observed_indices, predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.sim import simulate
 from swarmcore.streams import stream
+from swarmcore.synthetic import synthetic_batch
 from swarmcore.world import (
     absolute_measurements,
     initial_estimate,
@@ -476,7 +476,7 @@ def test_scenario_rejects_bad_selection_fields():
 @pytest.mark.slow
 def test_greedy_beats_random_on_the_table_6_1_setup():
     # Paired (same seeds: same truth and noise); shortened to 100 s to keep CI time sane.
-    from swarm.scenario_files import load_scenario
+    from swarmrt.scenario_files import load_scenario
 
     errs = {"greedy": [], "random": []}
     for seed in (600, 601, 602):

@@ -9,14 +9,14 @@ from pathlib import Path
 import pytest
 from swarm_harness import run_swarm, scenario
 
-from swarm.bus.messages import Clock, Keys
+from swarmrt.bus.messages import Clock, Keys
 
 VISION = ("cv2", "open3d", "pyrender", "trimesh", "OpenGL", "pyglet")
 
 
 def test_role_modules_import_no_vision_library():
     code = (
-        "import sys, sat_agent.node, world_sim.node, selector.node, swarm.recorder, swarm.router, swarm.launch;"
+        "import sys, sat_agent.node, world_sim.node, selector.node, swarm.record.recorder, swarm.supervise.router, swarm.supervise.launch;"
         f"print(sorted(m for m in {VISION!r} if m in sys.modules))"
     )
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)

@@ -5,10 +5,10 @@ import pytest
 
 from swarmcore import graphs, quat
 from swarmcore.agent import filter_params
-from swarmcore.measurement import synthetic_batch
 from swarmcore.mekf import SOLVERS, choose_method, predict, update
 from swarmcore.scenario import Scenario
 from swarmcore.sim import simulate
+from swarmcore.synthetic import synthetic_batch
 from swarmcore.world import (
     absolute_measurements,
     initial_estimate,

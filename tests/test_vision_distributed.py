@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from swarm_harness import run_swarm
 
-from swarm.mcaplog import iter_messages
-from swarm.models import measurement_model
-from swarm.scenario_files import load_scenario
+from swarm.record.mcaplog import iter_messages
+from swarm.simulation import measurement_model
 from swarmcore.sim import simulate
+from swarmrt.scenario_files import load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -48,7 +48,7 @@ def test_mono_images_on_the_bus_give_the_in_process_numbers(tmp_path):
     for topic, _schema, data, _log, _pub in iter_messages(tmp_path / "run" / "run.mcap"):
         topics.setdefault(topic.split("/sat/")[-1] if "/sat/" in topic else topic, []).append(data)
     assert len(topics["0/img"]) == sc.steps
-    from swarm.bus.messages import Images
+    from swarmrt.bus.messages import Images
 
     rec_img = [Images.FromString(d) for d in topics["0/img"]]  # the camera models, the pixels left out
     assert any(m.views for m in rec_img)

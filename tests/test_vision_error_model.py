@@ -144,7 +144,7 @@ def test_windowed_inflation_of_a_persistent_bias():
 
 def test_pose_estimator_attaches_the_fitted_model(tmp_path):
     from swarmcore.vision_config import VisionConfig
-    from swarmvision.characterize import camera_signature
+    from swarmvision.catalogue import camera_signature
     from swarmvision.covariance import floor_cov
     from swarmvision.pose_estimator import VisionPoseEstimator
 
@@ -225,8 +225,8 @@ def test_rendered_stereo_run_attaches_the_model_and_its_errors_fit_it():
     in units of the σ of one measurement alone, is neither far above nor far below 1."""
     from pathlib import Path
 
-    from swarm.models import simulate_scenario
-    from swarm.scenario_files import load_scenario
+    from swarm.simulation import simulate_scenario
+    from swarmrt.scenario_files import load_scenario
     from swarmvision.covariance import floor_cov, resolve_model_path
     from swarmvision.residuals import residuals, summarize_residuals
 

@@ -5,10 +5,13 @@ from __future__ import annotations
 import os
 import sys
 
-from swarm.node import RunBroken, bus_config_from_args, install_term_handler, load_role_scenario, role_arg_parser, setup_logging
-
 
 def main(argv=None) -> int:
+    from swarmrt import tuning
+
+    tuning.tune_process()  # first, before numpy loads: the project's BLAS kernels and threads
+    from swarmrt.node import bus_config_from_args, load_role_scenario, role_arg_parser, serve, setup_logging
+
     p = role_arg_parser("world_sim: truth, time, sensors and cameras of the swarm")
     p.add_argument("--no-recorder", action="store_true", help="do not wait for a recorder at startup")
     p.add_argument("--agent-passwords", default=os.environ.get("SWARM_AGENT_PASSWORDS") or None,
@@ -20,22 +23,12 @@ def main(argv=None) -> int:
 
     passwords = None
     if a.agent_passwords and sc.emulator.security:
-        from swarm.security import load_agent_passwords
+        from swarmrt.security import load_agent_passwords
 
         passwords = load_agent_passwords(a.agent_passwords)
     w = World(sc, a.run, bus_config_from_args(a, sc), expect_recorder=not a.no_recorder, agent_passwords=passwords)
-    install_term_handler(w.stop)
-    try:
-        w.run_steps()
-        if not w.stop.is_set():
-            # The "done" clock may still be on its way: leave once the recorder has finished.
-            w.linger_while_recording(sc.emulator.shutdown_linger_s + 5.0)
-    except RunBroken as exc:
-        w.log.error("%s; exiting", exc)
-        return exc.exit_code
-    finally:
-        w.close()
-    return 0
+    # The "done" clock may still be on its way: leave once the recorder has finished.
+    return serve(w, linger_s=sc.emulator.shutdown_linger_s + 5.0)
 
 
 if __name__ == "__main__":

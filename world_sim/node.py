@@ -8,9 +8,10 @@ drives the protocol machine; the protocol itself has no bus in it.
 
 from __future__ import annotations
 
-from swarm.models import measurement_model
-from swarm.node import Node
 from swarmcore.scenario import Scenario
+from swarmrt.estimators import check_estimator
+from swarmrt.node import Node
+from swarmrt.truth import camera_model
 
 from .protocol import WorldProtocol
 
@@ -24,9 +25,11 @@ class World(Node):
             raise SystemExit(f"world_sim: {why}")
         super().__init__("world", 0, run, sc.n_sats, bus, announce=False)
         self.sc = sc
-        self.cameras = measurement_model(sc).cameras()  # rendering only when the scenario renders
+        self.cameras = camera_model(sc)  # rendering only when the scenario renders
+        est = check_estimator(sc)  # the agents' estimator: which satellites each one's prior covers
         self.machine = WorldProtocol(sc, run, self.cameras, expect_recorder, expect_selector, agent_passwords=agent_passwords,
-                                     malformed=lambda: self.malformed, key_mismatch=lambda: self.key_mismatch)
+                                     malformed=lambda: self.malformed, key_mismatch=lambda: self.key_mismatch,
+                                     prior_ids=lambda i: est.prior_ids_for(sc, i))
         self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())
@@ -39,6 +42,9 @@ class World(Node):
         if sc.links.enabled:
             self.queryable(self.keys.rejoin("*") + "/*/*", self.machine.serve_rejoin, notify=True)
         self.announce()
+
+    def run_loop(self) -> None:
+        self.run_steps()
 
     def run_steps(self, progress=None) -> None:
         m = self.machine

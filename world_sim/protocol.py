@@ -16,7 +16,7 @@ The world owns truth and time. Lockstep step k:
 Free-running mode paces the clock at ``realtime_factor`` × wall time instead of step 6,
 and the radio passes each batch on as it comes.
 Everything the world computes (truth, images) reaches an agent only as what its own
-sensors and cameras deliver. :class:`WorldProtocol` is driven by :class:`swarm.node.Node`
+sensors and cameras deliver. :class:`WorldProtocol` is driven by :class:`swarmrt.node.Node`
 in ``python -m world_sim`` and by scripted events in ``tests/test_protocol_world.py``.
 """
 
@@ -29,7 +29,13 @@ from collections.abc import Callable
 
 import numpy as np
 
-from swarm.bus.convert import (
+from swarmcore.graphs import edges, scenario_graph
+from swarmcore.links import LinkCounters, LinkModel, scenario_link_model
+from swarmcore.measurement import CameraModel
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
+from swarmcore.selection import mask_dead, select_for_scenario
+from swarmcore.world import TruthState, absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
+from swarmrt.bus.convert import (
     detections,
     full_estimate_msg,
     images_msg,
@@ -41,7 +47,7 @@ from swarm.bus.convert import (
     step_batches_msg,
     truth_msg,
 )
-from swarm.bus.messages import (
+from swarmrt.bus.messages import (
     CameraOutput,
     Claim,
     Clock,
@@ -56,14 +62,7 @@ from swarm.bus.messages import (
     Select,
     replace,
 )
-from swarm.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped
-from swarmcore.graphs import edges, scenario_graph
-from swarmcore.links import LinkCounters, LinkModel
-from swarmcore.measurement import CameraModel
-from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
-from swarmcore.selection import mask_dead, select_for_scenario
-from swarmcore.sim import link_body_radius
-from swarmcore.world import TruthState, absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
+from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped
 
 __all__ = ["WorldProtocol"]
 
@@ -78,10 +77,10 @@ class WorldProtocol:
     def __init__(self, sc: Scenario, run: str, cameras: CameraModel, expect_recorder: bool = True,
                  expect_selector: bool | None = None, clock: Callable[[], float] = time.monotonic,
                  agent_passwords: dict[int, str] | None = None, malformed: Callable[[], int] = lambda: 0,
-                 key_mismatch: Callable[[], int] = lambda: 0):
+                 key_mismatch: Callable[[], int] = lambda: 0, prior_ids: Callable[[int], list[int] | None] | None = None):
         self.sc = sc
         # Security on, agents started with --id auto: satellite i's bus password, handed to
-        # the claimant given satellite i (swarm.security says why this is safe).
+        # the claimant given satellite i (swarmrt.security says why this is safe).
         self.agent_passwords = agent_passwords or {}
         self.run_id = run
         self.n = sc.n_sats
@@ -95,7 +94,9 @@ class WorldProtocol:
         self.G = scenario_graph(sc)
         self.truth = initial_truth(sc)
         self._ahead: tuple[TruthState, np.ndarray] | None = None  # the next step's (truth, gyro), computed ahead
-        self._priors = {i: initial_estimate(sc, self.truth, i) for i in range(sc.n_sats)}
+        # Each agent's prior, over the satellites its estimator starts from (made when asked:
+        # a whole-swarm prior of 100 satellites is 11 MB).
+        self.prior_ids = prior_ids or (lambda i: None)
         self.expect_recorder = expect_recorder
         self.use_selector = sc.selection.strategy != "none" if expect_selector is None else expect_selector
         self.alive_agents: set[int] = set()
@@ -110,7 +111,7 @@ class WorldProtocol:
         self.started = False
         self.finished = False
         # The radio channel (links.enabled): the world carries the agents' batches.
-        self.links = LinkModel(sc.links, sc.n_sats, sc.seed, link_body_radius(sc)) if sc.links.enabled else None
+        self.links = scenario_link_model(sc)
         self.batches: dict[int, dict[int, tuple[MeasBatch, int]]] = {}  # step → observer → (batch, radio bytes)
         self.drops: dict[int, tuple[float, int]] = {}  # agent → (rate, first step) of its drop fault, as it reported
         self._lat_sent = 0  # latencies already reported
@@ -132,7 +133,8 @@ class WorldProtocol:
         i = int(key.rsplit("/", 1)[1])
         if not 0 <= i < self.n or self.started:
             return None  # once the run is under way, a (re)starting agent asks a peer
-        return full_estimate_msg(self._priors[i], run=self.run_id, sender="world", own=i)
+        ids = self.prior_ids(i)
+        return full_estimate_msg(initial_estimate(self.sc, self.truth, i, ids), run=self.run_id, sender="world", own=i, ids=ids)
 
     def serve_rejoin(self, key: str):
         """``rejoin/<i>/<peer>/<bytes>``: a restarting agent asks what the radio does to the
@@ -154,13 +156,17 @@ class WorldProtocol:
 
     def serve_claim(self, key: str):
         """Give an agent started with ``--id auto`` a satellite: the lowest one with no
-        live agent and no recent claim (so scaled or restarted containers need no ids)."""
+        live agent and no recent claim (so scaled or restarted containers need no ids),
+        never one that ``emulator.agent_commands`` gives to another program (it comes with
+        its own id and credential: compose.rust.yaml)."""
         token = key.rsplit("/", 1)[1]
         now = self.clock()
         sat = self._claims.get(token)
         if sat is None:
             alive = set(self.alive_agents)
-            free = [i for i in range(self.n) if i not in alive and now - self._claimed_at.get(i, -1e9) > 30.0]
+            reserved = self.sc.emulator.agent_commands
+            free = [i for i in range(self.n)
+                    if i not in alive and i not in reserved and now - self._claimed_at.get(i, -1e9) > 30.0]
             if not free:
                 return None
             sat = free[0]
@@ -198,8 +204,11 @@ class WorldProtocol:
                 self.est_seen.setdefault(m.k, set()).add(m.own)
         elif ev.kind == "health":
             # An agent's health report follows its update: it has finished step k even
-            # when its estimate was lost (the drop fault).
+            # when its estimate was lost (the drop fault). An agent restarted cold reports
+            # its health before it has any estimate: it is ready for its sensors.
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
+            if ev.msg.sat in self.alive_agents:
+                self.ready.add(ev.msg.sat)
         elif ev.kind == "meas":
             m = ev.msg
             if (m.k, m.observer) in self._aired:  # a copy sent again

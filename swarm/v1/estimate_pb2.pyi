@@ -8,7 +8,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class Estimate(_message.Message):
-    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "own", "phase", "q_BI", "omega_BI_B_rad_s", "r_H_m", "v_H_m_s", "bias_B_rad_s", "P_pose", "P_diag", "gate_accepted", "gate_rejected", "nis", "nis_dof", "iterations", "step_ms", "batches_used", "batches_missing", "batches_late", "step_cpu_ms", "codec_cpu_ms", "late_used", "late_dropped", "replayed_steps")
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "own", "phase", "q_BI", "omega_BI_B_rad_s", "r_H_m", "v_H_m_s", "bias_B_rad_s", "P_pose", "P_diag", "gate_accepted", "gate_rejected", "nis", "nis_dof", "iterations", "step_ms", "batches_used", "batches_missing", "batches_late", "step_cpu_ms", "codec_cpu_ms", "late_used", "late_dropped", "replayed_steps", "ids", "P_rel_pose", "estimator", "bytes_sent")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_FIELD_NUMBER: _ClassVar[int]
     SENDER_FIELD_NUMBER: _ClassVar[int]
@@ -37,6 +37,10 @@ class Estimate(_message.Message):
     LATE_USED_FIELD_NUMBER: _ClassVar[int]
     LATE_DROPPED_FIELD_NUMBER: _ClassVar[int]
     REPLAYED_STEPS_FIELD_NUMBER: _ClassVar[int]
+    IDS_FIELD_NUMBER: _ClassVar[int]
+    P_REL_POSE_FIELD_NUMBER: _ClassVar[int]
+    ESTIMATOR_FIELD_NUMBER: _ClassVar[int]
+    BYTES_SENT_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     run: str
     sender: str
@@ -65,10 +69,14 @@ class Estimate(_message.Message):
     late_used: int
     late_dropped: int
     replayed_steps: int
-    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., own: _Optional[int] = ..., phase: _Optional[str] = ..., q_BI: _Optional[_Iterable[float]] = ..., omega_BI_B_rad_s: _Optional[_Iterable[float]] = ..., r_H_m: _Optional[_Iterable[float]] = ..., v_H_m_s: _Optional[_Iterable[float]] = ..., bias_B_rad_s: _Optional[_Iterable[float]] = ..., P_pose: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., P_diag: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., gate_accepted: _Optional[int] = ..., gate_rejected: _Optional[int] = ..., nis: _Optional[float] = ..., nis_dof: _Optional[int] = ..., iterations: _Optional[int] = ..., step_ms: _Optional[float] = ..., batches_used: _Optional[_Iterable[int]] = ..., batches_missing: _Optional[_Iterable[int]] = ..., batches_late: _Optional[int] = ..., step_cpu_ms: _Optional[float] = ..., codec_cpu_ms: _Optional[float] = ..., late_used: _Optional[int] = ..., late_dropped: _Optional[int] = ..., replayed_steps: _Optional[int] = ...) -> None: ...
+    ids: _containers.RepeatedScalarFieldContainer[int]
+    P_rel_pose: _common_pb2.Matrix
+    estimator: str
+    bytes_sent: int
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., own: _Optional[int] = ..., phase: _Optional[str] = ..., q_BI: _Optional[_Iterable[float]] = ..., omega_BI_B_rad_s: _Optional[_Iterable[float]] = ..., r_H_m: _Optional[_Iterable[float]] = ..., v_H_m_s: _Optional[_Iterable[float]] = ..., bias_B_rad_s: _Optional[_Iterable[float]] = ..., P_pose: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., P_diag: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., gate_accepted: _Optional[int] = ..., gate_rejected: _Optional[int] = ..., nis: _Optional[float] = ..., nis_dof: _Optional[int] = ..., iterations: _Optional[int] = ..., step_ms: _Optional[float] = ..., batches_used: _Optional[_Iterable[int]] = ..., batches_missing: _Optional[_Iterable[int]] = ..., batches_late: _Optional[int] = ..., step_cpu_ms: _Optional[float] = ..., codec_cpu_ms: _Optional[float] = ..., late_used: _Optional[int] = ..., late_dropped: _Optional[int] = ..., replayed_steps: _Optional[int] = ..., ids: _Optional[_Iterable[int]] = ..., P_rel_pose: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., estimator: _Optional[str] = ..., bytes_sent: _Optional[int] = ...) -> None: ...
 
 class FullEstimate(_message.Message):
-    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "own", "q_BI", "omega_BI_B_rad_s", "r_H_m", "v_H_m_s", "bias_B_rad_s", "P")
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "own", "q_BI", "omega_BI_B_rad_s", "r_H_m", "v_H_m_s", "bias_B_rad_s", "P", "ids")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_FIELD_NUMBER: _ClassVar[int]
     SENDER_FIELD_NUMBER: _ClassVar[int]
@@ -81,6 +89,7 @@ class FullEstimate(_message.Message):
     V_H_M_S_FIELD_NUMBER: _ClassVar[int]
     BIAS_B_RAD_S_FIELD_NUMBER: _ClassVar[int]
     P_FIELD_NUMBER: _ClassVar[int]
+    IDS_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     run: str
     sender: str
@@ -93,4 +102,5 @@ class FullEstimate(_message.Message):
     v_H_m_s: _containers.RepeatedScalarFieldContainer[float]
     bias_B_rad_s: _containers.RepeatedScalarFieldContainer[float]
     P: _common_pb2.Matrix
-    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., own: _Optional[int] = ..., q_BI: _Optional[_Iterable[float]] = ..., omega_BI_B_rad_s: _Optional[_Iterable[float]] = ..., r_H_m: _Optional[_Iterable[float]] = ..., v_H_m_s: _Optional[_Iterable[float]] = ..., bias_B_rad_s: _Optional[_Iterable[float]] = ..., P: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ...) -> None: ...
+    ids: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., own: _Optional[int] = ..., q_BI: _Optional[_Iterable[float]] = ..., omega_BI_B_rad_s: _Optional[_Iterable[float]] = ..., r_H_m: _Optional[_Iterable[float]] = ..., v_H_m_s: _Optional[_Iterable[float]] = ..., bias_B_rad_s: _Optional[_Iterable[float]] = ..., P: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., ids: _Optional[_Iterable[int]] = ...) -> None: ...

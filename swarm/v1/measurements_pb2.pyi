@@ -1,4 +1,5 @@
 from swarm.v1 import common_pb2 as _common_pb2
+from swarm.v1 import estimators_pb2 as _estimators_pb2
 from google.protobuf.internal import containers as _containers
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
@@ -8,7 +9,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class MeasBatch(_message.Message):
-    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "observer", "target", "camera", "q_BjBi", "r_ij_Bi_m", "R_Bi")
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "observer", "target", "camera", "q_BjBi", "r_ij_Bi_m", "R_Bi", "estimator")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_FIELD_NUMBER: _ClassVar[int]
     SENDER_FIELD_NUMBER: _ClassVar[int]
@@ -20,6 +21,7 @@ class MeasBatch(_message.Message):
     Q_BJBI_FIELD_NUMBER: _ClassVar[int]
     R_IJ_BI_M_FIELD_NUMBER: _ClassVar[int]
     R_BI_FIELD_NUMBER: _ClassVar[int]
+    ESTIMATOR_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     run: str
     sender: str
@@ -31,10 +33,11 @@ class MeasBatch(_message.Message):
     q_BjBi: _containers.RepeatedScalarFieldContainer[float]
     r_ij_Bi_m: _containers.RepeatedScalarFieldContainer[float]
     R_Bi: _common_pb2.Matrix
-    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., observer: _Optional[int] = ..., target: _Optional[_Iterable[int]] = ..., camera: _Optional[_Iterable[int]] = ..., q_BjBi: _Optional[_Iterable[float]] = ..., r_ij_Bi_m: _Optional[_Iterable[float]] = ..., R_Bi: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ...) -> None: ...
+    estimator: _estimators_pb2.EstimatorMessage
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., observer: _Optional[int] = ..., target: _Optional[_Iterable[int]] = ..., camera: _Optional[_Iterable[int]] = ..., q_BjBi: _Optional[_Iterable[float]] = ..., r_ij_Bi_m: _Optional[_Iterable[float]] = ..., R_Bi: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., estimator: _Optional[_Union[_estimators_pb2.EstimatorMessage, _Mapping]] = ...) -> None: ...
 
 class StepBatches(_message.Message):
-    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "observers", "counts", "target", "camera", "q_BjBi", "r_ij_Bi_m", "R_Bi")
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "observers", "counts", "target", "camera", "q_BjBi", "r_ij_Bi_m", "R_Bi", "estimators")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_FIELD_NUMBER: _ClassVar[int]
     SENDER_FIELD_NUMBER: _ClassVar[int]
@@ -47,6 +50,7 @@ class StepBatches(_message.Message):
     Q_BJBI_FIELD_NUMBER: _ClassVar[int]
     R_IJ_BI_M_FIELD_NUMBER: _ClassVar[int]
     R_BI_FIELD_NUMBER: _ClassVar[int]
+    ESTIMATORS_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     run: str
     sender: str
@@ -59,4 +63,5 @@ class StepBatches(_message.Message):
     q_BjBi: _containers.RepeatedScalarFieldContainer[float]
     r_ij_Bi_m: _containers.RepeatedScalarFieldContainer[float]
     R_Bi: _common_pb2.Matrix
-    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., observers: _Optional[_Iterable[int]] = ..., counts: _Optional[_Iterable[int]] = ..., target: _Optional[_Iterable[int]] = ..., camera: _Optional[_Iterable[int]] = ..., q_BjBi: _Optional[_Iterable[float]] = ..., r_ij_Bi_m: _Optional[_Iterable[float]] = ..., R_Bi: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ...) -> None: ...
+    estimators: _containers.RepeatedCompositeFieldContainer[_estimators_pb2.EstimatorMessage]
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., observers: _Optional[_Iterable[int]] = ..., counts: _Optional[_Iterable[int]] = ..., target: _Optional[_Iterable[int]] = ..., camera: _Optional[_Iterable[int]] = ..., q_BjBi: _Optional[_Iterable[float]] = ..., r_ij_Bi_m: _Optional[_Iterable[float]] = ..., R_Bi: _Optional[_Union[_common_pb2.Matrix, _Mapping]] = ..., estimators: _Optional[_Iterable[_Union[_estimators_pb2.EstimatorMessage, _Mapping]]] = ...) -> None: ...

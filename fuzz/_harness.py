@@ -1,0 +1,48 @@
+"""What every harness of this folder shares: instrument the project's modules for
+atheris's coverage, then fuzz one target of :mod:`swarm.bench.fuzz_targets`.
+
+A harness is ``python fuzz/fuzz_<x>.py [harness options] [libFuzzer/atheris arguments]``
+(corpus folders, ``-runs=N``, ``-max_total_time=S``, ``-timeout=S``...); ``scripts/fuzz.py``
+runs them all and reports.
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import sys
+import warnings
+
+import atheris
+
+# Libraries first, uninstrumented (only our modules' branches guide the fuzzer; numba's
+# compiled checks must stay plain Python bytecode for numba to compile them).
+import numpy  # noqa: F401
+import yaml  # noqa: F401
+from google.protobuf import message  # noqa: F401
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+if ROOT not in sys.path:
+    sys.path.insert(0, ROOT)
+
+NEVER = ["swarmrt.bus.fastcheck", "swarmcore.kernels", "swarmcore.mekf"]  # numba-compiled: left as they are
+
+
+def fuzz(name: str, argv: list[str], include: tuple[str, ...] = (), own: tuple[str, ...] = ()) -> None:
+    """Fuzz target ``name`` with atheris; ``include``: more packages to instrument (beyond
+    swarmrt and swarm); ``own``: the harness's own options (what libFuzzer must repeat when it
+    starts the harness again itself, as ``-merge=1`` and ``-fork`` do)."""
+    with atheris.instrument_imports(include=["swarmrt", "swarm", *include], exclude=NEVER):
+        # What the targets import when first called: instrumented too.
+        import swarmrt.netem
+        import swarmrt.scenario_files
+        import swarmrt.security  # noqa: F401
+        from swarm.bench.fuzz_targets import target
+
+        fn = target(name)
+    # numpy's warnings are findings too: an overflowing cast, an invalid value.
+    warnings.filterwarnings("error", category=RuntimeWarning)
+    # libFuzzer restarts "argv[0] options" through the shell: this interpreter, this script.
+    prog = shlex.join([sys.executable, os.path.abspath(sys.argv[0]), *own])
+    atheris.Setup([prog, *argv], lambda data: fn(bytes(data)))
+    atheris.Fuzz()

@@ -1,0 +1,162 @@
+"""StarFOX-like study (issue 25): angles-only relative navigation, one observer vs several.
+
+Flies ``scenarios/starfox.yaml`` (or another file) over R seeds in two configurations:
+
+* ``several``: every satellite observes every other (graph.kind complete);
+* ``single``: satellite 0 (the one with GPS) is the only observer (graph.kind matrix, row 0),
+
+and reports, over the second half of each run, for satellite 0's filter and its estimates
+of satellites 1..n−1 relative to itself (what StarFOX's figure is about):
+
+* ``err_pct``: |relative position error| / range (%), averaged over targets and steps;
+* ``sigma_pct``: the filter's 1σ, √trace(P_rel_pos), / range (%);
+* ``nees_pos``: relative-position NEES / 3 (1 when consistent);
+* ``nees_pos_abs``: satellite 0's filter, every satellite's position (in H) NEES / 3;
+* ``nees6``: the run summary's pose NEES / 6 over every filter and satellite (includes the
+  other satellites' attitudes, which bearings do not observe: they drift, nonlinearly).
+
+Mean and spread over the seeds go to stdout and to ``--out`` (JSON).
+
+    .venv/bin/python scripts/starfox_study.py --runs 20 --out /tmp/starfox.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from multiprocessing import Pool
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from swarm.simulation import simulate_scenario
+from swarmrt.scenario_files import load_scenario
+
+
+def single_observer(n: int) -> list[str]:
+    m = np.eye(n, dtype=int)
+    m[0, 1:] = 1
+    return ["graph.kind=matrix", f"graph.matrix={json.dumps(m.tolist())}"]
+
+
+def one_run(args: tuple[str, str, int, list[str]]) -> dict:
+    path, config, seed, extra = args
+    sc = load_scenario(path, extra, seed=seed)
+    if config == "single":
+        sc = load_scenario(path, [*extra, *single_observer(sc.n_sats)], seed=seed)
+    rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def on_step(s) -> None:
+        for v in s.views:
+            if v.own == 0:
+                rows.append((s.k, s.r_H.copy(), v.r_H.copy(), v.P_rel_pose.copy(), v.P_pose.copy()))
+
+    res = simulate_scenario(sc, on_step=on_step)
+    K = sc.steps
+    err, sig, nees, nees_abs = [], [], [], []
+    series: list[tuple[float, float, float]] = []  # (t_s, mean |Δr|/range %, mean 1σ/range %) per step
+    for k, r_true, r_hat, P_rel, P_pose in rows:
+        pct = []
+        for j in range(1, sc.n_sats):
+            d_true = r_true[j] - r_true[0]
+            rng = float(np.linalg.norm(d_true))
+            e = (r_hat[j] - r_hat[0]) - d_true
+            pct.append((100 * np.linalg.norm(e) / rng, 100 * np.sqrt(np.trace(P_rel[j][3:6, 3:6])) / rng))
+        series.append((k * sc.dt_s, *np.mean(pct, axis=0).tolist()))
+        if k < K // 2:
+            continue
+        for j in range(sc.n_sats):
+            e = r_hat[j] - r_true[j]
+            nees_abs.append(float(e @ np.linalg.solve(P_pose[j][3:6, 3:6], e)) / 3.0)
+        for j in range(1, sc.n_sats):
+            d_true = r_true[j] - r_true[0]
+            e = (r_hat[j] - r_hat[0]) - d_true
+            rng = float(np.linalg.norm(d_true))
+            P = P_rel[j][3:6, 3:6]
+            err.append(np.linalg.norm(e) / rng)
+            sig.append(np.sqrt(np.trace(P)) / rng)
+            nees.append(float(e @ np.linalg.solve(P, e)) / 3.0)
+    summ = res.summary()
+    return {"config": config, "seed": seed, "err_pct": 100 * float(np.mean(err)), "sigma_pct": 100 * float(np.mean(sig)),
+            "nees_pos": float(np.mean(nees)), "nees_pos_abs": float(np.mean(nees_abs)), "nees6": float(summ["nees"]["mean"]) / 6.0,
+            "range_km": float(np.mean([np.linalg.norm(rows[-1][1][j] - rows[-1][1][0]) for j in range(1, sc.n_sats)]) / 1e3),
+            "gate_rejected": int(summ["gate"]["rejected"]) if "gate" in summ else None, "series": series}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scenario", nargs="?", default="scenarios/starfox.yaml")
+    ap.add_argument("--runs", type=int, default=20)
+    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--out", default=None)
+    ap.add_argument("--set", action="append", default=[], help="scenario override dotted.key=value")
+    ap.add_argument("--configs", default="single,several")
+    ap.add_argument("--plot", default=None, help="PNG: error and 1σ as a percentage of range over time, per configuration")
+    a = ap.parse_args()
+    base = load_scenario(a.scenario, a.set).seed
+    tasks = [(a.scenario, c, base + r, a.set) for c in a.configs.split(",") for r in range(a.runs)]
+    with Pool(a.workers) as pool:
+        results = []
+        for res in pool.imap_unordered(one_run, tasks):
+            results.append(res)
+            print(json.dumps({k: v for k, v in res.items() if k != "series"}), flush=True)
+    out = {}
+    for c in a.configs.split(","):
+        rs = [r for r in results if r["config"] == c]
+        agg = {}
+        for key in ("err_pct", "sigma_pct", "nees_pos", "nees_pos_abs", "nees6", "range_km"):
+            v = np.array([r[key] for r in rs])
+            agg[key] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+                        "median": float(np.median(v))}
+        out[c] = {"runs": len(rs), **agg}
+        print(f"{c:8s} runs {len(rs):3d}  |Δr|/range {agg['err_pct']['mean']:.3f} % (median {agg['err_pct']['median']:.3f})  "
+              f"1σ/range {agg['sigma_pct']['mean']:.3f} %  rel NEES_pos/3 {agg['nees_pos']['mean']:.2f} (median {agg['nees_pos']['median']:.2f})  "
+              f"abs NEES_pos/3 {agg['nees_pos_abs']['mean']:.2f}  pose NEES/6 {agg['nees6']['mean']:.2f}  "
+              f"range {agg['range_km']['mean']:.1f} km")
+    if a.out:
+        Path(a.out).write_text(json.dumps({"per_run": results, "aggregate": out}, indent=1))
+    if a.plot:
+        plot(results, a.configs.split(","), a.plot)
+
+
+def plot(results: list[dict], configs: list[str], path: str) -> None:
+    """Median over the seeds (and the 10–90 % band) of satellite 0's relative position error
+    and of its 1σ, as a percentage of range, over time: StarFOX's figure, one observer
+    against several."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    colours = {"single": "tab:red", "several": "tab:blue"}
+    for c in configs:
+        S = np.array([r["series"] for r in results if r["config"] == c])  # (runs, K, 3)
+        if S.size == 0:
+            continue
+        t_min = S[0, :, 0] / 60.0
+        col = colours.get(c)
+        for idx, style, what in ((1, "-", "|error|"), (2, "--", "1σ")):
+            med = np.median(S[:, :, idx], axis=0)
+            ax.plot(t_min, med, style, color=col, label=f"{c} observer{'s' if c == 'several' else ''}: {what} (median of {len(S)})")
+            if idx == 1:
+                lo, hi = np.percentile(S[:, :, idx], [10, 90], axis=0)
+                ax.fill_between(t_min, lo, hi, color=col, alpha=0.15, linewidth=0)
+    for level, lab in ((1.3, "StarFOX, one observer: 1.3 %"), (0.6, "StarFOX, several: 0.6 %")):
+        ax.axhline(level, color="grey", linestyle=":", linewidth=1)
+        ax.text(0.2, level * 1.05, lab, color="grey", fontsize=8)
+    ax.set_yscale("log")
+    ax.set_ylim(0.05, 50)
+    ax.set_xlabel("time (min)")
+    ax.set_ylabel("relative position, % of range")
+    ax.set_title("Angles-only, satellite 0's filter: error (band 10–90 %) and 1σ as a percentage of range")
+    ax.legend(fontsize=8, loc="upper right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+
+
+if __name__ == "__main__":
+    main()

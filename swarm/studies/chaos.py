@@ -1,0 +1,561 @@
+"""Chaos campaigns (``swarm chaos``): a seeded random schedule of the faults the emulator
+supports, run as one ``swarm run``, then named invariants checked over the finished run
+folder, with evidence.
+
+Bus-free: drawing a schedule (:func:`draw_schedule`), writing it into a scenario
+(:func:`chaos_scenario`) and checking a finished run (:func:`check_run`) read and write
+values and files only; ``swarm/cli/chaos.py`` runs the swarm between them (the path of
+``swarm run``, :func:`swarm.api.run`).
+
+**The schedule.** ``n_faults`` episodes, each a fault and its recovery, drawn from one
+generator (:func:`swarmcore.streams.stream`, purpose ``"chaos"``, keyed by the campaign
+seed) so that the same seed gives the same schedule, whatever the machine:
+
+============  =============================================  ==================================
+kind          fault (at its first step)                      recovery (at its last step)
+============  =============================================  ==================================
+kill-agent    ``kill-agent i`` (SIGKILL)                     ``restart-agent i`` (from a peer)
+stop-agent    ``stop-agent i`` (SIGTERM)                     ``restart-agent i``
+camera        ``camera i c off``                             ``camera i c on``
+drop          ``drop i --rate r`` (r in [0.2, 0.8])          ``drop i --rate 0``
+selector      ``kill-selector`` (the world falls back)       ``restart-selector``
+router        ``restart-router`` (down 0.5–2 s wall)         (the restart itself)
+failover      ``kill-router r`` (r of two: ``--routers 2``;  ``restart-router r``
+              the clients fail over to the other)
+============  =============================================  ==================================
+
+``failover`` is drawn only for a run with two routers (``swarm chaos --routers 2``); a run with
+one draws exactly the schedule it drew before the kind existed.
+
+Episodes overlap in time, within rules that keep the run meaningful: at most
+``max(1, (n − 1) // 2)`` agents down at once (a restarted agent needs a live peer), no two
+process or drop episodes on one agent at once (a restarted agent forgets its drop rate,
+the world's radio would not), one selector episode and one router episode (restart or
+failover: a router is always there to come back to) at a time, and every recovery at least
+``settle`` steps before the end (so reconvergence can be seen).
+
+**The invariants** (:func:`check_run`), each ``ok`` with its evidence:
+
+a. every process of the run ended: none of the pids in ``run.json`` and no process naming
+   the run is left;
+b. the run is not reported finished with agents gone: either it finished (exit 0, no
+   ``interrupted``) with every agent's estimate of the last step recorded, or it was
+   declared broken (non-zero, ``interrupted`` with its reason);
+c. the recording is readable to its last complete step, and ``summary.json`` lists every
+   fault the schedule fired (a ``done`` report of each command up to the last step);
+d. lockstep: every step the world completed is complete in the recording (every agent its
+   clock listed live has its estimate recorded, unless its drop fault lost it), and each
+   surviving filter's errors are within 3σ (pose NEES within the χ²₆ quantile of 3σ,
+   0.9973) for ≥ 99 % of its (satellite, step) pairs once reconverged — or, with few
+   pairs, not significantly fewer (binomial test at 1 %, p ≥ 0.05: one miss in 90 pairs
+   is 1.1 % and proves nothing);
+e. reproducibility: the schedule drawn again from the seed is the same; with ``--twice``
+   the campaign runs again and both runs' numbers are equal bit for bit (lockstep).
+
+Reconvergence of an episode: the first step from its recovery (the router's: from the
+fault) after which every pair it affects (its agent's filter, every filter's estimate of
+its satellite; every pair for the selector and the router) stays within 3σ for
+``RECONVERGED_STEPS`` steps; its time is (that step − the recovery step) · dt.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from swarmcore.scenario import FaultSpec, Scenario
+from swarmcore.streams import stream
+
+__all__ = ["KINDS", "Episode", "draw_schedule", "chaos_scenario", "schedule_digest", "check_run", "Invariant", "CampaignReport",
+           "RECONVERGED_STEPS", "CONSISTENT_FRACTION", "SIGNIFICANCE", "NEES_3SIGMA_6DOF", "NUMBERS", "same_numbers"]
+
+#: The episode kinds a local run (``swarm run``) can carry out.
+KINDS = ("kill-agent", "stop-agent", "camera", "drop", "selector", "router", "failover")
+#: Kinds on a router (one at a time); ``failover`` needs a second router to fail over to.
+_ROUTER_KINDS = ("router", "failover")
+#: An episode has reconverged once its pairs stay within 3σ this many steps in a row.
+RECONVERGED_STEPS = 3
+#: A surviving filter's pairs within 3σ once reconverged: at least this fraction.
+CONSISTENT_FRACTION = 0.99
+#: χ²₆ quantile of probability 0.9973 (the 1-D 3σ probability): a 6-D pose error within
+#: "3σ" (scipy.stats.chi2.ppf(0.9973002, 6)).
+NEES_3SIGMA_6DOF = 20.0621
+
+_PROCESS_KINDS = ("kill-agent", "stop-agent")
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One fault and its recovery: ``kind`` (:data:`KINDS`) from step ``start`` to step
+    ``end`` (the recovery's step; ``end == start`` for a router restart)."""
+
+    kind: str
+    start: int
+    end: int
+    target: int | None = None  # the satellite (agent, camera, drop episodes)
+    camera: int | None = None
+    rate: float | None = None  # drop
+    down_s: float | None = None  # router
+    router: int | None = None  # failover: the router killed (0 or 1)
+
+    def specs(self) -> list[FaultSpec]:
+        """The scenario's fault entries of this episode."""
+        i, a, b = self.target, self.start, self.end
+        if self.kind in _PROCESS_KINDS:
+            return [FaultSpec(at_step=a, action=self.kind, target=i), FaultSpec(at_step=b, action="restart-agent", target=i)]
+        if self.kind == "camera":
+            return [FaultSpec(at_step=a, action="camera", target=i, camera=self.camera, state="off"),
+                    FaultSpec(at_step=b, action="camera", target=i, camera=self.camera, state="on")]
+        if self.kind == "drop":
+            return [FaultSpec(at_step=a, action="drop", target=i, rate=self.rate), FaultSpec(at_step=b, action="drop", target=i, rate=0.0)]
+        if self.kind == "selector":
+            return [FaultSpec(at_step=a, action="kill-selector"), FaultSpec(at_step=b, action="restart-selector")]
+        if self.kind == "router":
+            return [FaultSpec(at_step=a, action="restart-router", target=0, down_s=self.down_s)]
+        if self.kind == "failover":
+            return [FaultSpec(at_step=a, action="kill-router", target=self.router),
+                    FaultSpec(at_step=b, action="restart-router", target=self.router)]
+        raise ValueError(f"unknown episode kind {self.kind!r} (known: {', '.join(KINDS)})")
+
+    @property
+    def recovery_step(self) -> int:
+        return self.end
+
+    def affects(self, n: int) -> tuple[list[int], list[int]]:
+        """(filters whose every estimate it affects, satellites whose estimate by every
+        filter it affects)."""
+        if self.target is None:
+            return list(range(n)), []
+        return [self.target], [self.target]
+
+
+def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = None, kinds: tuple[str, ...] | None = None,
+                  max_tries: int = 500, routers: int = 1) -> list[Episode]:
+    """``n_faults`` episodes for scenario ``sc`` run with ``routers`` routers (see the
+    module docstring), the same for the same arguments. Raises ValueError, saying why,
+    when they do not fit."""
+    if n_faults < 0:
+        raise ValueError(f"--faults {n_faults}: a count of faults (0 or more)")
+    K, n = sc.steps, sc.n_sats
+    settle = max(4, K // 6) if settle is None else settle
+    first, last_end = 2, K - 1 - settle  # recoveries by last_end; nothing before step 2 (start-up)
+    if n_faults and last_end - first < 2:
+        raise ValueError(f"{K} steps leave no room for faults: they need steps {first}..{K - 1 - settle} "
+                         f"(a longer --duration, or fewer settle steps)")
+    if kinds and "failover" in kinds and routers < 2:
+        raise ValueError("failover kills one of two routers: run the campaign with --routers 2")
+    allowed = tuple(kinds or (k for k in KINDS if k != "failover" or routers >= 2))
+    if sc.selection.strategy == "none":
+        allowed = tuple(k for k in allowed if k != "selector")  # no selector to kill
+    if unknown := [k for k in allowed if k not in KINDS]:
+        raise ValueError(f"unknown fault kinds {unknown} (known: {', '.join(KINDS)})")
+    if n_faults and not allowed:
+        raise ValueError("no fault kind is left to draw from")
+    rng = stream(seed, "chaos", K, n)
+    max_down = max(1, (n - 1) // 2)
+    out: list[Episode] = []
+    tries = 0
+    while len(out) < n_faults:
+        tries += 1
+        if tries > max_tries * max(1, n_faults):
+            raise ValueError(f"cannot place {n_faults} faults in {K} steps of {n} satellites under the campaign's rules "
+                             f"(placed {len(out)}); ask for fewer faults or a longer --duration")
+        kind = str(allowed[int(rng.integers(len(allowed)))])
+        start = int(rng.integers(first, last_end))  # [first, last_end)
+        span = int(rng.integers(2, 7))  # 2..6 steps down
+        end = start if kind == "router" else min(start + span, last_end)
+        target = int(rng.integers(n)) if kind in (*_PROCESS_KINDS, "camera", "drop") else None
+        camera = int(rng.integers(6)) if kind == "camera" else None
+        rate = round(float(rng.uniform(0.2, 0.8)), 2) if kind == "drop" else None
+        down_s = round(float(rng.uniform(0.5, 2.0)), 2) if kind == "router" else None
+        router = int(rng.integers(2)) if kind == "failover" else None
+        ep = Episode(kind, start, end, target, camera, rate, down_s, router)
+        if _fits(ep, out, max_down):
+            out.append(ep)
+    return sorted(out, key=lambda e: (e.start, e.end, e.kind, e.target if e.target is not None else -1))
+
+
+def _overlap(a: Episode, b: Episode, gap: int = 1) -> bool:
+    """Whether two episodes' step ranges meet (closer than ``gap`` steps)."""
+    return a.start <= b.end + gap and b.start <= a.end + gap
+
+
+def _fits(ep: Episode, placed: list[Episode], max_down: int) -> bool:
+    for o in placed:
+        if not _overlap(ep, o):
+            continue
+        same_sat = ep.target is not None and ep.target == o.target
+        if same_sat and ep.kind != "camera" and o.kind != "camera":
+            return False  # one process or drop episode per agent at a time
+        if same_sat and ep.kind == o.kind == "camera" and ep.camera == o.camera:
+            return False
+        if ep.kind == o.kind == "selector" or (ep.kind in _ROUTER_KINDS and o.kind in _ROUTER_KINDS):
+            return False
+    if ep.kind in _PROCESS_KINDS:
+        # At every step of this episode, the agents down (this one included) within the bound.
+        for k in range(ep.start, ep.end + 1):
+            down = {o.target for o in placed if o.kind in _PROCESS_KINDS and o.start <= k <= o.end}
+            if len(down | {ep.target}) > max_down:
+                return False
+    return True
+
+
+def chaos_scenario(sc: Scenario, episodes: list[Episode]) -> Scenario:
+    """``sc`` with the episodes' faults (and its own) as its ``faults:`` entries."""
+    faults = [*sc.faults, *(s for e in episodes for s in e.specs())]
+    faults.sort(key=lambda f: f.at_step)  # stable: an episode's own order within a step is kept
+    return sc.model_copy(update={"faults": faults})
+
+
+def schedule_digest(episodes: list[Episode]) -> str:
+    """SHA-256 of the schedule as canonical JSON (equal schedules, equal digests)."""
+    doc = json.dumps([asdict(e) for e in episodes], sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(doc.encode()).hexdigest()
+
+
+# -- checking a finished run ----------------------------------------------------------------
+@dataclass
+class Invariant:
+    name: str
+    ok: bool
+    evidence: str
+
+
+@dataclass
+class CampaignReport:
+    scenario: str
+    seed: int
+    n_faults: int
+    steps: int
+    schedule: list[dict]
+    schedule_sha256: str
+    exit_code: int
+    fired: dict[str, dict[str, int]]  # kind → {"scheduled": , "fired": }
+    invariants: list[Invariant]
+    recovery: dict[str, dict[str, Any]]  # kind → n, p50_s, p99_s, not_reconverged
+    consistency: dict[str, Any]  # filter → fraction of its pairs within 3σ once reconverged
+    broken: str | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ok(self) -> bool:
+        return all(i.ok for i in self.invariants)
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["ok"] = self.ok
+        return d
+
+
+def _leftover_processes(run_dir: Path, info: dict) -> list[str]:
+    """Processes of the run still running: its recorded pids (started no later than
+    ``run.json`` was last written: a pid reused since is another process), and any naming
+    its run id."""
+    import psutil
+
+    def running(p: psutil.Process) -> bool:
+        try:
+            return p.is_running() and p.status() != psutil.STATUS_ZOMBIE
+        except psutil.NoSuchProcess:
+            return False
+
+    try:
+        written = (run_dir / "run.json").stat().st_mtime
+    except OSError:
+        written = float("inf")
+    left = []
+    for name, pid in (info.get("pids") or {}).items():
+        try:
+            p = psutil.Process(pid)
+            if running(p) and p.create_time() <= written + 1.0:
+                left.append(f"{name} (pid {pid})")
+        except psutil.NoSuchProcess:
+            continue
+    run = info.get("run")
+    if run:
+        for p in psutil.process_iter(["pid", "cmdline"]):
+            if run in " ".join(p.info["cmdline"] or ()) and running(p) and f"pid {p.pid})" not in " ".join(left):
+                left.append(f"pid {p.pid} ({' '.join((p.info['cmdline'] or [])[:4])} ...)")
+    return left
+
+
+def _clocks(path: Path, n: int) -> dict[int, set[int]]:
+    """Step → the agents its (first recorded) clock lists live."""
+    from swarm.record.mcaplog import iter_messages
+    from swarmrt.bus.messages import MessageError, decode, parse_key
+
+    out: dict[int, set[int]] = {}
+    for topic, _schema, data, _log, _pub in iter_messages(path):
+        try:
+            _run, kind, _sat = parse_key(topic)
+            if kind != "clock":
+                continue
+            c = decode("clock", data, n_sats=n)
+        except MessageError:
+            continue
+        if not c.done:
+            out.setdefault(int(c.k), {int(i) for i in c.live_agents})
+    return out
+
+
+def _percentile(xs: list[float], q: float) -> float | None:
+    return float(np.percentile(xs, q)) if xs else None
+
+
+def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: int, exit_code: int,
+              n_faults: int | None = None, settle: int | None = None, kinds: tuple[str, ...] | None = None,
+              routers: int = 1) -> CampaignReport:
+    """Check a finished chaos run in ``run_dir`` (``swarm run``'s folder: ``run.json``,
+    ``run.mcap``, ``summary.json``) against the invariants of the module docstring.
+    ``sc``: the scenario it ran (the schedule's faults in it); ``exit_code``: what
+    ``swarm run`` returned."""
+    from swarm.record.recording import load_recording
+    from swarmrt.protocol import DROP_ESTIMATE, message_dropped
+
+    run_dir = Path(run_dir)
+    n, K, dt = sc.n_sats, sc.steps, sc.dt_s
+    inv: list[Invariant] = []
+    info = _read_json(run_dir / "run.json")
+    summary = _read_json(run_dir / "summary.json")
+
+    # (a) every process ended.
+    left = _leftover_processes(run_dir, info)
+    inv.append(Invariant("a. every process ended", not left and bool(info),
+                         f"{len(info.get('pids') or {})} processes in run.json, none left running" if not left and info
+                         else ("no run.json" if not info else f"still running: {', '.join(left)}")))
+
+    # (c, first half) the recording, to its last complete step.
+    rec = None
+    why_unreadable = ""
+    try:
+        rec = load_recording(run_dir / "run.mcap", n, K)
+    except Exception as exc:  # any reason it cannot be read is the finding
+        why_unreadable = f"{type(exc).__name__}: {exc}"
+    clocks = _clocks(run_dir / "run.mcap", n) if rec is not None else {}
+    truth_steps = np.flatnonzero(np.isfinite(rec.t)) if rec is not None else np.array([], dtype=int)
+    last_truth = int(truth_steps.max()) if truth_steps.size else -1
+
+    # The drop faults in force, as their agents reported them (rate from step first).
+    drops: dict[int, list[tuple[int, float]]] = {}
+    for f in (summary.get("faults") or []):
+        if f.get("action") == "drop" and f.get("phase") == "done" and str(f.get("sender", "")).startswith("agent-"):
+            drops.setdefault(int(f["target"]), []).append((int(f["k"]), float(f.get("rate") or 0.0)))
+
+    def est_lost(i: int, k: int) -> bool:
+        rate = 0.0
+        for first, r in sorted(drops.get(i, [])):
+            if first <= k:
+                rate = r
+        return message_dropped(sc.seed, i, k, DROP_ESTIMATE, rate)
+
+    # Steps complete: every agent listed live has its estimate (or its drop fault lost it).
+    incomplete: list[str] = []
+    complete_steps = []
+    if rec is not None:
+        for k in range(last_truth + 1):
+            live = clocks.get(k)
+            if live is None:
+                incomplete.append(f"step {k}: no clock")
+                continue
+            missing = [i for i in sorted(live) if not rec.alive[k, i] and not est_lost(i, k)]
+            if missing:
+                incomplete.append(f"step {k}: no estimate of agents {missing}")
+            else:
+                complete_steps.append(k)
+    last_complete = max(complete_steps) if complete_steps else -1
+
+    # (b) never finished with agents gone.
+    interrupted = summary.get("interrupted")
+    if interrupted:
+        b_ok = exit_code != 0
+        b_ev = (f"declared broken: exit {exit_code}, interrupted: {interrupted.get('reason')} (last step {interrupted.get('last_step')})")
+    else:
+        at_end = [i for i in range(n) if rec is not None and K > 0 and rec.alive[K - 1, i]]
+        lost_at_end = [i for i in range(n) if i not in at_end and not est_lost(i, K - 1)]
+        b_ok = exit_code == 0 and summary.get("steps") == K and not lost_at_end
+        b_ev = (f"finished: exit {exit_code}, {summary.get('steps')}/{K} steps, agents with an estimate of the last step "
+                f"{at_end}" + (f"; MISSING {lost_at_end}" if lost_at_end else ""))
+    inv.append(Invariant("b. not finished with agents gone", b_ok, b_ev))
+
+    # (c) readable; every fired fault in summary.json.
+    scheduled = [s for e in episodes for s in e.specs()]
+    fired_upto = last_truth
+    listed = summary.get("faults") or []
+    unlisted = []
+    for s in scheduled:
+        if s.at_step > fired_upto:
+            continue
+        if not any(f.get("action") == s.action and f.get("phase") == "done" and int(f.get("k", -1)) >= s.at_step
+                   and _same_target(s, f) for f in listed):
+            unlisted.append(f"{s.action} {s.target if s.target is not None else ''}@{s.at_step}".strip())
+    fired_n = sum(1 for s in scheduled if s.at_step <= fired_upto)
+    c_ok = rec is not None and not unlisted and last_complete >= 0
+    c_ev = (f"unreadable: {why_unreadable}" if rec is None else
+            f"readable to step {last_complete} (truth to {last_truth}); summary.json lists {fired_n - len(unlisted)}/{fired_n} "
+            "fired fault commands as done" + (f"; NOT LISTED: {', '.join(unlisted[:8])}" if unlisted else ""))
+    inv.append(Invariant("c. recording readable, every fired fault listed", c_ok, c_ev))
+
+    # (d) lockstep completeness and consistency once reconverged.
+    recovery: dict[str, dict[str, Any]] = {}
+    consistency: dict[str, Any] = {}
+    if rec is not None:
+        within = _within_3sigma(rec)  # (K, F, n)
+        valid = _valid_pairs(rec)
+        excluded = np.zeros_like(valid)
+        times: dict[str, list[float]] = {}
+        never: dict[str, int] = {}
+        cut: dict[str, int] = {}  # episodes the run's end cut short
+        for e in episodes:
+            if e.start > last_truth:
+                continue
+            filters, sats = e.affects(n)
+            mask = np.zeros((n, n), dtype=bool)  # (filter, satellite) pairs it affects
+            mask[filters, :] = True
+            mask[:, sats] = True
+            t0 = e.recovery_step
+            if t0 + RECONVERGED_STEPS - 1 > last_truth:
+                # The run ended (broken) before this episode's recovery could be seen.
+                cut[e.kind] = cut.get(e.kind, 0) + 1
+                excluded[e.start:, mask] = True
+                continue
+            k_conv = _reconverged_at(within, valid, mask, filters, t0, last_truth)
+            if k_conv is None:
+                never[e.kind] = never.get(e.kind, 0) + 1
+                excluded[e.start:, mask] = True
+            else:
+                times.setdefault(e.kind, []).append((k_conv - t0) * dt)
+                excluded[e.start:k_conv, mask] = True
+        for kind in sorted({e.kind for e in episodes}):
+            xs = times.get(kind, [])
+            outage = [(e.end - e.start) * dt for e in episodes if e.kind == kind and e.start <= last_truth]
+            recovery[kind] = {"n": len(xs), "p50_s": _percentile(xs, 50), "p99_s": _percentile(xs, 99),
+                              "not_reconverged": never.get(kind, 0), "cut_by_the_end": cut.get(kind, 0),
+                              "outage_p50_s": _percentile(outage, 50)}
+        fractions = {}
+        for f in range(n):
+            use = valid[:, f, :] & ~excluded[:, f, :]
+            m = int(use.sum())
+            fractions[f] = (float(within[:, f, :][use].mean()) if m else None, m)
+        consistency = {f"agent-{f}": {"fraction": fr, "pairs": m, "p_value": _p_value(fr, m)} for f, (fr, m) in fractions.items()}
+        bad = [f"agent-{f}: {fr:.3f} of {m} (p = {_p_value(fr, m):.3g})" for f, (fr, m) in fractions.items()
+               if fr is not None and _below(fr, m)]
+        worst = min((fr for fr, _m in fractions.values() if fr is not None), default=None)
+        d_ok = not incomplete and not bad and not never
+        d_ev = (f"{len(complete_steps)}/{last_truth + 1} steps complete" + (f" (INCOMPLETE: {'; '.join(incomplete[:5])})" if incomplete else "")
+                + (f"; worst filter {worst:.4f} of its pairs within 3σ once reconverged (≥ {CONSISTENT_FRACTION}, or not "
+                   f"significantly less: binomial p ≥ {SIGNIFICANCE})" if worst is not None else "")
+                + (f"; BELOW: {', '.join(bad)}" if bad else "")
+                + (f"; NOT RECONVERGED: {never}" if never else "")
+                + (f"; cut short by the run's end: {cut}" if cut else ""))
+    else:
+        d_ok, d_ev = False, "no recording to check"
+    inv.append(Invariant("d. lockstep complete, filters within 3σ once reconverged", d_ok, d_ev))
+
+    # (e) the schedule again from the seed.
+    again = draw_schedule(sc.model_copy(update={"faults": []}), len(episodes) if n_faults is None else n_faults, seed, settle, kinds,
+                          routers=routers)
+    same = schedule_digest(again) == schedule_digest(episodes)
+    inv.append(Invariant("e. same seed, same schedule", same, f"schedule sha256 {schedule_digest(episodes)[:16]}… drawn again: "
+                         + ("equal" if same else f"DIFFERENT ({schedule_digest(again)[:16]}…)")))
+
+    fired: dict[str, dict[str, int]] = {}
+    for e in episodes:
+        d = fired.setdefault(e.kind, {"scheduled": 0, "fired": 0})
+        d["scheduled"] += 1
+        if e.start <= last_truth:
+            d["fired"] += 1
+    return CampaignReport(scenario=sc.name, seed=seed, n_faults=len(episodes), steps=K, schedule=[asdict(e) for e in episodes],
+                          schedule_sha256=schedule_digest(episodes), exit_code=exit_code, fired=fired, invariants=inv,
+                          recovery=recovery, consistency=consistency, broken=(interrupted or {}).get("reason"))
+
+
+#: The numbers of a summary that two lockstep runs of one scenario give bit for bit.
+NUMBERS = ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean")
+
+
+def same_numbers(first: dict, second: dict) -> Invariant:
+    """Invariant e, its second half: two runs of the same chaos scenario (lockstep) have the
+    same numbers in their ``summary.json`` (:data:`NUMBERS`, compared exactly)."""
+    if first.get("interrupted") or second.get("interrupted"):
+        return Invariant("e. same seed, same numbers (run twice)", False, "a run was declared broken: nothing to compare")
+    diff = [k for k in NUMBERS if first.get(k) != second.get(k)]
+    return Invariant("e. same seed, same numbers (run twice)", not diff,
+                     f"{len(NUMBERS)} summary blocks ({', '.join(NUMBERS[:3])}, ...) equal bit for bit" if not diff
+                     else f"DIFFERENT: {', '.join(diff)}")
+
+
+#: A filter fails invariant d when its share of pairs outside 3σ exceeds 1 − CONSISTENT_FRACTION
+#: and the data say so: the chance of that many misses at exactly that rate is below this.
+SIGNIFICANCE = 0.05
+
+
+def _p_value(fraction: float | None, pairs: int) -> float | None:
+    """P(at least this many pairs outside 3σ | each is outside with probability 1 − CONSISTENT_FRACTION)."""
+    if fraction is None or pairs == 0:
+        return None
+    from scipy.stats import binom
+
+    misses = round((1.0 - fraction) * pairs)
+    return float(binom.sf(misses - 1, pairs, 1.0 - CONSISTENT_FRACTION))
+
+
+def _below(fraction: float, pairs: int) -> bool:
+    """Below :data:`CONSISTENT_FRACTION`, significantly (a single miss in 90 pairs is 1.1 %
+    outside and says nothing: a consistent filter has one there one time in five)."""
+    p = _p_value(fraction, pairs)
+    return fraction < CONSISTENT_FRACTION and p is not None and p < SIGNIFICANCE
+
+
+def _same_target(s: FaultSpec, f: dict) -> bool:
+    if s.action in ("kill-selector", "restart-selector"):
+        return True
+    if s.action == "restart-router":
+        return int(f.get("target") or 0) == int(s.target or 0)
+    if s.action == "camera":
+        return f.get("target") == s.target and f.get("camera") == s.camera and f.get("state") == s.state
+    if s.action == "drop":
+        return f.get("target") == s.target and abs(float(f.get("rate") or 0.0) - float(s.rate or 0.0)) < 1e-9
+    return f.get("target") == s.target
+
+
+def _valid_pairs(rec) -> np.ndarray:
+    """(K, F, n): filter f has an estimate (with covariance) of satellite j at step k."""
+    valid = np.zeros((rec.K, rec.n, rec.n), dtype=bool)
+    for k, f, ids, _P, _rel in rec.cov_rows:
+        valid[k, f, ids] = True
+    return valid & np.isfinite(rec.truth_q[:, None, :, 0])
+
+
+def _within_3sigma(rec) -> np.ndarray:
+    """(K, F, n): the pose error is within 3σ (NEES ≤ :data:`NEES_3SIGMA_6DOF`)."""
+    *_rest, nees = rec.errors()
+    with np.errstate(invalid="ignore"):
+        return np.isfinite(nees) & (nees <= NEES_3SIGMA_6DOF)
+
+
+def _reconverged_at(within: np.ndarray, valid: np.ndarray, mask: np.ndarray, filters: list[int], k0: int,
+                    k_last: int) -> int | None:
+    """The first step k ≥ k0 from which, for :data:`RECONVERGED_STEPS` steps in a row, the
+    episode's own filter estimates again (``filters``, when it names one agent) and every
+    pair it affects (``mask``, (F, n)) that has an estimate is within 3σ; or None."""
+    run = 0
+    for k in range(k0, k_last + 1):
+        have = valid[k] & mask
+        back = len(filters) != 1 or bool(valid[k, filters[0]].any())
+        ok = back and bool(have.any()) and bool(within[k][have].all())
+        run = run + 1 if ok else 0
+        if run >= RECONVERGED_STEPS:
+            return k - RECONVERGED_STEPS + 1
+    return None
+
+
+def _read_json(path: Path) -> dict:
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        return {}

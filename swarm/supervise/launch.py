@@ -1,0 +1,679 @@
+"""``swarm run``: a whole swarm as local processes on loopback, supervised.
+
+Starts a Zenoh router, the recorder, N agents, the selector (when the scenario selects)
+and the world, each its own process (``python -m ...``) connected to the router. The
+supervisor (this process) executes the process-level faults — kill, stop or restart an
+agent or the selector — whether they come from the scenario (via the world) or from
+``swarm fault`` at any time, and reports each on the bus so it lands in the recording.
+When the world finishes, every process is stopped cleanly and ``summary.json`` is
+computed from the recording.
+
+Ownership: whatever ends the supervisor ends its processes within seconds.
+
+- Each child is started through :mod:`swarm.supervise.lifeline`, holding the read end of a pipe
+  whose write end only the supervisor holds: when the supervisor dies (even by SIGKILL)
+  the kernel closes it, the child reads EOF and stops itself (SIGTERM, then a hard exit
+  after a grace period). ``lifeline.py`` says why this and not ``PR_SET_PDEATHSIG``.
+- SIGINT, SIGTERM and SIGHUP to the supervisor (:meth:`LocalSwarm.handling_signals`)
+  interrupt the run: the world, the selector and the agents are stopped first, then the
+  recorder, which closes ``run.mcap`` (finalised and indexed), then the router; the
+  caller writes a summary marked as interrupted. A second signal kills everything at once.
+- Every child runs in its own session (its own process group): a Ctrl-C typed in the
+  terminal reaches only the supervisor, which stops the roles in the order above rather
+  than all at once; and a fault (``kill-agent 2``) signals one process, its target.
+
+Security (``emulator.security``, on by default): the run's credentials are made afresh in
+a private temporary directory named in ``run.json`` (owner-only; :mod:`swarmrt.security`),
+every process connects with its own
+(agent i as ``agent-<i>``), the router enforces the run's access rules, and ``swarm fault
+--run-dir OUT`` uses its ``cli.json``. The keys are deleted when the run ends. Off, the
+bus is open to anyone on this machine, and the supervisor and the router say so loudly.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import shlex
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import yaml
+
+from swarm.supervise.forkserver import AgentForkServer, ForkedAgent
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
+from swarmrt.bus.messages import Fault, Keys, as_dict, opt, replace
+from swarmrt.bus.session import BusConfig
+from swarmrt.node import Node
+from swarmrt.protocol import BUS_LEASE_S, EXIT_AGENT_LOST, EXIT_BUS_LOST
+
+__all__ = ["LocalSwarm", "Interrupted", "free_port", "client_bus"]
+
+# Grace periods (s): after SIGTERM, how long a role may take to stop before SIGKILL.
+_ROLE_GRACE_S = 15.0  # a normal end: the roles are finishing by themselves
+_INTERRUPT_GRACE_S = 5.0  # an interrupted run: "within a few seconds"
+_RECORDER_GRACE_S = 60.0  # the recorder rewrites run.mcap as an indexed file on close
+_ORPHAN_GRACE_S = 5.0  # lifeline: a child whose supervisor vanished
+_ORPHAN_RECORDER_GRACE_S = 15.0
+
+_INTERRUPT_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+class Interrupted(RuntimeError):
+    """The run was interrupted by a signal while it was starting."""
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def client_bus(endpoints: list[str], keys_dir: Path | None, identity: str) -> BusConfig:
+    """How a process of a local swarm connects: a client of the routers at ``endpoints``, as
+    ``identity`` (its credential file in ``keys_dir`` when security is on)."""
+    cred = str(keys_dir / f"{identity}.json") if keys_dir is not None else None
+    return BusConfig(mode="client", connect=list(endpoints), credential_file=cred)
+
+
+def foreign_agent_env(sc: Scenario, sat: int, run: str, bus: BusConfig, out: Path, restart: bool) -> dict[str, str]:
+    """What an agent of another language is given (docs/agent-contract.md, clause 1): its
+    satellite, the run, the routers, its credential and the scenario, resolved, as JSON
+    (``scenario.json`` in the run folder, with the values a scenario implies but does not
+    state: the gate's χ² threshold)."""
+    path = out / "scenario.json"
+    if not path.exists():
+        write_scenario_json(sc, path)
+    return {
+        "SWARM_SAT_ID": str(sat),
+        "SWARM_RUN": run,
+        "SWARM_CONNECT": ",".join(bus.connect),
+        "SWARM_CREDENTIAL": bus.credential_file or "",
+        "SWARM_SCENARIO_JSON": str(path),
+        "SWARM_RESTART": "1" if restart else "0",
+    }
+
+
+def write_scenario_json(sc: Scenario, path: Path) -> Path:
+    """The resolved scenario as JSON, with ``derived``: numbers the scenario implies
+    (``gate_threshold``: the χ²(6) quantile of filter.gate, null when the gate is off)."""
+    import json
+
+    doc = sc.model_dump(mode="json")
+    doc["derived"] = {"gate_threshold": sc.filter.gate.threshold(), "steps": sc.steps}
+    path.write_text(json.dumps(doc, indent=1) + "\n")
+    return path
+
+
+class LocalSwarm:
+    """The processes of one run; :meth:`run` drives it to the end."""
+
+    def __init__(self, sc: Scenario, out: Path, run_id: str | None = None, python: str = sys.executable, log=print,
+                 routers: int = 1, live: str | None = None):
+        if routers not in (1, 2):
+            raise ValueError(f"--routers {routers}: 1 or 2 (two routers in a mesh)")
+        if (why := sc.vision.distributed_refusal()) is not None:
+            raise ValueError(why)
+        self.sc = sc
+        self.out = Path(out)
+        self.out.mkdir(parents=True, exist_ok=True)
+        (self.out / "logs").mkdir(exist_ok=True)
+        self.run = run_id or f"{_slug(sc.name)}-{uuid.uuid4().hex[:6]}"
+        self.keys = Keys(self.run)
+        self.python = python
+        self.say = log
+        self.scenario_file = self.out / "scenario.yaml"
+        self.scenario_file.write_text(yaml.safe_dump(sc.model_dump(mode="json"), sort_keys=False))
+        self.procs: dict[str, subprocess.Popen | ForkedAgent] = {}
+        self.endpoint: str | None = None  # router 0's endpoint, once started
+        self.n_routers = routers
+        self.endpoints: list[str] = []  # router i listens on endpoints[i]
+        self.router_names = ["router" if i == 0 else f"router-{i}" for i in range(routers)]
+        self.broken: str | None = None  # why the run could not go on (bus lost, world gone, an agent gone by itself)
+        self.broken_code: int | None = None  # the exit status that says so, when not the world's
+        self._faulted: set[int] = set()  # pids this supervisor killed or stopped (a fault): their end is no surprise
+        self.world_done = False  # the world's last clock (done) has come: agents may leave
+        self._dropped: str | None = None  # a role whose session the router dropped while it ran (see _token_gone)
+        self._started_at: dict[str, float] = {}  # process name → when (monotonic) its current process was started
+        self.router_faults: list[dict] = []  # router faults executed here (the bus may not have carried the report)
+        self._router_report: tuple[Fault, float] | None = None  # the latest router fault's report, repeated until
+        self.bus: BusConfig | None = None  # the supervisor's own connection, once started
+        self.node: Node | None = None
+        self.faults: list[dict] = []
+        self.keys_dir: Path | None = None  # the run's credentials (emulator.security)
+        self.k = 0
+        self._lock = threading.Lock()
+        self.interrupted: signal.Signals | None = None  # the signal that interrupted the run
+        self._lifeline: tuple[int, int] | None = None  # (read end for children, write end kept here)
+        self.live = live  # HOST:PORT of the live 3-D view (swarm.live), None: no view
+        self._forkserver: AgentForkServer | None = None  # the Python agents' fork server (emulator.agent_start: fork)
+
+    # -- processes -----------------------------------------------------------------
+    def _popen(self, name: str, args: list[str], env_extra: dict[str, str] | None = None, **kw) -> subprocess.Popen:
+        """``python -m swarm.supervise.lifeline --fd R MODULE ARGS`` in its own session (see the module
+        docstring). Only the read end of the lifeline is passed on; the write end is not
+        inheritable (``os.pipe``), so no child can keep its siblings' lifeline open."""
+        if self._lifeline is None:
+            self._lifeline = os.pipe()
+        r = self._lifeline[0]
+        grace = _ORPHAN_RECORDER_GRACE_S if name == "recorder" else _ORPHAN_GRACE_S
+        # The run's credentials go with it, even when the supervisor is SIGKILLed and cannot
+        # delete them itself: its orphaned children do.
+        cleanup = ["--remove-when-orphaned", str(self.keys_dir)] if self.keys_dir is not None else []
+        cmd = [self.python, "-m", "swarm.supervise.lifeline", "--fd", str(r), "--grace-s", str(grace), *cleanup, *args]
+        env = dict(os.environ, PYTHONUNBUFFERED="1", **(env_extra or {}))
+        return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, env=env, pass_fds=(r,), start_new_session=True, **kw)
+
+    def _spawn(self, name: str, args: list[str], env_extra: dict[str, str] | None = None) -> subprocess.Popen:
+        # A fresh log per run; a restarted process appends to its predecessor's.
+        with open(self.out / "logs" / f"{name}.log", "ab" if name in self.procs else "wb") as logf:
+            p = self._popen(name, args, env_extra, stdout=logf, stderr=subprocess.STDOUT)
+        with self._lock:
+            self.procs[name] = p
+            self._started_at[name] = time.monotonic()
+        return p
+
+    def bus_as(self, identity: str) -> BusConfig:
+        """The bus configuration of a process connecting as ``identity`` (its credential
+        file when security is on)."""
+        return client_bus(self.endpoints, self.keys_dir, identity)
+
+    def _role_args(self, identity: str) -> list[str]:
+        return ["--scenario", str(self.scenario_file), "--run", self.run, *self.bus_as(identity).as_args()]
+
+    def spawn_agent(self, i: int, restart: bool = False) -> None:
+        cmd = self.sc.emulator.agent_commands.get(i)
+        if cmd is not None:
+            env = foreign_agent_env(self.sc, i, self.run, self.bus_as(f"agent-{i}"), self.out, restart)
+            self._spawn(f"agent-{i}", ["--exec", *shlex.split(cmd)], env_extra=env)
+            return
+        args = ["--id", str(i), *(["--restart"] if restart else []), *self._role_args(f"agent-{i}")]
+        if self.sc.emulator.agent_start == "fork":
+            name = f"agent-{i}"
+            if self._forkserver is None:
+                self._forkserver = AgentForkServer()
+            log = self.out / "logs" / f"{name}.log"
+            if name not in self.procs and log.exists():
+                log.unlink()  # a fresh log per run; a restarted agent appends to its predecessor's
+            cleanup = (str(self.keys_dir),) if self.keys_dir is not None else ()
+            p = self._forkserver.spawn(args, log, env={"PYTHONUNBUFFERED": "1"}, grace_s=_ORPHAN_GRACE_S, remove_when_orphaned=cleanup)
+            with self._lock:
+                self.procs[name] = p
+                self._started_at[name] = time.monotonic()
+            return
+        self._spawn(f"agent-{i}", ["sat_agent", *args])
+
+    def spawn_selector(self) -> None:
+        self._spawn("selector", ["selector", *self._role_args("selector")])
+
+    def start(self) -> None:
+        """Start every process. Raises :class:`Interrupted` if a signal (see
+        :meth:`handling_signals`) arrives meanwhile; call :meth:`stop` in any case."""
+        # Compile numba's kernels once, before the agents start: on a fresh checkout (or
+        # after a kernel changed) every agent would otherwise compile the same kernels at
+        # the same moment (~2.6 s of CPU each: 100 s at n = 40); afterwards each loads them
+        # from the cache. Runs while the router and the recorder start.
+        # (Short-lived; if it fails, each agent compiles for itself as before.)
+        warm = subprocess.Popen([self.python, "-c", _WARM], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(self.n_routers)]
+        self.endpoint = self.endpoints[0]
+        if self.sc.emulator.security:
+            from swarmrt.security import make_keys
+
+            # A private temporary directory (0700), never the run folder (which may be in a
+            # repository); run.json says where, for `swarm fault --run-dir` and tools.
+            self.keys_dir = make_keys(tempfile.mkdtemp(prefix=f"swarm-keys-{self.run}-"), self.sc.n_sats)
+        else:
+            self.say("[bold red]SECURITY OFF[/bold red] (emulator.security: off): no credentials, no access rules; "
+                     "any process on this machine can publish anything on this run's bus, fault commands included")
+        for i in range(self.n_routers):
+            self._start_router(i, timeout=30.0)
+        self.bus = self.bus_as("supervisor")
+        self.node = node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
+        node.hold_s = self.sc.emulator.liveliness_hold_s
+        node.bus_grace_s = self.sc.emulator.bus_grace_s  # never gives up on the bus: it owns the router
+        node.subscribe(self.keys.faults())  # commands to carry out, and every report
+        node.subscribe(self.keys.clock())
+        node.watch_liveliness()
+        self._spawn(
+            "recorder",
+            [
+                "swarm.record.recorder",
+                "--run",
+                self.run,
+                "--out",
+                str(self.out / "run.mcap"),
+                "--scenario",
+                str(self.scenario_file),
+                "--flush-every-s",
+                str(self.sc.emulator.flush_every_s),
+                *self.bus_as("recorder").as_args(),
+            ],
+        )
+        self._wait_alive("recorder", 60.0)
+        if self.live is not None:
+            self.spawn_live()
+        try:
+            warm.wait(timeout=300)
+        except subprocess.TimeoutExpired:
+            warm.kill()
+        for i in range(self.sc.n_sats):
+            self.spawn_agent(i)
+        if self.sc.selection.strategy != "none":
+            self.spawn_selector()
+        self._spawn("world", ["world_sim", *self._role_args("world")])
+        self._write_run_json()
+        self._check_interrupted()
+
+    def spawn_live(self) -> None:
+        """The live 3-D view (:mod:`swarm.live.server`), a read-only ``viewer`` of the bus:
+        it writes ``live.json`` (its address) once it serves; waited for, so that a client can
+        connect before the first step. A view that cannot serve (its port taken) is reported
+        and the run goes on without it: nothing depends on it."""
+        (self.out / "live.json").unlink(missing_ok=True)
+        p = self._spawn("live", ["swarm.live.server", "--ws", str(self.live), "--info", str(self.out / "live.json"),
+                                 *self._role_args("viewer")])
+        up: list[bool] = []
+
+        def on_event(ev) -> None:
+            self._handle(ev)
+            if ev.kind == "alive" and ev.role == "viewer" and ev.alive:
+                up.append(True)
+
+        self._node().wait_for(lambda: bool(up) or p.poll() is not None or self.interrupted is not None, 60.0, on_event,
+                              wake=lambda: time.monotonic() + 0.2)
+        self._check_interrupted()
+        if not up:
+            why = f"it exited with status {p.returncode}" if p.poll() is not None else "it did not come up within 60 s"
+            self.say(f"[yellow]live view: not serving[/yellow] ({why}; see {self.out / 'logs' / 'live.log'}); the run goes on without it")
+
+    def _start_router(self, i: int, timeout: float) -> None:
+        """Start router ``i`` on its endpoint (the same one after a restart), meshed with
+        the others, and wait until it says READY. It dials every other router that is
+        running: at the start, the ones started before it; after a restart, all the others
+        (the mesh is back at once, not at the peers' next retry). Its ``--index`` gives it
+        its fixed Zenoh id and its peers' (:func:`swarmrt.security.router_zid`)."""
+        name = self.router_names[i]
+        running = [e for j, e in enumerate(self.endpoints) if j != i and (q := self.procs.get(self.router_names[j])) is not None
+                   and q.poll() is None]
+        mesh = [a for e in running for a in ("--connect", e)]
+        # Security on: the run's keys and rules; a router meshing with another connects as
+        # the "mesh" identity (swarmrt/security.py).
+        secure = (["--keys", str(self.keys_dir), "--run", self.run, "--scenario", str(self.scenario_file)]
+                  if self.keys_dir is not None else [])
+        with open(self.out / "logs" / f"{name}.log", "ab" if name in self.procs else "wb") as logf:
+            router = self._popen(name, ["swarm.supervise.router", "--listen", self.endpoints[i], "--index", str(i), *mesh, *secure],
+                                 stdout=subprocess.PIPE, stderr=logf)
+        with self._lock:
+            self.procs[name] = router
+        line = _readline(router.stdout, timeout=timeout, cancelled=lambda: self.interrupted is not None)
+        self._check_interrupted()
+        if not line or b"READY" not in line:
+            raise RuntimeError(f"the Zenoh router {name} did not start (see {self.out / 'logs' / (name + '.log')})")
+
+    def _node(self) -> Node:
+        """The supervisor's own bus node (open from :meth:`start` until :meth:`stop`)."""
+        if self.node is None:
+            raise RuntimeError("the supervisor's bus node is not open (start() opens it, stop() closes it)")
+        return self.node
+
+    def _write_run_json(self) -> None:
+        info = {
+            "run": self.run,
+            "supervisor_pid": os.getpid(),
+            "endpoint": self.endpoint,
+            "endpoints": self.endpoints,
+            "n_sats": self.sc.n_sats,
+            "pids": {k: p.pid for k, p in self.procs.items()},
+            "scenario": str(self.scenario_file),
+            "recording": str(self.out / "run.mcap"),
+            "security": "on" if self.keys_dir is not None else "off",
+            "keys": str(self.keys_dir) if self.keys_dir is not None else None,
+        }
+        (self.out / "run.json").write_text(json.dumps(info, indent=2) + "\n")
+
+    def _wait_alive(self, role: str, timeout: float) -> None:
+        up: list[bool] = []
+
+        def on_event(ev) -> None:
+            self._handle(ev)
+            if ev.kind == "alive" and ev.role == role and ev.alive:
+                up.append(True)
+
+        # Wake every 0.2 s to notice a signal (the handler only sets a flag).
+        self._node().wait_for(lambda: bool(up) or self.interrupted is not None, timeout, on_event,
+                           wake=lambda: time.monotonic() + 0.2)
+        self._check_interrupted()
+        if not up:
+            raise RuntimeError(f"{role} did not come up within {timeout:.0f} s (see {self.out / 'logs'})")
+
+    # -- faults ------------------------------------------------------------------------
+    def _report(self, f: Fault, phase: str, detail: str) -> Fault:
+        # A scheduled command is stamped with the step it opens, whose clock has not come
+        # yet: report at that step, not at the last clock seen here.
+        k = max(self.k, f.k)
+        done = replace(f, phase=phase, sender="supervisor", k=k, t_s=k * self.sc.dt_s, detail=detail)
+        self._node().put(self.keys.fault_report("supervisor"), done)
+        return done
+
+    def _handle(self, ev) -> None:
+        if ev.kind == "resync" and self._router_report is not None and time.monotonic() < self._router_report[1]:
+            # A session reconnecting after the report went out may have missed it: again (the
+            # same bytes; a recording reads it once).
+            self._node().put(self.keys.fault_report("supervisor"), self._router_report[0])
+        if ev.kind == "alive" and not ev.alive:
+            self._token_gone(ev)
+        if ev.kind == "clock":
+            self.k = ev.msg.k
+            self.world_done = self.world_done or ev.msg.done
+        elif ev.kind == "fault" and ev.msg.phase == "command":
+            self.execute(ev.msg)
+        elif ev.kind == "fault":
+            self.faults.append(as_dict(ev.msg, exclude=("schema_version", "run")))
+
+    def execute(self, f: Fault) -> None:
+        if f.action in ROUTER_FAULTS:
+            return self._router_fault(f)
+        name = f"agent-{f.target}" if f.action in AGENT_PROCESS_FAULTS else "selector"
+        p = self.procs.get(name)
+        if p is not None and p.poll() is not None:
+            p = None  # not running
+        if f.action in ("kill-agent", "kill-selector"):
+            if p is not None:
+                # SIGKILL: no goodbye, the liveliness token just vanishes. The whole process
+                # group: an agent of another language runs as the lifeline's child.
+                self._faulted.add(p.pid)
+                _kill_group(p, signal.SIGKILL)
+                p.wait()
+                self._report(f, "done", f"SIGKILL pid {p.pid}")
+            else:
+                self._report(f, "failed", f"{name} is not running")
+        elif f.action == "stop-agent":
+            if p is not None:
+                self._faulted.add(p.pid)
+                p.terminate()
+                how = f"SIGTERM pid {p.pid}"
+                try:
+                    p.wait(timeout=10)
+                except subprocess.TimeoutExpired:
+                    _kill_group(p, signal.SIGKILL)
+                    p.wait()
+                    how += ", SIGKILL to its process group after 10 s"
+                self._report(f, "done", how)
+            else:
+                self._report(f, "failed", f"{name} is not running")
+        elif f.action in ("restart-agent", "restart-selector"):
+            if p is not None:
+                self._faulted.add(p.pid)
+                _kill_group(p, signal.SIGKILL)
+                p.wait()
+            if f.action == "restart-agent":
+                self.spawn_agent(f.target, restart=True)
+            else:
+                self.spawn_selector()
+            self._write_run_json()
+            self._report(f, "done", f"started pid {self.procs[name].pid}")
+
+    def _router_fault(self, f: Fault) -> None:
+        """kill-router / restart-router (target: the router's index, default 0). While no
+        router is up nothing can be reported on the bus: the report goes out once this
+        node is connected again (and is kept here for the summary in any case)."""
+        i = int(opt(f, "target") or 0)
+        if not 0 <= i < self.n_routers:
+            self._report(f, "failed", f"no router {i} (this run has {self.n_routers})")
+            return
+        name = self.router_names[i]
+        p = self.procs.get(name)
+        t_down = time.time()
+        was_running = p is not None and p.poll() is None
+        killed = ""  # "SIGKILL pid <pid>" when it was running
+        if p is not None and was_running:
+            p.kill()  # SIGKILL: the router's links just close
+            p.wait()
+            killed = f"SIGKILL pid {p.pid}"
+        if f.action == "kill-router":
+            detail = killed if was_running else f"{name} is not running"
+        else:
+            down_s = float(opt(f, "down_s") or 0.0)
+            if down_s > 0:
+                time.sleep(down_s)  # the fault itself: the router stays down this long (wall time)
+            self._start_router(i, timeout=30.0)
+            t_up = time.time()
+            self._write_run_json()
+            detail = (f"{killed}, " if was_running else "") + (
+                f"new router pid {self.procs[name].pid} on {self.endpoints[i]} after {time.time() - t_down:.2f} s")
+        self.router_faults.append({"k": max(self.k, f.k), "action": f.action, "target": i, "phase": "done", "sender": "supervisor",
+                                   "detail": detail, "t_down_unix_s": t_down,
+                                   **({"t_up_unix_s": t_up} if f.action == "restart-router" else {})})
+        if not was_running and f.action == "kill-router":
+            self._report(f, "failed", detail)
+            return
+        if f.action == "kill-router" and not any((q := self.procs.get(other)) is not None and q.poll() is None
+                                                 for other in self.router_names if other != name):
+            # No router left: nothing to reconnect to, and a wait would last as long as the
+            # bus is down (waits pause then). The run breaks after bus_lost_after_s; the
+            # report is kept for the summary (router_faults).
+            return
+        # Report once this node is connected again (at once when another router is up)
+        # and every liveliness token that went with the router is back: a report put
+        # before the others have reconnected would reach nobody.
+        def on_event(ev) -> None:
+            if ev.kind == "clock":
+                self.k = ev.msg.k
+
+        n = self._node()
+
+        # While the bus is down a wait's timeout counts from its return (Node.wait_for), so
+        # with every router gone for good it would never end: the run ending (the world
+        # exits once it has waited out its own grace) or a signal ends it.
+        def over() -> bool:
+            world = self.procs.get("world")
+            return self.interrupted is not None or (world is not None and world.poll() is not None)
+
+        def tick() -> float:
+            return time.monotonic() + 0.1
+
+        n.wait_for(lambda: (n.bus_up and bool(n._routers)) or over(), 5.0 if f.action == "kill-router" else 30.0, on_event, wake=tick)
+        if over():
+            self._router_report = (self._report(f, "done", detail), time.monotonic())
+            return
+        n.wait_for(lambda: not n._held or over(), self.sc.emulator.bus_grace_s, on_event, wake=tick)
+        self._router_report = (self._report(f, "done", detail), time.monotonic() + self.sc.emulator.bus_grace_s)
+
+    # -- signals -------------------------------------------------------------------------
+    @contextlib.contextmanager
+    def handling_signals(self):
+        """While inside, SIGINT, SIGTERM and SIGHUP interrupt the run (see the module
+        docstring); a second one kills every process at once and exits 128 + signal.
+        Main thread only (Python delivers signals there); the previous handlers come back
+        on exit."""
+
+        def on_signal(signum, _frame):
+            if self.interrupted is None:
+                self.interrupted = signal.Signals(signum)  # the loops notice within 0.2 s
+                return
+            self.kill_all()
+            os._exit(128 + signum)
+
+        old = {s: signal.signal(s, on_signal) for s in _INTERRUPT_SIGNALS}
+        try:
+            yield self
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    def _check_interrupted(self) -> None:
+        if self.interrupted is not None:
+            raise Interrupted(f"interrupted by {self.interrupted.name} while starting")
+
+    def kill_all(self) -> None:
+        """SIGKILL every process (and its process group) at once; no clean stop."""
+        for p in list(self.procs.values()):
+            _kill_group(p, signal.SIGKILL)
+
+    # -- the run ---------------------------------------------------------------------
+    def run_to_end(self, progress=None, timeout: float | None = None) -> int | None:
+        """Follow the run until the world ends (its exit code) or a signal interrupts it
+        (None; :attr:`interrupted` says which, and :meth:`stop` ends the world)."""
+        world = self.procs["world"]
+        deadline = None if timeout is None else time.monotonic() + timeout
+        while world.poll() is None:
+            if self.interrupted is not None:
+                self.say(f"{self.interrupted.name} at step {self.k}: stopping every process, closing the recording "
+                         "(once more to kill them all at once)")
+                return None
+            if deadline is not None and time.monotonic() > deadline:
+                self.say(f"timeout: stopping the run after {timeout:.0f} s")
+                world.terminate()
+                break
+            ev = self._node().next_event(0.2)
+            if ev is not None:
+                self._handle(ev)
+                if ev.kind == "clock" and progress is not None:
+                    progress(ev.msg.k + 1, self.sc.steps)
+            if (gone := self.agent_gone()) is not None:
+                # Never "finished" with an agent gone: a run whose agent left by itself (the
+                # world lost from its view, a crash) is broken, and says which and why.
+                self.broken, self.broken_code = gone, EXIT_AGENT_LOST
+                self.say(f"[bold red]the run is broken[/bold red] at step {self.k}: {gone}; stopping every process")
+                return None
+        code = world.wait()
+        if code != 0 and self.interrupted is None:
+            self.broken = _broken_reason(code)
+            self.say(f"[bold red]the run is broken[/bold red] at step {self.k}: {self.broken}; stopping every process")
+            return code
+        # Drain fault reports still in flight.
+        while self.interrupted is None and (ev := self._node().next_event(0.3)) is not None:
+            self._handle(ev)
+        return code
+
+    def _token_gone(self, ev) -> None:
+        """An agent's, the selector's or the recorder's liveliness went for good (held past
+        liveliness_hold_s, and not with the bus) while its process still runs and no fault
+        of ours stopped it: the router dropped its session (a stall past the lease, SIGSTOP or
+        docker pause). The world went on without it (the agent counted dead, the selector's
+        choice replaced by the fallback, the recorder's messages of the stall lost): not the
+        numbers of an unstalled run, so the run is declared broken. (A stalled world is
+        waited for by everyone and survived.)"""
+        name = {"agent": f"agent-{ev.sat}", "selector": "selector", "recorder": "recorder"}.get(ev.role or "")
+        if name is None or self.world_done or self._dropped is not None:
+            return
+        p = self.procs.get(name)
+        # A process started less than a lease ago cannot have lost its session to the lease:
+        # the token that went is its predecessor's (stopped, then restarted while its going
+        # was held back: liveliness_hold_s, or bus_grace_s after a bus gap).
+        em = self.sc.emulator
+        young = time.monotonic() - self._started_at.get(name, 0.0) < max(BUS_LEASE_S, em.bus_grace_s + em.liveliness_hold_s)
+        if p is not None and p.poll() is None and p.pid not in self._faulted and not young:
+            self._dropped = (f"{name} (pid {p.pid}) lost its bus session at step {self.k} while its process ran, not by a fault "
+                             "(stalled past the Zenoh lease? SIGSTOP, docker pause, starved of CPU): the run went on without it")
+
+    def agent_gone(self) -> str | None:
+        """Why the run cannot be finished: an agent process that ended before the world's
+        last clock without this supervisor having killed or stopped it (a fault), or a role
+        whose bus session was dropped while it ran (:meth:`_token_gone`); or None."""
+        if self.world_done:
+            return None
+        if self._dropped is not None:
+            return self._dropped
+        if self.node is not None and not self.node.bus_up:
+            return None  # no router: every role is leaving for that (the world's status says so: 3)
+        for name, p in list(self.procs.items()):
+            if name.startswith("agent-") and p.poll() is not None and p.pid not in self._faulted and p.returncode != EXIT_BUS_LOST:
+                code = p.returncode
+                how = f"was killed by {signal.Signals(-code).name}" if code is not None and code < 0 else f"exited with status {code}"
+                return (f"{name} (pid {p.pid}) {how} at step {self.k} while the world still ran, not by a fault "
+                        f"(see {self.out / 'logs' / (name + '.log')})")
+        return None
+
+    def stop(self) -> None:
+        """Stop every process, in order: the roles that publish (world, selector, agents),
+        then the recorder (it closes ``run.mcap``), then the router. After a normal end
+        they are finishing by themselves; after an interrupt each gets a few seconds.
+        Whatever is still there after its grace period is killed with its process group."""
+        interrupted = self.interrupted is not None or self.broken is not None
+        rec = self.procs.get("recorder")
+        world = self.procs.get("world")
+        if not interrupted and rec is not None and world is not None and world.poll() is not None:
+            # The recorder finishes by itself after the world's last clock (once the bus
+            # is quiet); give it that chance before anything is stopped.
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                rec.wait(timeout=_RECORDER_GRACE_S)
+        grace = _INTERRUPT_GRACE_S if interrupted else _ROLE_GRACE_S
+        producers = ["world", "selector", *(n for n in self.procs if n.startswith("agent-"))]
+        self._terminate(producers, grace)
+        self._terminate(["live"], _INTERRUPT_GRACE_S)
+        self._terminate(["recorder"], _RECORDER_GRACE_S)
+        if self.node is not None:
+            self.node.close()
+            self.node = None
+        self._terminate(self.router_names, _INTERRUPT_GRACE_S)
+        if self.keys_dir is not None:
+            # A run's credentials live as long as the run.
+            import shutil
+
+            shutil.rmtree(self.keys_dir, ignore_errors=True)
+        if self._lifeline is not None:
+            for fd in self._lifeline:
+                os.close(fd)
+            self._lifeline = None
+
+    def _terminate(self, names: list[str], grace: float) -> None:
+        """SIGTERM to each named running process, then wait at most ``grace`` seconds in
+        all; SIGKILL (to the process group) whoever is still running."""
+        procs = [p for n in names if (p := self.procs.get(n)) is not None]
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        deadline = time.monotonic() + grace
+        for p in procs:
+            try:
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                _kill_group(p, signal.SIGKILL)
+                p.wait()
+
+
+def _broken_reason(code: int) -> str:
+    """Why the world ended before the run did, from its exit status."""
+    if code == EXIT_BUS_LOST:
+        return "bus lost: no Zenoh router reachable within emulator.bus_lost_after_s (see logs/world.log)"
+    if code < 0:
+        return f"the world died ({signal.Signals(-code).name})"
+    return f"the world exited with status {code} (see logs/world.log)"
+
+
+_WARM = "from swarmcore import kernels; kernels.warm_up(); from swarmrt.bus import fastcheck; fastcheck.warm_up()"
+
+
+def _slug(name: str) -> str:
+    s = "".join(c if c.isalnum() or c in "-_." else "-" for c in name)[:40]
+    return s or "run"
+
+
+def _kill_group(p: subprocess.Popen | ForkedAgent, sig: int) -> None:
+    """Signal a running child's process group (each child leads its own session, so its
+    group id is its pid). A child already reaped is left alone: its pid is free for reuse."""
+    if p.poll() is None:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.killpg(p.pid, sig)
+
+
+def _readline(stream, timeout: float, cancelled=lambda: False) -> bytes | None:
+    """One line from ``stream`` within ``timeout`` seconds (None if none came, or if
+    ``cancelled()`` turned true meanwhile; checked every 0.2 s)."""
+    out: list[bytes] = []
+    t = threading.Thread(target=lambda: out.append(stream.readline()), daemon=True)
+    t.start()
+    deadline = time.monotonic() + timeout
+    while t.is_alive() and not cancelled() and time.monotonic() < deadline:
+        t.join(min(0.2, max(0.0, deadline - time.monotonic())))
+    return out[0] if out else None

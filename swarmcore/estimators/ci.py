@@ -1,0 +1,372 @@
+"""``ci``: decentralized cooperative localization by covariance intersection.
+
+Each agent keeps only its own satellite's state (12 error states: ``[a, Δβ, Δr, Δv]``,
+its own gyro in dynamic-model-replacement mode, as the full filter's own block) and
+broadcasts its prior pose each step (:class:`CiState`: attitude, position, velocity and
+the 6×6 pose covariance). A relative measurement that involves it — one it took of a
+peer, or one a peer took of it — together with that peer's broadcast estimate is a
+measurement of its own pose. Its error is correlated with the agent's own estimate in an
+unknown way (both may descend from the same earlier measurements), so it is fused by
+covariance intersection (Julier & Uhlmann 1997), which is consistent whatever the
+correlation: with prior ``(x, P)`` and the measurement's pseudo-estimate ``(z, C)``,
+
+    P⁺⁻¹ = ω P⁻¹ + (1 − ω) Hᵀ C⁻¹ H,      ω ∈ (0, 1) minimising det P⁺
+
+— the Kalman update of the prior inflated to ``P / ω`` by a measurement whose noise is
+inflated to ``C / (1 − ω)``. Carrillo-Arce, Nerurkar, Gordillo and Roumeliotis (IROS 2013,
+"Decentralized multi-robot cooperative localization using covariance intersection") fuse
+each peer's estimate this way; here every measurement of a step that involves the agent is
+fused at once (one ω per step, so the unobserved states — bias, velocity — are inflated
+once a step, not once per measurement), with two conservative choices:
+
+* ``split: true`` (default; split CI, Julier & Uhlmann 2001, used for cooperative
+  localization by Li & Nashashibi 2013): the camera noise ``R`` is independent of
+  everything and is not inflated; only the part that may be correlated — the peers'
+  estimates projected into the measurement, ``Hp Pp Hpᵀ`` — is: ``C = R + Hp Pp Hpᵀ / (1 − ω)``.
+  ``split: false``: plain CI, ``C = (R + Hp Pp Hpᵀ) / (1 − ω)``.
+* The peers' estimates may be correlated with each other too: their stacked covariance is
+  bounded by ``m · blockdiag(Pp_1, …, Pp_m)`` for m peers (for any correlation,
+  ``Var(Σ xₖ) ≤ m Σ Var(xₖ)``), which the fused measurement uses.
+
+Own absolute readings (star tracker, GPS) are independent of the peers and update the
+prior first, with a plain Kalman update. Each relative measurement is gated against the
+covariance the estimator claims (``S = Hᵢ Pᵢ Hᵢᵀ + Hp Pp Hpᵀ + R``, χ²(6)). A measurement
+whose peer's estimate did not arrive (lost, late) cannot be used and is counted.
+
+Late deliveries (``filter.late``): with ``replay`` (the default, as the full filter) the
+agent keeps, for the last ``filter.history_s`` seconds, each step's prior, its own
+readings and measurements, what it heard and its gyro sample; a peer's batch and estimate
+of step s that arrive at step k > s join what step s heard, and the own state is
+re-run from s to k — its 12 states cost a few updates a step, where the full filter
+re-runs the whole swarm. A late peer estimate is the peer's prior of step s, so the fusion
+at s is the same CI update as had it come on time. Older than the history, or with
+``drop``, they are dropped. Counted either way (``late_used``, ``late_dropped``, over the
+measurements that involve the agent). History does not cross steps the agent missed
+(stalled, cut off): it restarts after such a gap.
+Its view of a peer (one it fused with at the step) is the peer's broadcast prior, with no
+cross-covariance (that is what it claims about the relative pose).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from pydantic import Field
+from scipy.linalg.lapack import dpotrf as _potrf
+
+from ..mekf import (
+    BLOCK,
+    AbsoluteMeasurement,
+    FilterParams,
+    RelativeMeasurements,
+    SwarmEstimate,
+    apply_correction,
+    gate,
+)
+from .base import EstimateView, EstimatorParams, Received, StepInputs, StepReport
+from .own import OwnStateEstimator
+from .views import POSE, ViewRows, pose_block
+
+__all__ = ["CIEstimator", "CIParams", "CiState", "ci_weight"]
+
+#: Variance given to a peer's rate and velocity states in the joint update: the relative
+#: measurement's Jacobian has zero columns there and the peer carries no cross-covariance,
+#: so they cannot reach the own posterior; any positive value gives the same result.
+_UNUSED_VAR = 1.0
+
+
+class CIParams(EstimatorParams):
+    split: bool = Field(True, description="split CI: inflate only the peers' part of each measurement, not the camera noise")
+    criterion: Literal["det", "trace"] = Field("det", description="what ω minimises: the posterior's determinant or its pose trace")
+    correlated_peers: bool = Field(
+        True, description="bound the peers' mutual correlation (their stacked covariance × number of peers); false: treat peers' "
+        "estimates as independent of each other")
+
+
+@dataclass(frozen=True)
+class CiState:
+    """What a ``ci`` agent broadcasts each step: its prior pose at the step."""
+
+    sat: int
+    step: int
+    q_BI: np.ndarray  # (4,)
+    omega_BI_B: np.ndarray  # (3,) rad/s
+    r_H: np.ndarray  # (3,) m
+    v_H: np.ndarray  # (3,) m/s
+    P_pose: np.ndarray  # (6, 6) over [a, Δr]
+
+
+def ci_weight(logdet_of, lo: float = 1e-4, hi: float = 1.0 - 1e-4) -> float:
+    """The ω in [lo, hi] minimising ``logdet_of(ω)`` (convex in ω for CI): bounded Brent
+    (scipy), deterministic for the same inputs."""
+    from scipy.optimize import minimize_scalar
+
+    res = minimize_scalar(logdet_of, bounds=(lo, hi), method="bounded", options={"xatol": 1e-6})
+    return float(res.x)
+
+
+def _logdet_cost(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray, split: bool):
+    """``cost(ω) = log det P⁺(ω) − log det P`` of the CI update, evaluated in 12×12.
+
+    With ``C(ω)`` the fused measurement's noise (split: ``R + C_p/(1−ω)``; plain:
+    ``(R + C_p)/(1−ω)``), Sylvester's identity gives
+    ``log det P⁺ = log det(P/ω) + log det C − log det(C + Hₒ P Hₒᵀ/ω)
+    = log det P − 12 log ω − log det(I₁₂ + Ŵᵀ C̃(ω)⁻¹ Ŵ / ω)``, where ``Ŵ`` is
+    ``Hₒ chol(P)`` whitened by a factor of the ω-independent part and ``C̃(ω)`` is diagonal
+    in that basis (split: ``R = L Lᵀ``, ``L⁻¹ C_p L⁻ᵀ = U Λ Uᵀ``, ``C̃ = I + Λ/(1−ω)``; plain:
+    ``C̃ = I/(1−ω)``). The same function of ω as the 6m×6m form, at a 12×12 Cholesky a
+    call (the search calls it ~30 times a step)."""
+    from scipy.linalg import solve_triangular
+
+    HL = Ho @ np.linalg.cholesky(P)  # (6m, 12)
+    if split:
+        L = np.linalg.cholesky(R)
+        Qt = solve_triangular(L, solve_triangular(L, C_p, lower=True).T, lower=True)
+        lam, U = np.linalg.eigh(0.5 * (Qt + Qt.T))
+        lam = np.clip(lam, 0.0, None)
+        W = U.T @ solve_triangular(L, HL, lower=True)
+    else:
+        L = np.linalg.cholesky(R + C_p)
+        W = solve_triangular(L, HL, lower=True)
+        lam = np.zeros(W.shape[0])
+    eye = np.eye(P.shape[0])
+
+    def cost(w: float) -> float:
+        d = (1.0 - w) / (1.0 - w + lam) if split else np.full(lam.shape, 1.0 - w)
+        G = (W.T * d) @ W / w
+        return -P.shape[0] * np.log(w) - _logdet(eye + G)
+
+    return cost
+
+
+def _logdet(S: np.ndarray) -> float:
+    """log det of an SPD matrix by its Cholesky factor (LAPACK dpotrf directly: numpy's
+    wrapper costs more than the factorisation at these sizes, and ω's search calls it ~60
+    times a step)."""
+    c, info = _potrf(S, lower=1, clean=0)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"not positive-definite (dpotrf info {info})")
+    return float(2.0 * np.log(np.diagonal(c)).sum())
+
+
+@dataclass
+class _Kept:
+    """What step s was given, kept for replaying it when a late delivery of s comes."""
+
+    prior: SwarmEstimate  # the prior of step s (after prediction, before any update)
+    absolute: AbsoluteMeasurement | None
+    own: RelativeMeasurements
+    heard: dict[int, Received]  # sender → its delivery of step s (on time, or arrived late)
+    peers_batch: RelativeMeasurements | None  # the on-time peers' measurements in one batch (None: gather from heard)
+    gyro_next: np.ndarray | None = None  # the gyro sample of s → s+1
+
+
+class CIEstimator(OwnStateEstimator):
+    kind = "ci"
+    Params = CIParams
+
+    def __init__(self, sc, own: int, params: CIParams | None = None):
+        super().__init__(sc, own, params)
+        self.threshold = self.fp.gate_threshold
+        self._peers: dict[int, CiState] = {}  # the estimates of the peers it fuses with at the current step
+        self._heard: dict[int, Received] = {}  # what the radio brought of the current step
+        self._used: list[int] = []  # the peers whose measurements it fused at the current step
+        self.unusable = 0  # measurements whose peer estimate did not come
+        self._joint_params: dict[int, FilterParams] = {}  # satellites in the joint → its parameters
+        f = sc.filter
+        self.history_steps = math.ceil(f.history_s / sc.dt_s) if f.late == "replay" else 0
+        self._kept: dict[int, _Kept] = {}  # step → what it was given (replay)
+
+    def transmit(self, k: int) -> CiState:
+        e = self.e
+        if e.step != k:
+            raise ValueError(f"ci estimator of satellite {self.own}: transmit({k}) with its estimate at step {e.step}")
+        return CiState(self.own, k, e.q_BI[0].copy(), e.omega_BI_B[0].copy(), e.r_H[0].copy(), e.v_H[0].copy(),
+                       pose_block(e.P))
+
+    def predict(self, k, gyro_rate_B) -> None:
+        if not self._pending and self.e.step == k - 1 and k - 1 in self._kept:
+            self._kept[k - 1].gyro_next = gyro_rate_B
+        super().predict(k, gyro_rate_B)
+
+    def coast_to(self, k, gyro_of) -> None:
+        if self.e.step < k - 1:
+            self._kept.clear()  # a gap: replay does not cross steps it missed
+        super().coast_to(k, gyro_of)
+
+    def step(self, inputs: StepInputs) -> StepReport:
+        k = inputs.step
+        self.begin_step(k, inputs.gyro_rate_B)
+        rep = StepReport()
+        late = inputs.late()
+        if late:
+            first = self._take_late(late, rep)
+            if first is not None:
+                self._replay(first, k)
+                rep.replayed_steps = k - first
+        kept = _Kept(self.e, inputs.absolute, inputs.own, {r.sender: r for r in inputs.on_time()}, inputs.peer_measurements)
+        if self.history_steps:
+            self._kept[k] = kept
+            for old in [s for s in self._kept if s <= k - self.history_steps]:
+                del self._kept[old]
+        acc, rej, nis, dof = self._update(kept, count=True)
+        rep.gate_accepted, rep.gate_rejected = acc, rej
+        rep.nis, rep.nis_dof = (nis, dof) if dof else (float("nan"), 0)
+        rep.extra["unusable"] = self.unusable
+        self._pending = False
+        return rep
+
+    def _take_late(self, late: list[Received], rep: StepReport) -> int | None:
+        """File each late delivery under the step it was taken at; returns the earliest step
+        to replay from (None: nothing kept to replay)."""
+        first = None
+        for r in late:
+            kept = self._kept.get(r.step)
+            involving = int(np.count_nonzero(r.measurements.target == self.own))
+            if kept is None or r.sender in kept.heard:
+                rep.late_dropped += involving
+                continue
+            kept.heard[r.sender] = r
+            kept.peers_batch = None  # gathered again from what it heard
+            involving += int(np.count_nonzero(kept.own.target == r.sender))  # its own measurements of the sender
+            rep.late_used += involving
+            first = r.step if first is None else min(first, r.step)
+        return first
+
+    def _replay(self, first: int, k: int) -> None:
+        """Re-run steps ``first`` … k−1 from their kept priors and inputs: the prior of step k."""
+        self.est = self._kept[first].prior
+        for s in range(first, k):
+            kept = self._kept[s]
+            kept.prior = self.est
+            self._update(kept, count=False)
+            self.propagate(kept.gyro_next)
+
+    def _update(self, kept: _Kept, count: bool) -> tuple[int, int, float, int]:
+        """One step's update from what it was given: the own readings (Kalman), then every
+        relative measurement involving it whose peer's estimate came (CI). Returns accepted,
+        rejected, NIS and its degrees of freedom. ``count``: the live pass (not a replay)
+        counts unusable measurements."""
+        nis, dof = self.update_absolute(kept.absolute)
+        self._heard = kept.heard
+        self._used = []
+        peers_rel = kept.peers_batch
+        if peers_rel is None:
+            peers_rel = RelativeMeasurements.concat([kept.heard[j].measurements for j in sorted(kept.heard)])
+        rel = self._involving_me(kept.own, peers_rel, count)
+        acc = 0
+        if len(rel):
+            acc, d2 = self._fuse(rel)
+            nis, dof = nis + d2, dof + self.fp.rel_dof * acc
+        return acc, len(rel) - acc, nis, dof
+
+    def _involving_me(self, own: RelativeMeasurements, peers_rel: RelativeMeasurements, count: bool) -> RelativeMeasurements:
+        """Every measurement of the step that involves the own satellite and whose peer's
+        estimate came, canonical order (the peers' batches gathered once: at n = 100 a
+        test per peer cost more than the fusion)."""
+        me = self.own
+        cand = RelativeMeasurements.concat([own, peers_rel.subset(peers_rel.target == me)])
+        if not len(cand):
+            return cand
+        other = np.where(cand.observer == me, cand.target, cand.observer)
+        self._peers = {}
+        for j in np.unique(other).tolist():
+            r = self._heard.get(j)
+            if r is not None and isinstance(r.payload, CiState):
+                self._peers[j] = r.payload
+        ok = np.isin(other, np.fromiter(self._peers, dtype=int, count=len(self._peers)))
+        if count:
+            self.unusable += int((~ok).sum())
+        return cand.subset(ok).canonical()
+
+    def _fuse(self, rel: RelativeMeasurements) -> tuple[int, float]:
+        """Gate, choose ω and apply the CI update of the module docstring. Returns the
+        number accepted and their summed d² (the NIS it claims).
+
+        The measurements are linearised on the joint [own, peers] estimate
+        (:func:`swarmcore.mekf.gate`: residuals, Jacobian blocks and the gate's d²); the
+        update is then the Kalman update of the own state with the prior ``P/ω`` and the
+        measurement noise ``C(ω)`` of the module docstring, in Joseph form, with the
+        multiplicative attitude reset — the own block of the joint update with those
+        covariances, computed without the peers' (unobserved) states."""
+        peers = sorted({int(x) for x in np.r_[rel.observer, rel.target]} - {self.own})
+        self._used = peers
+        row = {self.own: 0, **{j: r + 1 for r, j in enumerate(peers)}}
+        e = self.e
+        m = 1 + len(peers)
+        st = [self._peers[j] for j in peers]
+        P = np.zeros((BLOCK * m, BLOCK * m))
+        P[:BLOCK, :BLOCK] = e.P
+        for r, s in enumerate(st, start=1):
+            blk = np.diag(np.full(BLOCK, _UNUSED_VAR))
+            blk[np.ix_(POSE, POSE)] = s.P_pose
+            P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)] = blk
+        joint = SwarmEstimate(e.step, e.t, np.vstack([e.q_BI, *[s.q_BI for s in st]]),
+                              np.vstack([e.omega_BI_B, *[s.omega_BI_B for s in st]]), np.vstack([e.r_H, *[s.r_H for s in st]]),
+                              np.vstack([e.v_H, *[s.v_H for s in st]]), e.bias_B, P)
+        if m not in self._joint_params:
+            self._joint_params[m] = dataclasses.replace(self.fp, n=m, own=0, max_iterations=1)
+        jp = self._joint_params[m]
+        local = RelativeMeasurements(np.array([row[int(i)] for i in rel.observer]), np.array([row[int(j)] for j in rel.target]),
+                                     rel.q_BjBi, rel.r_ij_Bi, rel.R_Bi).canonical()
+        y, Hi, Hj, d2, accepted = gate(joint, jp, local)
+        if not accepted.any():
+            return 0, 0.0
+        # The accepted rows: Jacobian on the own [a, Δr] and on the peer's, noise R.
+        a = np.nonzero(accepted)[0]
+        mine_obs = local.observer[a] == 0
+        Ho6 = np.where(mine_obs[:, None, None], Hi[a], Hj[a])  # (k, 6, 6)
+        Hq6 = np.where(mine_obs[:, None, None], Hj[a], Hi[a])
+        peer_row = np.where(mine_obs, local.target[a], local.observer[a]) - 1  # 0..len(peers)-1
+        k = a.size
+        Ho = np.zeros((6 * k, BLOCK))
+        Hp = np.zeros((6 * k, 6 * len(peers)))
+        R = np.zeros((6 * k, 6 * k))
+        for r in range(k):
+            rows = slice(6 * r, 6 * r + 6)
+            Ho[rows, POSE] = Ho6[r]
+            Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
+            R[rows, rows] = local.R_Bi[a[r]]
+        Pp = np.zeros((6 * len(peers), 6 * len(peers)))
+        for r, s in enumerate(st):
+            Pp[6 * r : 6 * r + 6, 6 * r : 6 * r + 6] = s.P_pose
+        bound = float(len(peers)) if self.params.correlated_peers else 1.0  # type: ignore[attr-defined]
+        C_p = bound * (Hp @ Pp @ Hp.T)
+        split = self.params.split  # type: ignore[attr-defined]
+
+        def C(w: float) -> np.ndarray:
+            return R + C_p / (1.0 - w) if split else (R + C_p) / (1.0 - w)
+
+        if self.params.criterion == "det":  # type: ignore[attr-defined]
+            cost = _logdet_cost(e.P, Ho, R, C_p, split)
+        else:
+            def cost(w: float) -> float:
+                Pw = e.P / w
+                S = Ho @ Pw @ Ho.T + C(w)
+                K = np.linalg.solve(S, Ho @ Pw).T
+                return float(np.trace(pose_block(Pw - K @ S @ K.T)))
+        w = ci_weight(cost)
+        Pw, Cw = e.P / w, C(w)
+        PHt = Pw @ Ho.T
+        S = Ho @ PHt + Cw
+        K = np.linalg.solve(S, PHt.T).T
+        A = np.eye(BLOCK) - K @ Ho
+        P_post = A @ Pw @ A.T + K @ Cw @ K.T
+        self.est = apply_correction(e, self.fp, K @ y[a].ravel(), P_post)
+        self.last_omega = w
+        return int(k), float(d2[accepted].sum())
+
+    def view(self) -> EstimateView:
+        """Its own posterior and the peers it fused with this step (their broadcast priors:
+        what it knows of them), without cross-covariance."""
+        rows = ViewRows(self.own, list(self._used), self.e)
+        for j in self._used:
+            s = self._peers[j]
+            rows.set(j, s.q_BI, s.omega_BI_B, s.r_H, s.v_H, P_pose=s.P_pose)
+        return rows.view(with_cross=False)
+
+

@@ -1,0 +1,529 @@
+"""What every role process shares: a session, a liveliness token, an inbox, decoding
+with malformed-message accounting, and the command-line scaffolding of a role's main."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import gc
+import logging
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+import zenoh
+
+from swarmcore.scenario import Scenario
+from swarmrt.bus.messages import KeyMismatch, Keys, MessageError, check_key, counted, decode, encode, parse_key, prepare
+from swarmrt.bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
+from swarmrt.protocol import BusLost, Event, Query, RunBroken, Send, Wait
+
+__all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scenario"]
+
+_TICK_S = 0.25  # the stall ticker's period
+_STALL_S = 2.0  # a gap in its ticks this long: this process was stalled
+
+
+
+
+class Node:
+    """A role's bus presence. Only the thread that calls :meth:`next_event` touches state."""
+
+    def __init__(self, role: str, ident: int | str, run: str, n_sats: int, bus: BusConfig, announce: bool = True):
+        self.role = role
+        self.ident = ident
+        self.name = f"{role}-{ident}" if role in ("agent",) else role
+        self.n = n_sats
+        self.keys = Keys(run)
+        self.run = run
+        self.log = logging.getLogger(self.name)
+        self.inbox = Inbox(decode=self._decode)  # decoded on Zenoh's callback threads
+        self._handles: list = []
+        self._shallow: set[str] = set()  # key prefixes decoded shallowly
+        self.malformed = 0
+        self.key_mismatch = 0  # of the malformed: a message on a key its sender may not use
+        self._malformed_logged = 0
+        self._malformed_lock = threading.Lock()
+        self.stop = threading.Event()
+        self.bus = bus
+        # The bus's health as this node sees it (main thread only, but _routers; see
+        # _on_transport): router links, gaps, liveliness changes held back, limits.
+        self.hold_s = 0.3
+        self.bus_grace_s = 10.0
+        self.bus_lost_after_s = float("inf")
+        self.bus_down_since: float | None = None
+        self.gaps: list[tuple[float, float]] = []  # (down, up), time.monotonic()
+        self._held: dict[str, tuple[Event, float | None]] = {}  # token key -> (its DELETE, when it counts)
+        self._epoch = 0  # bumped whenever the bus came back: waits restart their timeout
+        self._routers: set[str] = set()
+        self._routers_lock = threading.Lock()
+        # Peers whose vanished token is held longer than hold_s, by role (a stalled world:
+        # agents and the selector set {"world": bus_lost_after_s}); while one is held,
+        # every wait pauses, as while the bus is down.
+        self.hold_for: dict[str, float] = {}
+        # This process's own stalls (SIGSTOP, docker pause, starved of CPU): a ticker thread
+        # notes every gap in its ticks; a wait that a stall overlapped counts its timeout
+        # from the return (the peers' messages of the stall are still in the socket).
+        self._tick = time.monotonic()
+        self._stalls = 0
+        self._ticking = False  # started by announce(): after start-up (compiling kernels holds the interpreter)
+        self.session = open_session(bus)
+        cred = bus.identity()
+        self.log.info("on the bus at %s as %s", bus.connect or bus.listen, cred.user if cred is not None else "(no credential)")
+        self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
+        self.token: zenoh.LivelinessToken | None = None
+        if announce:
+            self.announce()
+
+    def set_bus_limits(self, em, hold_world: bool = False) -> None:
+        """Take the bus limits of a scenario's ``emulator`` settings. ``hold_world``: a
+        world whose token went may only be stalled (SIGSTOP, ``docker pause``: its session
+        dropped when the lease ran out); hold it ``bus_lost_after_s`` before it counts as
+        gone (agents and the selector: a world gone for good breaks the run)."""
+        self.hold_s = em.liveliness_hold_s
+        self.bus_grace_s = em.bus_grace_s
+        self.bus_lost_after_s = em.bus_lost_after_s
+        if hold_world:
+            self.hold_for["world"] = em.bus_lost_after_s
+
+    # -- the bus's health -------------------------------------------------------------
+    def _on_transport(self, ev) -> None:
+        """(Zenoh's thread) A link to a router opened or closed: an event ``bus`` (alive =
+        some router reachable) whenever that changes."""
+        if ev.transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        zid = str(ev.transport.zid)
+        with self._routers_lock:
+            before = bool(self._routers)
+            (self._routers.add if ev.kind == zenoh.SampleKind.PUT else self._routers.discard)(zid)
+            after = bool(self._routers)
+        if before != after:
+            self.inbox.put_event(Event("", "bus", None, alive=after))
+
+    def _ticker(self) -> None:
+        """(Its own thread) Tick every ``_TICK_S``; a gap over ``_STALL_S`` is a stall."""
+        while not self.stop.wait(_TICK_S):
+            now = time.monotonic()
+            if now - self._tick > _STALL_S:
+                self._stalls += 1
+                self.log.warning("this process was stalled for %.1f s (stopped, paused or starved of CPU); "
+                                 "waits count their timeouts from now", now - self._tick)
+            self._tick = now
+
+    def _stalled_since(self, stalls: int) -> bool:
+        """Whether this process was stalled since the ticker's count was ``stalls`` (or is
+        just back from one the ticker has not seen yet)."""
+        return self._stalls != stalls or (self._ticking and time.monotonic() - self._tick > _STALL_S)
+
+    def _peer_held(self) -> bool:
+        """Whether the token of a role held long (``hold_for``) is gone, not yet for good."""
+        return bool(self.hold_for) and any(e.role in self.hold_for for e, _t in self._held.values())
+
+    @property
+    def bus_up(self) -> bool:
+        return self.bus_down_since is None
+
+    def _filter(self, ev: Event) -> Event | None:
+        """(Main thread) What the machine is told of ``ev``. A vanished liveliness token is
+        held back (``hold_s``; while the bus is down and ``bus_grace_s`` after it comes back)
+        and forgotten if the token comes back meanwhile: a router going down takes every
+        token with it (they go a moment before the link to it is seen closed), and a client
+        failing over to another router re-declares its token in milliseconds."""
+        now = time.monotonic()
+        if ev.kind == "bus":
+            if not ev.alive:
+                if self.bus_down_since is not None:
+                    return None
+                self.bus_down_since = now
+                self._held = {k: (e, None) for k, (e, _t) in self._held.items()}
+                self.log.warning("bus lost: no Zenoh router reachable (%s); waiting for it to come back (at most %.0f s)",
+                                 ",".join(self.bus.connect) or "no endpoint", self.bus_lost_after_s)
+                return ev
+            if self.bus_down_since is None:
+                return None  # the first link, not a return
+            self.gaps.append((self.bus_down_since, now))
+            self.log.warning("bus back after %.2f s", now - self.bus_down_since)
+            self.bus_down_since = None
+            self._epoch += 1
+            self._held = {k: (e, now + max(self.bus_grace_s, self.hold_for.get(e.role or "", 0.0)))
+                          for k, (e, _t) in self._held.items()}
+            return ev
+        if ev.kind == "alive":
+            if not ev.alive:
+                hold = self.hold_for.get(ev.role or "", self.hold_s)
+                if ev.role in self.hold_for:
+                    self.log.warning("the %s's liveliness is gone: stalled or dead? waiting up to %.0f s for it to come back",
+                                     ev.role, hold)
+                self._held[ev.key] = (ev, None if self.bus_down_since is not None else now + hold)
+                return Event(ev.key, "held", ev.sat, role=ev.role)  # gone, or only out of reach: not known yet
+            if self._held.pop(ev.key, None) is not None:
+                if ev.role in self.hold_for:
+                    self.log.warning("the %s is back", ev.role)
+                self._epoch += 1
+                return Event(ev.key, "resync", ev.sat, role=ev.role)  # never gone, as far as anyone need know
+        return ev
+
+    def _due(self, now: float) -> Event | None:
+        for key, (ev, at) in self._held.items():
+            if at is not None and at <= now:
+                del self._held[key]
+                return ev
+        return None
+
+    def _next_wake(self) -> float | None:
+        times = [at for _e, at in self._held.values() if at is not None]
+        if self.bus_down_since is not None:
+            times.append(self.bus_down_since + self.bus_lost_after_s)
+        return min(times) if times else None
+
+    def announce(self) -> None:
+        """Declare this node alive. Roles call it after declaring their subscribers and
+        queryables, so that "alive" on the bus means "listening": whoever reacts to the
+        token (the world starting the run, say) cannot publish into a gap."""
+        if not self._ticking:
+            self._ticking = True
+            self._tick = time.monotonic()
+            threading.Thread(target=self._ticker, name="stall-ticker", daemon=True).start()
+        if self.token is None:
+            freeze_startup_objects()
+            self.token = self.session.liveliness().declare_token(self.keys.alive(self.role, self.ident))
+
+    # -- plumbing -------------------------------------------------------------
+    def subscribe(self, key: str, shallow: bool = False) -> None:
+        """Samples of ``key`` go to the inbox. ``shallow``: this role reads only the header
+        and scalars of these messages (estimates: who, which step, which phase), so only
+        those are decoded and checked (:func:`swarmrt.bus.messages.decode`)."""
+        if shallow:
+            self._shallow.add(key.rsplit("/", 1)[0])
+        if key in (self.keys.meas(), self.keys.batches()):
+            prepare("meas")  # before this node says it is alive
+        self._handles.append(self.session.declare_subscriber(key, self.inbox.callback))
+
+    def watch_liveliness(self, pattern: str | None = None) -> None:
+        pattern = pattern or self.keys.alive()
+        self._handles.append(self.session.liveliness().declare_subscriber(pattern, self.inbox.callback, history=True))
+
+    def _undeclare_all(self) -> None:
+        for h in self._handles:
+            with contextlib.suppress(Exception):
+                h.undeclare()
+        self._handles.clear()
+        try:
+            if self.token is not None:
+                self.token.undeclare()
+        except Exception:
+            pass
+        self.token = None
+
+    def put(self, key: str, msg) -> None:
+        self.session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def queryable(self, key: str, handler, notify: bool = False) -> None:
+        """``handler(query_key) -> message | None``; runs on a Zenoh thread, keep it quick.
+        ``notify``: after answering, hand the main loop a ``query`` event (a machine waiting
+        on what the handler changed looks again)."""
+
+        def cb(query):
+            qkey = str(query.selector.key_expr)
+            try:
+                reply = handler(qkey)
+            except Exception as exc:  # never let a query kill the process
+                self.log.warning("query %s failed: %s", query.selector, exc)
+                reply = None
+            with query:
+                if reply is not None:
+                    query.reply(qkey, encode(reply))
+            if notify:
+                self.inbox.put_event(Event(qkey, "query", None, msg=reply))
+
+        self._handles.append(self.session.declare_queryable(key, cb))
+
+    def query(self, key: str, kind: str, timeout: float):
+        """First valid reply to a query (decoded), or None after ``timeout`` seconds."""
+        try:
+            replies = self.session.get(key, timeout=timeout)
+            for reply in replies:
+                if reply.ok is None:
+                    continue
+                try:
+                    rkey = str(reply.ok.key_expr)
+                    msg = decode(kind, reply.ok.payload.to_bytes(), n_sats=self.n)
+                    run, _kind, sat = parse_key(rkey)
+                    if run != self.run or msg.run != self.run:
+                        raise MessageError(f"a reply of another run ({run!r}, {msg.run!r})")
+                    check_key(rkey, kind, sat, msg)
+                    return msg
+                except MessageError as exc:
+                    self.count_malformed(key, exc)
+        except zenoh.ZError as exc:
+            self.log.warning("query %s: %s", key, exc)
+        return None
+
+    def count_malformed(self, key: str, err: Exception) -> None:
+        """Count and log a dropped message (from any thread: subscribers decode on theirs)."""
+        with self._malformed_lock:
+            self.malformed += 1
+            if isinstance(err, KeyMismatch):
+                self.key_mismatch += 1
+            count = self.malformed
+            # Log the first few in full, then one line in a hundred: a flood must not become a log flood.
+            log = self._malformed_logged < 20 or count % 100 == 0
+            if log:
+                self._malformed_logged += 1
+        if log:
+            self.log.warning("dropped malformed message #%d on %s: %s", count, key, err)
+
+    def next_event(self, timeout: float | None) -> Event | None:
+        """The next decoded event, or None when ``timeout`` passes. Malformed input is
+        counted, logged and skipped (the wait continues within the same deadline).
+        Liveliness losses come through :meth:`_filter`. Raises :class:`BusLost` once no
+        router has been reachable for ``bus_lost_after_s``."""
+        # An infinite timeout blocks (queue.get refuses one: "timestamp too large").
+        deadline = None if timeout is None or timeout == float("inf") else time.monotonic() + timeout
+        while True:
+            now = time.monotonic()
+            if (due := self._due(now)) is not None:
+                return due
+            if self.bus_down_since is not None and now - self.bus_down_since >= self.bus_lost_after_s:
+                raise BusLost(f"{self.name}: no Zenoh router reachable for {now - self.bus_down_since:.1f} s "
+                              f"({','.join(self.bus.connect) or 'no endpoint'}): the run is broken")
+            wake = self._next_wake()
+            rem = None if deadline is None else max(0.0, deadline - now)
+            if wake is not None:
+                rem = max(0.0, wake - now) if rem is None else min(rem, max(0.0, wake - now))
+            ev = self.inbox.get(rem)  # decoded, valid events only (see _decode)
+            if ev is not None:
+                ev = self._filter(ev)
+                if ev is not None:
+                    return ev
+            elif deadline is not None and time.monotonic() >= deadline:
+                return None
+
+    @counted
+    def _decode(self, s) -> Event | None:
+        """A sample as an event, or None (counted, logged) if it is malformed. Runs on the
+        subscribers' callback threads: it reads only what __init__ and subscribe() set."""
+        try:
+            run, kind, sat = parse_key(s.key)
+            if run != self.run:
+                raise MessageError(f"run id {run!r} is not this swarm's ({self.run!r})")
+            if kind == "alive":
+                role = s.key.split("/")[3]
+                return Event(s.key, "alive", sat, alive=(s.kind == "put"), role=role)
+            if s.kind == "delete":
+                raise MessageError("unexpected delete")
+            if sat is not None and sat >= self.n:
+                raise MessageError(f"unknown satellite {sat} in the key (swarm has 0..{self.n - 1})")
+            # Every satellite id the message names is checked against the swarm's size there.
+            msg = decode(kind, s.payload, shallow=s.key.rsplit("/", 1)[0] in self._shallow, n_sats=self.n)
+            if msg.run != self.run:
+                raise MessageError(f"message run id {msg.run!r} is not this swarm's")
+            rows = len(msg.ids) if kind in ("est", "full_est") and len(msg.ids) else self.n
+            if kind in ("est", "full_est") and len(msg.q_BI) != 4 * rows:
+                raise MessageError(f"an estimate of {len(msg.q_BI) // 4} satellites (this swarm has {self.n}"
+                                   + (f", its ids list {rows})" if rows != self.n else ")"))
+            check_key(s.key, kind, sat, msg)
+            return Event(s.key, kind, sat, msg=msg, size=len(s.payload))
+        except MessageError as exc:
+            self.count_malformed(s.key, exc)
+            return None
+
+    # -- running a protocol machine -------------------------------------------------
+    def wait_for(self, cond, timeout: float, on_event, wake=None) -> bool:
+        """Hand events to ``on_event`` until ``cond()`` holds or ``timeout`` seconds pass
+        (or the node is asked to stop). ``wake()`` may name an earlier instant (monotonic)
+        at which ``cond`` can change without a new event. The one wait loop of the roles."""
+        deadline = time.monotonic() + timeout
+        epoch, stalls = self._epoch, self._stalls
+        while not cond():
+            if self.stop.is_set():
+                return False
+            now = time.monotonic()
+            if self.bus_down_since is not None or self._epoch != epoch or self._peer_held():
+                # The bus is down, a long-held peer (the world) is gone but may be back, or
+                # either came back meanwhile: the timeout counts from the return (the
+                # lockstep world pauses rather than run on alone).
+                deadline = max(deadline, now + timeout)
+                epoch = self._epoch
+            remaining = deadline - now
+            if remaining <= 0 and self._stalled_since(stalls):
+                # This process was stopped meanwhile: what its peers sent in the stall is
+                # only now being read; the timeout counts from the return.
+                deadline, stalls = now + timeout, self._stalls
+                continue
+            if remaining <= 0:
+                # Take in what has already arrived before giving up (a zero wait drains).
+                ev = self.next_event(0)
+                if ev is None:
+                    return False
+                on_event(ev)
+                continue
+            w = wake() if wake is not None else None
+            ev = self.next_event(remaining if w is None else max(0.0, min(remaining, w - now)))
+            if ev is not None:
+                on_event(ev)
+        return True
+
+    #: The role's protocol machine, driven by :meth:`run_loop`.
+    machine: Any = None
+
+    def run_loop(self) -> None:
+        """Drive the role's protocol machine until it ends (or :attr:`stop`)."""
+        self.drive(self.machine)
+
+    @property
+    def finished(self) -> bool:
+        """Whether the role ended its part of the run (rather than stopping early); a
+        finished role waits for the recorder before it closes its session (:func:`serve`)."""
+        return True
+
+    def drive(self, machine) -> None:
+        """Run a role's protocol machine (:mod:`swarmrt.protocol`) on this node: publish what
+        it sends, answer its queries, and feed it events while it waits."""
+
+        def on_event(ev: Event) -> None:
+            for out in machine.handle(ev):
+                self.put(out.key, out.msg)
+
+        gen = machine.run()
+        reply = None
+        while not self.stop.is_set():
+            try:
+                action = gen.send(reply)
+            except StopIteration:
+                return
+            reply = None
+            if isinstance(action, Send):
+                self.put(action.key, action.msg)
+            elif isinstance(action, Query):
+                reply = self.query(action.key, action.kind, action.timeout_s)
+            elif isinstance(action, Wait):
+                reply = self.wait_for(action.until, action.timeout_s, on_event, action.wake)
+            else:
+                raise TypeError(f"unknown protocol action {action!r}")
+        gen.close()
+
+    def linger_while_recording(self, timeout_s: float) -> bool:
+        """Keep this session open until the run's recorder (if one is alive) has finished.
+
+        A Zenoh session that closes right after a put can take undelivered messages with
+        it (seen here: every agent's last estimate missing from the recording when the
+        agents left the moment the world said done). The recorder drops its liveliness
+        token only once it holds every live agent's final estimate, so waiting for that
+        token to go is an acknowledgement. Returns False if ``timeout_s`` passed first, or if the
+        role was asked to stop meanwhile (SIGTERM: :func:`serve`'s handler sets :attr:`stop`;
+        a role asked to stop leaves at once, lingering or not: docs/agent-contract.md, C20)."""
+        gone = threading.Event()
+        ended = self.stop  # set by SIGTERM, or below once the recorder is gone: the wait's end
+
+        def cb(sample) -> None:
+            if sample.kind == zenoh.SampleKind.DELETE:
+                gone.set()
+                ended.set()  # the role's last act: it closes its session next
+
+        key = self.keys.alive("recorder")
+        sub = self.session.liveliness().declare_subscriber(key, cb)
+        try:
+            present = False
+            try:
+                present = any(r.ok is not None for r in self.session.liveliness().get(key, timeout=min(5.0, timeout_s)))
+            except zenoh.ZError as exc:
+                self.log.warning("liveliness query %s: %s", key, exc)
+            if not present:
+                return True
+            if not ended.wait(timeout_s):
+                self.log.warning("the recorder was still running %.0f s after the run ended; leaving anyway", timeout_s)
+                return False
+            if not gone.is_set():
+                self.log.info("asked to stop while waiting for the recorder; leaving")
+            return gone.is_set()
+        finally:
+            with contextlib.suppress(Exception):
+                sub.undeclare()
+
+    def close(self) -> None:
+        self.stop.set()  # (the stall ticker too)
+        self._undeclare_all()
+        with contextlib.suppress(Exception):
+            self._transport_listener.undeclare()
+        self.session.close()
+
+
+def freeze_startup_objects() -> None:
+    """Hide everything allocated so far (modules, numba's compiler, the scenario) from
+    Python's cyclic garbage collector.
+
+    A role's start-up leaves ~150,000 long-lived objects (numba alone brings most); every
+    full collection walks them all, ~0.1 s on this machine kind, and the allocations of a
+    step's messages trigger several a step: profiled at n = 20, two thirds of an agent's
+    CPU went to collections started from the bus callback thread. ``gc.freeze`` (standard
+    library) moves them to a permanent generation the collector skips; what is allocated
+    afterwards is collected as before."""
+    gc.collect()
+    gc.freeze()
+
+
+def setup_logging(name: str, verbose: bool = False) -> None:
+    logging.basicConfig(
+        level=logging.DEBUG if verbose else logging.INFO,
+        format=f"%(asctime)s {name} %(levelname)s %(message)s",
+        stream=sys.stderr,
+        force=True,  # a role may learn its name late (an agent with --id auto)
+    )
+
+
+def role_arg_parser(description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=description)
+    p.add_argument("--scenario", required=True, help="resolved scenario YAML")
+    p.add_argument("--run", required=True, help="run id (part of every key)")
+    p.add_argument("--set", dest="sets", action="append", default=[], help="override a scenario field: dotted.key=value")
+    p.add_argument("-v", "--verbose", action="store_true")
+    add_bus_args(p)
+    return p
+
+
+def load_role_scenario(path: str, sets=()) -> Scenario:
+    """The scenario a role runs (every role of a swarm must be given the same file and sets)."""
+    import os
+
+    from swarmrt.scenario_files import ScenarioError, load_scenario
+
+    env_sets = [x for x in os.environ.get("SWARM_SET", "").split() if x]
+    try:
+        return load_scenario(path, [*env_sets, *sets])
+    except ScenarioError as exc:
+        raise SystemExit(str(exc)) from None
+
+
+def serve(node: Node, linger_s: float | None = None) -> int:
+    """A role's life after start-up, the same for every role: SIGTERM / SIGINT stop it
+    cleanly; its machine runs to the end; a role that finished (not stopped) keeps its
+    session until the recorder holds its last messages (``linger_s``; None: it does not
+    wait); a broken run (the bus lost, the world gone) exits with its status; the session
+    always closes. Returns the process's exit status."""
+    install_term_handler(node.stop)
+    try:
+        node.run_loop()
+        if linger_s is not None and node.finished and not node.stop.is_set():
+            node.linger_while_recording(linger_s)
+    except RunBroken as exc:
+        node.log.error("%s; exiting", exc)
+        return exc.exit_code
+    finally:
+        node.close()
+    return 0
+
+
+def install_term_handler(node_stop: threading.Event) -> None:
+    """SIGTERM / SIGINT ask the main loop to stop cleanly."""
+
+    def handler(signum, frame):
+        node_stop.set()
+
+    signal.signal(signal.SIGTERM, handler)
+    signal.signal(signal.SIGINT, handler)
+
+
+__all__ += ["serve", "install_term_handler", "bus_config_from_args", "freeze_startup_objects", "RunBroken"]
