@@ -250,6 +250,16 @@ def load_router_keys(keys_dir: str | Path) -> tuple[dict, Path, set[str]]:
     """What the router reads of a keys directory: ``router.json`` (or its default), the
     password dictionary's path and the user names in it. A missing or malformed file fails
     with SystemExit naming it and what is wrong."""
+    meta, dictionary, text = _read_router_keys(keys_dir)
+    return meta, dictionary, _dictionary_users(text)
+
+
+def _dictionary_users(text: str) -> set[str]:
+    return {line.split(":", 1)[0] for line in text.splitlines() if ":" in line}
+
+
+def _read_router_keys(keys_dir: str | Path) -> tuple[dict, Path, str]:
+    """:func:`load_router_keys` but with the dictionary's text (read once, bounded)."""
     keys_dir = Path(keys_dir)
     meta_path = keys_dir / "router.json"
     meta = _read_json(meta_path, "router keys") if meta_path.exists() else {"passwords": "passwords"}
@@ -265,8 +275,7 @@ def load_router_keys(keys_dir: str | Path) -> tuple[dict, Path, set[str]]:
         text = _read_bounded(dictionary).decode()
     except (OSError, ValueError) as exc:
         raise SystemExit(f"router: password dictionary {dictionary}: {exc}") from None
-    users = {line.split(":", 1)[0] for line in text.splitlines() if ":" in line}
-    return meta, dictionary, users
+    return meta, dictionary, text
 
 
 def apply_router_security(cfg, keys_dir: str | Path, run: str, n_sats: int, links: bool = False, index: int = 0) -> list[str]:
@@ -275,9 +284,10 @@ def apply_router_security(cfg, keys_dir: str | Path, run: str, n_sats: int, link
     a mesh gets its fixed id and its peers' (:func:`router_zid`). Returns the TLS settings
     applied (empty without TLS)."""
     keys_dir = Path(keys_dir)
-    meta, dictionary, users = load_router_keys(keys_dir)
+    meta, dictionary, text = _read_router_keys(keys_dir)
+    users = _dictionary_users(text)
     peer_zids: list[str] = []
-    if (secret := _mesh_secret(_read_bounded(dictionary).decode())) is not None:
+    if (secret := _mesh_secret(text)) is not None:
         cfg.insert_json5("id", json.dumps(router_zid(secret, index)))
         peer_zids = [router_zid(secret, j) for j in range(MESH_ROUTERS) if j != index]
     missing = [a for a in agent_identities(n_sats) if a not in users]
