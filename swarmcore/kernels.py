@@ -18,7 +18,7 @@ import os
 
 import numpy as np
 
-__all__ = ["gate_d2", "information", "split_observed", "join_observed", "warm_up", "HAVE_NUMBA"]
+__all__ = ["gate_d2", "information", "split_observed", "join_observed", "ci_det_weight", "warm_up", "HAVE_NUMBA"]
 
 try:  # pragma: no cover - exercised by whichever is installed
     if os.environ.get("SWARM_NO_NUMBA"):
@@ -348,6 +348,7 @@ def warm_up() -> None:
     relative_residuals(q, np.zeros((n, 3)), np.eye(3), o, t, q[:1], np.zeros((1, 3)))
     retract(q, w)
     propagate_constant_rate(q[0], w[0], 1.0)
+    ci_det_weight(np.eye(12)[:6] * 0.5, np.zeros(6), True)  # the ci estimator's ω search
 
 
 # --------------------------------------------------------------------------- attitude
@@ -562,3 +563,145 @@ def propagate_constant_rate(q, omega_B, dt: float):
     if not HAVE_NUMBA:
         return None
     return _rotate_constant_rate(np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(omega_B, dtype=float), float(dt))
+
+
+# --------------------------------------------------------------------------- CI weight
+# The ``ci`` estimator chooses its ω by a bounded scalar search of a 12×12 log-det (about
+# 30 evaluations a fusion). scipy's ``minimize_scalar(method="bounded")`` runs that loop in
+# Python and each evaluation is a handful of numpy calls: ~45 µs an evaluation, a third of
+# a ``ci`` step at n = 100, for a few thousand flops. Nothing in scipy compiles a scalar
+# search around a compiled function, so the search (Brent's bounded method, step for step
+# as scipy's: the Rust agent's ``brent.rs`` is the same transcription) and the cost are
+# written out here. The numpy twin is the scipy path in ``swarmcore.estimators.ci``.
+
+if HAVE_NUMBA:
+
+    @numba.njit(cache=True, fastmath=False)
+    def _ci_det_cost(w, W, lam, split):
+        """``−n log ω − log det(I + Ŵᵀ diag(d) Ŵ / ω)`` (``ci._logdet_cost``); NaN when the
+        matrix is not positive-definite."""
+        m, n = W.shape
+        d = np.empty(m)
+        for r in range(m):
+            d[r] = (1.0 - w) / (1.0 - w + lam[r]) if split else 1.0 - w
+        # S = I + Ŵᵀ diag(d) Ŵ / ω, lower triangle, by loops (no BLAS call: a 12×12 product
+        # is cheaper than the call, and loops keep one summation order on every CPU).
+        S = np.empty((n, n))
+        for c1 in range(n):
+            for c2 in range(c1 + 1):
+                t = 0.0
+                for r in range(m):
+                    t += W[r, c1] * d[r] * W[r, c2]
+                S[c1, c2] = t / w
+            S[c1, c1] += 1.0
+        # log det by Cholesky, in place over the lower triangle
+        logdet = 0.0
+        for c in range(n):
+            s = S[c, c]
+            for k in range(c):
+                s -= S[c, k] * S[c, k]
+            if not s > 0.0:
+                return np.nan
+            s = np.sqrt(s)
+            S[c, c] = s
+            logdet += np.log(s)
+            for r in range(c + 1, n):
+                t = S[r, c]
+                for k in range(c):
+                    t -= S[r, k] * S[c, k]
+                S[r, c] = t / s
+        return -n * np.log(w) - 2.0 * logdet
+
+    @numba.njit(cache=True, fastmath=False)
+    def _sign(v):
+        return 1.0 if v > 0.0 else (-1.0 if v < 0.0 else 0.0)
+
+    @numba.njit(cache=True, fastmath=False)
+    def _ci_det_weight(W, lam, split, x1, x2, xatol, maxfun):
+        """Brent's bounded minimisation of :func:`_ci_det_cost` over ``[x1, x2]`` (scipy's
+        ``_minimize_scalar_bounded``, Forsythe–Malcolm–Moler's ``fmin``). Returns ``(ω,
+        ok)``; ``ok`` False: a cost was not finite (a matrix not positive-definite)."""
+        sqrt_eps = np.sqrt(2.2e-16)
+        golden_mean = 0.5 * (3.0 - np.sqrt(5.0))
+        a, b = x1, x2
+        fulc = a + golden_mean * (b - a)
+        nfc, xf = fulc, fulc
+        rat = 0.0
+        e = 0.0
+        fx = _ci_det_cost(xf, W, lam, split)
+        if not np.isfinite(fx):
+            return xf, False
+        num = 1
+        ffulc = fnfc = fx
+        xm = 0.5 * (a + b)
+        tol1 = sqrt_eps * abs(xf) + xatol / 3.0
+        tol2 = 2.0 * tol1
+        while abs(xf - xm) > (tol2 - 0.5 * (b - a)):
+            golden = True
+            if abs(e) > tol1:  # a parabolic step?
+                golden = False
+                r = (xf - nfc) * (fx - ffulc)
+                q = (xf - fulc) * (fx - fnfc)
+                p = (xf - fulc) * q - (xf - nfc) * r
+                q = 2.0 * (q - r)
+                if q > 0.0:
+                    p = -p
+                q = abs(q)
+                r = e
+                e = rat
+                if abs(p) < abs(0.5 * q * r) and p > q * (a - xf) and p < q * (b - xf):
+                    rat = (p + 0.0) / q
+                    x = xf + rat
+                    if (x - a) < tol2 or (b - x) < tol2:
+                        si = _sign(xm - xf) + (1.0 if xm - xf == 0.0 else 0.0)
+                        rat = tol1 * si
+                else:
+                    golden = True
+            if golden:
+                e = (a - xf) if xf >= xm else (b - xf)
+                rat = golden_mean * e
+            si = _sign(rat) + (1.0 if rat == 0.0 else 0.0)
+            x = xf + si * max(abs(rat), tol1)
+            fu = _ci_det_cost(x, W, lam, split)
+            if not np.isfinite(fu):
+                return x, False
+            num += 1
+            if fu <= fx:
+                if x >= xf:
+                    a = xf
+                else:
+                    b = xf
+                fulc, ffulc = nfc, fnfc
+                nfc, fnfc = xf, fx
+                xf, fx = x, fu
+            else:
+                if x < xf:
+                    a = x
+                else:
+                    b = x
+                if fu <= fnfc or nfc == xf:
+                    fulc, ffulc = nfc, fnfc
+                    nfc, fnfc = x, fu
+                elif fu <= ffulc or fulc == xf or fulc == nfc:
+                    fulc, ffulc = x, fu
+            xm = 0.5 * (a + b)
+            tol1 = sqrt_eps * abs(xf) + xatol / 3.0
+            tol2 = 2.0 * tol1
+            if num >= maxfun:
+                break
+        return xf, True
+
+
+def ci_det_weight(W: np.ndarray, lam: np.ndarray, split: bool, lo: float = 1e-4, hi: float = 1.0 - 1e-4,
+                  xatol: float = 1e-6, maxfun: int = 500) -> float | None:
+    """The ω in ``[lo, hi]`` minimising the CI log-det cost of whitened ``W`` (6m, 12) and
+    eigenvalues ``lam`` (see ``swarmcore.estimators.ci._logdet_cost``), compiled; ``None``
+    without numba (the caller then runs scipy's search). Raises ``LinAlgError`` when a
+    matrix of the search is not positive-definite, as the numpy cost does."""
+    if not HAVE_NUMBA:
+        return None
+    w, ok = _ci_det_weight(np.ascontiguousarray(W, dtype=float), np.ascontiguousarray(lam, dtype=float), bool(split),
+                           float(lo), float(hi), float(xatol), int(maxfun))
+    if not ok:
+        raise np.linalg.LinAlgError("CI weight search: a fused covariance is not positive-definite")
+    return float(w)

@@ -127,7 +127,7 @@ def test_warm_up_compiles_every_kernel():
         "kernels.warm_up()\n"
         "d = {k: v for k, v in vars(kernels).items() if isinstance(v, numba.core.registry.CPUDispatcher)}\n"
         "assert len(d) >= 6, sorted(d)\n"
-        "inner = {'_chol6'}  # called only from inside other kernels, compiled with them\n"
+        "inner = {'_chol6', '_ci_det_cost', '_sign'}  # called only from inside other kernels, compiled with them\n"
         "cold = sorted(k for k, v in d.items() if v.targetoptions.get('inline') != 'always' and k not in inner and not v.signatures)\n"
         "print('cold', cold)\n"
     )
@@ -157,3 +157,33 @@ def test_split_and_join_observed_equal_fancy_indexing(n):
     back = kernels.join_observed(A_OO, np.ascontiguousarray(P_OU), A_UU, n)
     assert np.array_equal(back, P) and np.array_equal(back, back.T)
     assert np.array_equal(kernels.join_observed_numpy(A_OO, P_OU, A_UU, n), P)
+
+
+@pytest.mark.skipif(not kernels.HAVE_NUMBA, reason="numba not installed: the ci estimator runs scipy's search")
+@pytest.mark.parametrize("split", [True, False])
+def test_compiled_ci_weight_is_scipys_bounded_search(split):
+    """The ci estimator's ω: the compiled search (kernels.ci_det_weight) lands where
+    scipy's minimize_scalar(method="bounded") lands on the numpy cost, to the search's
+    tolerance (the two costs differ at round-off, which may move a Brent step), and its
+    cost there is scipy's minimum up to round-off; a matrix that is not positive-definite
+    is refused as numpy's Cholesky refuses it."""
+    from swarmcore.estimators.ci import _det_cost, _whitened, ci_weight
+
+    rng = np.random.default_rng(7)
+    gaps = []
+    for _ in range(60):
+        k = int(rng.integers(1, 5))
+        A, B, C = rng.normal(size=(12, 12)), rng.normal(size=(6 * k, 6 * k)), rng.normal(size=(6 * k, 6 * k))
+        P = A @ A.T * 10 ** rng.uniform(-4, 0) + 1e-6 * np.eye(12)
+        R = B @ B.T * 10 ** rng.uniform(-4, 0) + 1e-6 * np.eye(6 * k)
+        C_p = C @ C.T * 10 ** rng.uniform(-4, 1)
+        W, lam = _whitened(P, rng.normal(size=(6 * k, 12)), R, C_p, split)
+        cost = _det_cost(W, lam, split)
+        w_c, w_s = kernels.ci_det_weight(W, lam, split), ci_weight(cost)
+        assert 1e-4 <= w_c <= 1 - 1e-4
+        gaps.append(abs(w_c - w_s))
+        assert cost(w_c) <= cost(w_s) + 1e-9 * max(1.0, abs(cost(w_s)))
+    assert max(gaps) < 1e-6, max(gaps)
+    assert np.median(gaps) < 1e-9, np.median(gaps)
+    with pytest.raises(np.linalg.LinAlgError):
+        kernels.ci_det_weight(np.full((6, 12), np.nan), np.zeros(6), split)

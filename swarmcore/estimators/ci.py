@@ -58,6 +58,7 @@ import numpy as np
 from pydantic import Field
 from scipy.linalg.lapack import dpotrf as _potrf
 
+from .. import kernels
 from ..mekf import (
     BLOCK,
     AbsoluteMeasurement,
@@ -109,6 +110,23 @@ def ci_weight(logdet_of, lo: float = 1e-4, hi: float = 1.0 - 1e-4) -> float:
     return float(res.x)
 
 
+def _whitened(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray, split: bool) -> tuple[np.ndarray, np.ndarray]:
+    """``(Ŵ, Λ)`` of :func:`_logdet_cost`: ``Hₒ chol(P)`` whitened by a factor of the
+    ω-independent part of ``C(ω)``, and the eigenvalues that make ``C̃(ω)`` diagonal
+    (zeros for plain CI)."""
+    from scipy.linalg import solve_triangular
+
+    HL = Ho @ np.linalg.cholesky(P)  # (6m, 12)
+    if split:
+        L = np.linalg.cholesky(R)
+        Qt = solve_triangular(L, solve_triangular(L, C_p, lower=True).T, lower=True)
+        lam, U = np.linalg.eigh(0.5 * (Qt + Qt.T))
+        return U.T @ solve_triangular(L, HL, lower=True), np.clip(lam, 0.0, None)
+    L = np.linalg.cholesky(R + C_p)
+    W = solve_triangular(L, HL, lower=True)
+    return W, np.zeros(W.shape[0])
+
+
 def _logdet_cost(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray, split: bool):
     """``cost(ω) = log det P⁺(ω) − log det P`` of the CI update, evaluated in 12×12.
 
@@ -119,26 +137,19 @@ def _logdet_cost(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray, 
     ``Hₒ chol(P)`` whitened by a factor of the ω-independent part and ``C̃(ω)`` is diagonal
     in that basis (split: ``R = L Lᵀ``, ``L⁻¹ C_p L⁻ᵀ = U Λ Uᵀ``, ``C̃ = I + Λ/(1−ω)``; plain:
     ``C̃ = I/(1−ω)``). The same function of ω as the 6m×6m form, at a 12×12 Cholesky a
-    call (the search calls it ~30 times a step)."""
-    from scipy.linalg import solve_triangular
+    call (the search calls it ~30 times a step). :func:`swarmcore.kernels.ci_det_weight`
+    is the same cost and search compiled; this is its numpy twin."""
+    return _det_cost(*_whitened(P, Ho, R, C_p, split), split)
 
-    HL = Ho @ np.linalg.cholesky(P)  # (6m, 12)
-    if split:
-        L = np.linalg.cholesky(R)
-        Qt = solve_triangular(L, solve_triangular(L, C_p, lower=True).T, lower=True)
-        lam, U = np.linalg.eigh(0.5 * (Qt + Qt.T))
-        lam = np.clip(lam, 0.0, None)
-        W = U.T @ solve_triangular(L, HL, lower=True)
-    else:
-        L = np.linalg.cholesky(R + C_p)
-        W = solve_triangular(L, HL, lower=True)
-        lam = np.zeros(W.shape[0])
-    eye = np.eye(P.shape[0])
+
+def _det_cost(W: np.ndarray, lam: np.ndarray, split: bool):
+    """:func:`_logdet_cost` of the whitened ``(Ŵ, Λ)``."""
+    eye = np.eye(W.shape[1])
 
     def cost(w: float) -> float:
         d = (1.0 - w) / (1.0 - w + lam) if split else np.full(lam.shape, 1.0 - w)
         G = (W.T * d) @ W / w
-        return -P.shape[0] * np.log(w) - _logdet(eye + G)
+        return -W.shape[1] * np.log(w) - _logdet(eye + G)
 
     return cost
 
@@ -342,14 +353,16 @@ class CIEstimator(OwnStateEstimator):
             return R + C_p / (1.0 - w) if split else (R + C_p) / (1.0 - w)
 
         if self.params.criterion == "det":  # type: ignore[attr-defined]
-            cost = _logdet_cost(e.P, Ho, R, C_p, split)
+            W, lam = _whitened(e.P, Ho, R, C_p, split)
+            w_c = kernels.ci_det_weight(W, lam, split)
+            w = w_c if w_c is not None else ci_weight(_det_cost(W, lam, split))
         else:
-            def cost(w: float) -> float:
+            def trace_cost(w: float) -> float:
                 Pw = e.P / w
                 S = Ho @ Pw @ Ho.T + C(w)
                 K = np.linalg.solve(S, Ho @ Pw).T
                 return float(np.trace(pose_block(Pw - K @ S @ K.T)))
-        w = ci_weight(cost)
+            w = ci_weight(trace_cost)
         Pw, Cw = e.P / w, C(w)
         PHt = Pw @ Ho.T
         S = Ho @ PHt + Cw

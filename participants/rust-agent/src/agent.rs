@@ -329,15 +329,7 @@ fn received_from_step(m: &StepBatches, skip: usize) -> Vec<Received> {
         if o as usize == skip {
             continue;
         }
-        let meas = (a..b)
-            .map(|r| Rel {
-                observer: o as usize,
-                target: m.target[r] as usize,
-                q: std::array::from_fn(|x| m.q_bj_bi[4 * r + x]),
-                r: std::array::from_fn(|x| m.r_ij_bi_m[3 * r + x]),
-                cov: std::array::from_fn(|x| std::array::from_fn(|y| r_bi[36 * r + 6 * x + y])),
-            })
-            .collect();
+        let meas = rel_rows(o as usize, &m.target, &m.q_bj_bi, &m.r_ij_bi_m, r_bi, a..b);
         let payload = m.estimators.get(idx).filter(|e| !e.kind.is_empty()).and_then(ci_state);
         out.push(Received { sender: o as usize, step: m.k, meas, payload });
     }
@@ -347,17 +339,23 @@ fn received_from_step(m: &StepBatches, skip: usize) -> Vec<Received> {
 /// One batch the radio delivered (links), with its estimator's message (`received_from_batches`).
 fn received_from_batch(b: &MeasBatch) -> Received {
     let r_bi = b.r_bi.as_ref().map(|x| &x.data[..]).unwrap_or(&[]);
-    let meas = (0..b.target.len())
-        .map(|r| Rel {
-            observer: b.observer as usize,
-            target: b.target[r] as usize,
-            q: std::array::from_fn(|x| b.q_bj_bi[4 * r + x]),
-            r: std::array::from_fn(|x| b.r_ij_bi_m[3 * r + x]),
-            cov: std::array::from_fn(|x| std::array::from_fn(|y| r_bi[36 * r + 6 * x + y])),
-        })
-        .collect();
+    let meas = rel_rows(b.observer as usize, &b.target, &b.q_bj_bi, &b.r_ij_bi_m, r_bi, 0..b.target.len());
     let payload = b.estimator.as_ref().filter(|e| !e.kind.is_empty()).and_then(ci_state);
     Received { sender: b.observer as usize, step: b.k, meas, payload }
+}
+
+/// Rows `rows` of one observer's measurement columns (a batch's, or a run of a step's
+/// batches laid end to end) as measurements: the one row builder of both radio paths.
+fn rel_rows(observer: usize, target: &[u32], q_bj_bi: &[f64], r_ij_bi_m: &[f64], r_bi: &[f64],
+            rows: std::ops::Range<usize>) -> Vec<Rel> {
+    rows.map(|r| Rel {
+            observer,
+            target: target[r] as usize,
+            q: std::array::from_fn(|x| q_bj_bi[4 * r + x]),
+            r: std::array::from_fn(|x| r_ij_bi_m[3 * r + x]),
+            cov: std::array::from_fn(|x| std::array::from_fn(|y| r_bi[36 * r + 6 * x + y])),
+        })
+        .collect()
 }
 
 fn view_msg(v: &View, st: &State, phase: &str) -> pb::Estimate {
