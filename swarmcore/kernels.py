@@ -682,7 +682,7 @@ if HAVE_NUMBA:
                 if fu <= fnfc or nfc == xf:
                     fulc, ffulc = nfc, fnfc
                     nfc, fnfc = x, fu
-                elif fu <= ffulc or fulc == xf or fulc == nfc:
+                elif fu <= ffulc or fulc in (xf, nfc):
                     fulc, ffulc = x, fu
             xm = 0.5 * (a + b)
             tol1 = sqrt_eps * abs(xf) + xatol / 3.0
