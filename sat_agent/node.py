@@ -33,8 +33,11 @@ class Agent(Node):
         # Peers' batches reach us only through the radio, which the world emulates: the
         # ideal radio's one message a step (batches), or with links what reached us (rx/<i>).
         peers = self.keys.rx(sat) if sc.links.enabled else self.keys.batches()
-        for key in (self.keys.clock(), self.keys.sensors(sat), peers, self.keys.fault()):
+        for key in (self.keys.clock(), self.keys.sensors(sat), self.keys.fault()):
             self.subscribe(key)
+        # The ideal radio's message shallowly: each peer's estimator message is checked when
+        # the estimator reads it (AgentProtocol._payload), not all n − 1 on arrival.
+        self.subscribe(peers, shallow=not sc.links.enabled)
         self.subscribe(self.keys.img(sat) if sc.vision.pipeline != "none" else self.keys.cam(sat))
         self.watch_liveliness(self.keys.alive("agent"))
         self.watch_liveliness(self.keys.alive("world"))  # gone before the end: the run is broken

@@ -57,6 +57,7 @@ from swarmrt.bus.messages import (
     MeasBatch,
     Sensors,
     StepBatches,
+    check_estimator_message,
     codec_cpu_ms,
     replace,
 )
@@ -106,6 +107,7 @@ class AgentProtocol:
         self.batches_late = 0
         self.malformed = malformed  # the shell's count of malformed messages, reported in health
         self.key_mismatch = key_mismatch  # of those, messages on a key their sender may not use
+        self.payloads_refused = 0  # peers' estimator messages refused when read (counted with the malformed)
         self.linked = sc.links.enabled  # peers' batches come through the radio (rx/<i>), not straight off the bus
         self.rx_steps: set[int] = set()  # steps whose delivery (lockstep) has come
         self.rx_items: list[MeasBatch] = []  # delivered peer batches not yet used
@@ -132,10 +134,14 @@ class AgentProtocol:
         return full_estimate_msg(est, run=self.run_id, sender=self.name, own=self.i)
 
     def _payload(self, msg, sender: int, step: int):
-        """A peer's estimator message as its value (None: not ours, or refused: counted)."""
+        """A peer's estimator message as its value (None: not ours, or refused: counted as
+        malformed). Checked here, when the estimator first reads it: the ideal radio's
+        message is decoded shallowly (:func:`swarmrt.bus.messages.check_estimator_message`)."""
         try:
+            check_estimator_message(msg, sender, self.n)
             return self.codec.from_msg(msg, sender, step)
-        except ValueError as exc:
+        except ValueError as exc:  # MessageError is one
+            self.payloads_refused += 1
             self.log.warning("estimator message of agent %d, step %d refused: %s", sender, step, exc)
             return None
 
@@ -414,7 +420,7 @@ class AgentProtocol:
     def _health(self, k: int, t: float) -> Health:
         return Health(
             run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in self.camera_ok],
-            malformed=self.malformed(), batches_missing=self.batches_missing, batches_late=self.batches_late,
+            malformed=self.malformed() + self.payloads_refused, batches_missing=self.batches_missing, batches_late=self.batches_late,
             drop_rate=self.drop_rate, host=_HOST, key_mismatch=self.key_mismatch(),
         )
 
@@ -436,7 +442,7 @@ class AgentProtocol:
                 continue
             yield Wait(lambda: self.done or any(s > self.last_step for s in self.clocks), 0.5)
         self.log.info("done at step %d; %d malformed (%d on a key not their sender's), %d missing, %d late batches",
-                      self.last_step, self.malformed(), self.key_mismatch(),
+                      self.last_step, self.malformed() + self.payloads_refused, self.key_mismatch(),
                       self.batches_missing, self.batches_late)
 
 

@@ -41,7 +41,7 @@ class Node:
         self.log = logging.getLogger(self.name)
         self.inbox = Inbox(decode=self._decode)  # decoded on Zenoh's callback threads
         self._handles: list = []
-        self._shallow: set[str] = set()  # key prefixes decoded shallowly
+        self._shallow: set[str] = set()  # message kinds decoded shallowly
         self.malformed = 0
         self.key_mismatch = 0  # of the malformed: a message on a key its sender may not use
         self._malformed_logged = 0
@@ -195,8 +195,8 @@ class Node:
         """Samples of ``key`` go to the inbox. ``shallow``: this role reads only the header
         and scalars of these messages (estimates: who, which step, which phase), so only
         those are decoded and checked (:func:`swarmrt.bus.messages.decode`)."""
-        if shallow:
-            self._shallow.add(key.rsplit("/", 1)[0])
+        if shallow:  # by message kind (a wildcard key parsed as one of its satellites')
+            self._shallow.add(parse_key(key.replace("*", "0"))[1])
         if key in (self.keys.meas(), self.keys.batches()):
             prepare("meas")  # before this node says it is alive
         self._handles.append(self.session.declare_subscriber(key, self.inbox.callback))
@@ -317,7 +317,7 @@ class Node:
             if sat is not None and sat >= self.n:
                 raise MessageError(f"unknown satellite {sat} in the key (swarm has 0..{self.n - 1})")
             # Every satellite id the message names is checked against the swarm's size there.
-            msg = decode(kind, s.payload, shallow=s.key.rsplit("/", 1)[0] in self._shallow, n_sats=self.n)
+            msg = decode(kind, s.payload, shallow=kind in self._shallow, n_sats=self.n)
             if msg.run != self.run:
                 raise MessageError(f"message run id {msg.run!r} is not this swarm's")
             rows = len(msg.ids) if kind in ("est", "full_est") and len(msg.ids) else self.n

@@ -365,7 +365,7 @@ def test_shallow_decoding_of_estimates_checks_what_it_reads():
     for change, reason in ((dict(phase="x"), "phase"), (dict(own=3), "own"), (dict(q_BI=[1.0] * 5), "q_BI"), (dict(schema_version=7), "version")):
         with pytest.raises(M.MessageError, match=reason):
             M.decode("est", _raw("est", **change), shallow=True)
-    assert M.SHALLOW_KINDS == ("est",)
+    assert M.SHALLOW_KINDS == ("est", "batches")
     assert M.decode("meas", M.encode(EXAMPLES["meas"]), shallow=True) == EXAMPLES["meas"]  # other kinds: always in full
     with pytest.raises(M.MessageError, match="R_Bi: not finite"):
         M.decode("meas", _nan_R(), shallow=True)
@@ -412,3 +412,33 @@ def test_satellite_ids_are_checked_against_the_swarm_size():
         M.decode("clock", M.encode(EXAMPLES["clock"]), n_sats=2)
     with pytest.raises(M.MessageError, match="own: satellite id 1 out of range"):
         M.decode("est", M.encode(EXAMPLES["est"]), shallow=True, n_sats=1)
+
+
+def test_an_agent_reads_the_ideal_radios_message_shallowly_and_checks_each_estimator_message_it_reads():
+    """The ideal radio's StepBatches as an agent decodes it: everything but the peers'
+    estimator messages in full, and each of those checked when the estimator reads it
+    (check_estimator_message, naming the sender); a full decode (the recorder's) refuses
+    the whole message for one bad peer, naming it."""
+    good = M.CiState(q_BI=[0, 0, 0, 1.0], omega_BI_B_rad_s=[0, 0, 0.0], r_H_m=[1, 2, 3.0], v_H_m_s=[0, 0, 0.0],
+                     P_pose=M.Matrix(shape=[6, 6], data=np.eye(6).ravel().tolist()))
+    bad = M.CiState()
+    bad.CopyFrom(good)
+    bad.P_pose.data[0] = float("nan")
+    ests = {0: good, 1: bad, 2: good}
+    batches = [M.replace(b, estimator=M.EstimatorMessage(kind="ci", version=1, ci=ests[b.observer])) for b in (_METER, _B1, _B0)]
+    raw = M.encode(M.replace(step_batches_msg(batches, run=RUN, k=3, t_s=3.0), schema_version=M.SCHEMA_VERSION))
+    with pytest.raises(M.MessageError, match=r"estimators\[1\].*P_pose: not finite"):
+        M.decode("batches", raw, n_sats=3)
+    msg = M.decode("batches", raw, shallow=True, n_sats=3)
+    M.check_estimator_message(msg.estimators[0], 0, 3)
+    M.check_estimator_message(msg.estimators[2], 2, 3)
+    with pytest.raises(M.MessageError, match=r"estimators\[1\].*P_pose: not finite"):
+        M.check_estimator_message(msg.estimators[1], 1, 3)
+    # The rest is checked in full in the shallow reading too.
+    with pytest.raises(M.MessageError, match="counts"):
+        M.decode("batches", _raw("batches", counts=[2, 0]), shallow=True, n_sats=3)
+    with pytest.raises(M.MessageError, match="R_Bi: not finite"):
+        b = M.replace(_B0)
+        b.R_Bi.data[0] = float("nan")
+        M.decode("batches", M.encode(M.replace(step_batches_msg([b], run=RUN, k=3, t_s=3.0), schema_version=M.SCHEMA_VERSION)),
+                 shallow=True, n_sats=3)

@@ -240,3 +240,39 @@ def test_bus_back_sends_the_step_again_copies_are_no_news_and_a_lost_world_ends_
     assert a.batches_late == 0 and not d.sent and a.last_step == 0
     with pytest.raises(WorldLost):
         d.feed(Event(K.alive("world", 0), "alive", 0, alive=False, role="world"))
+
+
+def test_a_peers_bad_estimator_message_is_refused_when_read_and_the_others_are_fused():
+    """The ideal radio's message is decoded shallowly by an agent; a peer's estimator
+    message is checked when the estimator reads it. One peer's unsound ``ci`` state (a NaN
+    in its covariance) is refused and counted as malformed in the agent's health; the
+    other peer's is fused."""
+    from swarmcore.estimators.ci import CIEstimator, CiState
+    from swarmrt.bus import messages as M
+    from swarmrt.bus.convert import ci_state_msg
+
+    sc = scenario(estimator={"kind": "ci"})
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
+    own_prior = full_estimate_msg(initial_estimate(sc, world.truth, 0, ids=[0]), run=RUN, sender="world", own=0, ids=[0])
+    d = Driver(a, clock, answer=lambda q: own_prior)
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), Event(K.alive("agent", 2), "alive", 2, alive=True))
+    world.advance(0)
+    d.feed(*world.events_for(0, 0))
+    (own,) = d.sent_on(K.meas(0))
+
+    def with_state(j: int, sound: bool):
+        tr = world.truth
+        m = ci_state_msg(CiState(sat=j, step=0, q_BI=tr.q_BI[j], omega_BI_B=tr.omega_BI_B[j], r_H=tr.r_H[j], v_H=tr.v_H[j],
+                                 P_pose=1e-2 * np.eye(6)))
+        if not sound:
+            m.P_pose.data[0] = float("nan")
+        return M.replace(world.batch(j, 0), estimator=M.EstimatorMessage(kind="ci", version=CIEstimator.message_version, ci=m))
+
+    d.feed(radio_event(0, [own, with_state(1, True), with_state(2, False)]))
+    est = d.sent_on(K.est(0))[-1]
+    (health,) = d.sent_on(K.health(0))
+    assert est.phase == "posterior" and est.k == 0
+    assert a.payloads_refused == 1 and health.malformed == 1
+    assert 1 in list(est.ids) and 2 not in list(est.ids), list(est.ids)

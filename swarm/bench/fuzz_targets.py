@@ -146,9 +146,14 @@ def message_target(kind: str) -> Callable[[bytes], None]:
             pass
         else:
             M.forget_arrays(msg)
-        if kind in M.SHALLOW_KINDS:  # the recorder's and selector's shallow reading of estimates
+        if kind in M.SHALLOW_KINDS:  # the recorder's and selector's reading of estimates, an agent's of batches
             with contextlib.suppress(M.MessageError):
-                M.decode(kind, data, shallow=True, n_sats=N_SATS)
+                msg = M.decode(kind, data, shallow=True, n_sats=N_SATS)
+                if kind == "batches":  # and each peer's estimator message checked as the agent reads it
+                    relative_from_step(msg, skip=ME)
+                    for o, e in zip(msg.observers, msg.estimators):
+                        with contextlib.suppress(M.MessageError):
+                            M.check_estimator_message(e, int(o), N_SATS)
 
     run.__name__ = f"message_{kind}"
     return run

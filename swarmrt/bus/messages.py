@@ -139,6 +139,7 @@ __all__ = [
     "encode",
     "decode",
     "validate",
+    "check_estimator_message",
     "check_key",
     "parse_key",
     "replace",
@@ -540,6 +541,29 @@ def _meas(m: MeasBatch, top: int) -> None:
 
 
 def _step_batches(m: StepBatches, top: int) -> None:
+    obs = _step_batches_rows(m, top)
+    if m.estimators and not _ci_states_sound(m.estimators):
+        for o, e in zip(obs, m.estimators):
+            _estimator_msg(f"estimators[{o}]", e, top, o)
+
+
+def _step_batches_shallow(m: StepBatches, top: int) -> None:
+    """A StepBatches for a receiver that reads its peers' estimator messages one by one
+    (an agent: its estimator reads a few of the n − 1, its graph neighbours'), checking
+    each as it reads it (:func:`check_estimator_message`); everything else in full. At
+    n = 100 checking the 99 messages up front was most of an agent's decoding, and the
+    world had checked each when its sender put it."""
+    _step_batches_rows(m, top)
+
+
+def check_estimator_message(e: EstimatorMessage, sender: int, n_sats: int | None = None) -> None:
+    """What :func:`decode` checks of one estimator message in a batch (sender ``sender``);
+    :class:`MessageError` naming the defect. For receivers of a shallow StepBatches."""
+    top = MAX_SAT_ID if n_sats is None else n_sats - 1
+    _estimator_msg(f"estimators[{sender}]", e, top, sender)
+
+
+def _step_batches_rows(m: StepBatches, top: int) -> list[int]:
     obs = list(m.observers)
     cnt = list(m.counts)
     if len(cnt) != len(obs):
@@ -558,11 +582,9 @@ def _step_batches(m: StepBatches, top: int) -> None:
         raise MessageError(f"target: satellite {int(rows[rows == tgt][0])} cannot measure itself")
     if len(m.estimators) not in (0, len(obs)):
         raise MessageError(f"estimators: {len(m.estimators)} messages for {len(obs)} observers")
-    if m.estimators and not _ci_states_sound(m.estimators):
-        for o, e in zip(obs, m.estimators):
-            _estimator_msg(f"estimators[{o}]", e, top, o)
     q, r, R = _columns(m, n)
     _MEMO.put(m, (rows, tgt, q, r, R))
+    return obs
 
 
 @functools.cache
@@ -930,7 +952,7 @@ _VALIDATORS: dict[str, Callable[[Any, int], None]] = {
     "links": _links,
     "rejoin": _rejoin,
 }
-_SHALLOW = {"est": _est_shallow}
+_SHALLOW: dict[str, Callable[[Any, int], None]] = {"est": _est_shallow, "batches": _step_batches_shallow}
 SHALLOW_KINDS = tuple(_SHALLOW)
 _KIND_OF = {cls: kind for kind, cls in MODELS.items()}
 
