@@ -21,12 +21,12 @@ demo: setup
 sim: setup
 	$(SWARM) sim scenarios/demo.yaml --out runs/sim
 
-# The house rules as tools (import contracts, ruff, mypy; scripts/check.sh), the image and
-# the Rust participants built (scripts/prebuild-tests.sh), then every test, slow and
-# container ones included (what CI runs).
+# The house rules as tools (import contracts, ruff, mypy; scripts/check.sh), then every
+# test, slow and container ones included (what CI runs). The image and the Rust participants
+# are built by the first test that needs them (a fixture, not timed as the test: func_only),
+# while the other worker runs the rest.
 test: setup
 	scripts/check.sh
-	scripts/prebuild-tests.sh
 	.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=30
 
 # Skip the slow, rendering and container tests while iterating.

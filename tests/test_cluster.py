@@ -350,9 +350,23 @@ def test_cluster_characterize_gives_the_same_samples_as_in_process(cluster, tmp_
 # --- the compose profile: scheduler and workers in containers of the project's image -----
 
 
+@pytest.fixture(scope="module")
+def cluster_image() -> str:
+    """The project's image, built or refreshed (scripts/docker-build.sh: a no-op when it is
+    current). A fixture, so that a cold build is not timed as the test (func_only below)."""
+    import shutil
+
+    if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_output=True).returncode != 0:
+        pytest.skip("no docker daemon")
+    b = subprocess.run([str(ROOT / "scripts" / "docker-build.sh")], capture_output=True, text=True, timeout=3600)
+    assert b.returncode == 0, b.stdout[-3000:] + b.stderr[-3000:]
+    return "swarm-coloc:latest"
+
+
 @pytest.mark.docker
 @pytest.mark.integration
-def test_compose_cluster_profile_runs_a_study(tmp_path):
+@pytest.mark.timeout(600, func_only=True)  # a cold image build (~10 min) is the fixture's, bounded by its own timeout
+def test_compose_cluster_profile_runs_a_study(tmp_path, cluster_image):
     """`docker compose --profile cluster up -d dask-scheduler dask-worker`: a scheduler and
     two workers from swarm-coloc:latest; a tiny MC from the host against it gives the local
     pool's numbers; the default services are not started, the keys service neither (the
@@ -363,16 +377,12 @@ def test_compose_cluster_profile_runs_a_study(tmp_path):
     from swarm.studies.executor import connect
     from swarm.supervise.launch import free_port
 
-    if shutil.which("docker") is None or subprocess.run(["docker", "info"], capture_output=True).returncode != 0:
-        pytest.skip("no docker daemon")
     if subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
         compose = ["docker", "compose"]
     elif shutil.which("docker-compose"):
         compose = ["docker-compose"]
     else:
         pytest.skip("neither `docker compose` nor `docker-compose` is installed")
-    b = subprocess.run([str(ROOT / "scripts" / "docker-build.sh")], capture_output=True, text=True, timeout=3600)
-    assert b.returncode == 0, b.stdout[-3000:] + b.stderr[-3000:]
     port = free_port()
     project = f"swc{uuid.uuid4().hex[:8]}"
     keys = tmp_path / "keys"  # does not exist, and must not after

@@ -18,7 +18,9 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-pytestmark = [pytest.mark.docker, pytest.mark.integration]
+# func_only: the image fixture's build (cold: ~10 min, bounded by its own timeout) is not
+# timed as the first test that asks for it.
+pytestmark = [pytest.mark.docker, pytest.mark.integration, pytest.mark.timeout(600, func_only=True)]
 
 
 def _compose_cmd() -> list[str]:
@@ -300,8 +302,16 @@ def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     assert np.isfinite(rec.t).all()
 
 
+@pytest.fixture(scope="module")
+def rust_agent_exe() -> Path:
+    """The Rust agent's executable (cargo, into the target directory the Rust tests share)."""
+    from rust_build import build
+
+    return build("rust-agent", "swarm-rust-agent")
+
+
 @pytest.mark.slow
-def test_rust_agent_flies_a_satellite_in_compose(image, tmp_path):
+def test_rust_agent_flies_a_satellite_in_compose(image, rust_agent_exe, tmp_path):
     """compose.rust.yaml: satellite 1 flown by the Rust agent (participants/rust-agent; its own
     credential, the agent contract's environment from swarm.supervise.exec_agent), satellites
     0, 2 and 3 by Python replicas that claim theirs (the world never hands out satellite 1);
@@ -309,9 +319,7 @@ def test_rust_agent_flies_a_satellite_in_compose(image, tmp_path):
     arithmetic differs from numpy's at round-off: tests/test_rust_agent.py)."""
     import math
 
-    from rust_build import build
-
-    exe = build("rust-agent", "swarm-rust-agent")
+    exe = rust_agent_exe
     sets = "duration_s=15"
     c = Compose(tmp_path / "out", {"SWARM_N": "4", "SWARM_N_LOCAL": "3", "SWARM_RUST_ID": "1", "SWARM_RUST_AGENT": str(exe),
                                    "SWARM_SET_EXTRA": sets}, files=("compose.yaml", "compose.rust.yaml"))

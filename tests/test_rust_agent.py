@@ -32,7 +32,8 @@ from swarmrt.bus import messages as M
 from swarmrt.bus.session import BusConfig
 from swarmrt.scenario_files import load_scenario
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# func_only: a cold cargo build (minutes) is the fixture's, not the first test's.
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(600, func_only=True)]
 
 SAT = 1  # the satellite the Rust agent flies
 SETS = ["estimator.kind=ci"]

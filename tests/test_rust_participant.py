@@ -17,7 +17,8 @@ from swarm_harness import run_swarm, scenario
 
 from swarmrt.bus import messages as M
 
-pytestmark = [pytest.mark.integration, pytest.mark.slow]
+# func_only: a cold cargo build (minutes) is the fixture's, not the first test's.
+pytestmark = [pytest.mark.integration, pytest.mark.slow, pytest.mark.timeout(600, func_only=True)]
 
 
 @pytest.fixture(scope="module")
