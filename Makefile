@@ -22,11 +22,12 @@ sim: setup
 	$(SWARM) sim scenarios/demo.yaml --out runs/sim
 
 # The house rules as tools (import contracts, ruff, mypy; scripts/check.sh), then every
-# test, slow and container ones included (what CI runs; scripts/test.sh). The image builds
-# in the background from the start; the Rust participants are built by the first test that
-# needs them (fixtures, not timed as the test: func_only).
+# test, slow and container ones included (what CI runs). The image and the Rust participants
+# are built by the first test that needs them (a fixture, not timed as the test: func_only),
+# while the other worker runs the rest.
 test: setup
-	scripts/test.sh
+	scripts/check.sh
+	.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=30
 
 # Skip the slow, rendering and container tests while iterating.
 test-fast: setup

@@ -67,7 +67,6 @@ if [ "$OFFLINE" = "1" ]; then
   stamp_want=$(cat pyproject.toml constraints.txt docker/requirements.py | sha256sum | cut -d' ' -f1)-py$TARGET_PY-glibc2.$TARGET_GLIBC_MINOR
   if [ ! -f "$WHEELS/.stamp" ] || [ "$(cat "$WHEELS/.stamp")" != "$stamp_want" ]; then
     log "preparing the wheelhouse in $WHEELS"
-    rm -rf docker/.cache/wheels.new.*  # a preparation an earlier, stopped build left (we hold the lock)
     plat=()
     for i in $(seq 17 "$TARGET_GLIBC_MINOR"); do plat+=(--platform "manylinux_2_${i}_x86_64"); done
     plat+=(--platform manylinux2014_x86_64 --platform manylinux2010_x86_64 --platform manylinux1_x86_64)
