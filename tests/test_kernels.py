@@ -167,7 +167,7 @@ def test_compiled_ci_weight_is_scipys_bounded_search(split):
     tolerance (the two costs differ at round-off, which may move a Brent step), and its
     cost there is scipy's minimum up to round-off; a matrix that is not positive-definite
     is refused as numpy's Cholesky refuses it."""
-    from swarmcore.estimators.ci import _det_cost, _whitened, ci_weight
+    from swarmcore.estimators.ci import _logdet_cost, _whitened, ci_weight
 
     rng = np.random.default_rng(7)
     gaps = []
@@ -178,7 +178,7 @@ def test_compiled_ci_weight_is_scipys_bounded_search(split):
         R = B @ B.T * 10 ** rng.uniform(-4, 0) + 1e-6 * np.eye(6 * k)
         C_p = C @ C.T * 10 ** rng.uniform(-4, 1)
         W, lam = _whitened(P, rng.normal(size=(6 * k, 12)), R, C_p, split)
-        cost = _det_cost(W, lam, split)
+        cost = _logdet_cost(W, lam, split)
         w_c, w_s = kernels.ci_det_weight(W, lam, split), ci_weight(cost)
         assert 1e-4 <= w_c <= 1 - 1e-4
         gaps.append(abs(w_c - w_s))

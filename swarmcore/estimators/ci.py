@@ -127,8 +127,9 @@ def _whitened(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray, spl
     return W, np.zeros(W.shape[0])
 
 
-def _logdet_cost(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray, split: bool):
-    """``cost(ω) = log det P⁺(ω) − log det P`` of the CI update, evaluated in 12×12.
+def _logdet_cost(W: np.ndarray, lam: np.ndarray, split: bool):
+    """``cost(ω) = log det P⁺(ω) − log det P`` of the CI update, evaluated in 12×12, of the
+    whitened ``(Ŵ, Λ)`` of :func:`_whitened`.
 
     With ``C(ω)`` the fused measurement's noise (split: ``R + C_p/(1−ω)``; plain:
     ``(R + C_p)/(1−ω)``), Sylvester's identity gives
@@ -139,11 +140,6 @@ def _logdet_cost(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray, 
     ``C̃ = I/(1−ω)``). The same function of ω as the 6m×6m form, at a 12×12 Cholesky a
     call (the search calls it ~30 times a step). :func:`swarmcore.kernels.ci_det_weight`
     is the same cost and search compiled; this is its numpy twin."""
-    return _det_cost(*_whitened(P, Ho, R, C_p, split), split)
-
-
-def _det_cost(W: np.ndarray, lam: np.ndarray, split: bool):
-    """:func:`_logdet_cost` of the whitened ``(Ŵ, Λ)``."""
     eye = np.eye(W.shape[1])
 
     def cost(w: float) -> float:
@@ -355,7 +351,7 @@ class CIEstimator(OwnStateEstimator):
         if self.params.criterion == "det":  # type: ignore[attr-defined]
             W, lam = _whitened(e.P, Ho, R, C_p, split)
             w_c = kernels.ci_det_weight(W, lam, split)
-            w = w_c if w_c is not None else ci_weight(_det_cost(W, lam, split))
+            w = w_c if w_c is not None else ci_weight(_logdet_cost(W, lam, split))
         else:
             def trace_cost(w: float) -> float:
                 Pw = e.P / w
