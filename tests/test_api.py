@@ -116,6 +116,14 @@ def test_run_reads_the_recording_into_the_same_result(tmp_path):
         dist = swarm.run(sc, out=tmp_path / "run", live=f"127.0.0.1:{taken.getsockname()[1]}", log=said.append)
     assert dist.outcome is not None and dist.outcome.exit_code == 0 and dist.source == "run"
     assert any("live view: not serving" in s for s in said), said
+    # The run's processes went with it, its agents' fork server too (the standard library
+    # would otherwise keep it for the life of this process). Not counted: multiprocessing's
+    # resource tracker, which is this process's own (it unlinks what the process leaks).
+    import psutil
+
+    left = [c for p in psutil.Process().children(recursive=True) if p.is_running() and p.status() != psutil.STATUS_ZOMBIE
+            and "multiprocessing.resource_tracker" not in " ".join(c := p.cmdline())]
+    assert not left, left
     sim = swarm.simulate(sc)
     for name in ("errors", "covariances", "nees"):
         a, b = getattr(dist, name), getattr(sim, name)

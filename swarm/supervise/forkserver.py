@@ -134,3 +134,15 @@ class AgentForkServer:
                              name=f"sat_agent {' '.join(argv[:2])}", daemon=False)
         p.start()
         return ForkedAgent(p)
+
+    def close(self) -> None:
+        """Stop the fork server. The standard library keeps one per process for the life of
+        the process, so in a long-lived caller (a notebook, a test session, ``swarm.run``
+        called twice) it would outlive the run that started it; the run stops it instead.
+        ``multiprocessing`` has no public call for it: ``ForkServer._stop`` is what its own
+        tests use (present in every Python this project supports, 3.11 on)."""
+        from multiprocessing import forkserver
+
+        server = getattr(forkserver, "_forkserver", None)
+        if server is not None and getattr(server, "_forkserver_pid", None) is not None:
+            server._stop()

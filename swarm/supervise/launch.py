@@ -616,6 +616,9 @@ class LocalSwarm:
             self.node.close()
             self.node = None
         self._terminate(self.router_names, _INTERRUPT_GRACE_S)
+        if self._forkserver is not None:  # every agent it forked is stopped above
+            self._forkserver.close()
+            self._forkserver = None
         if self.keys_dir is not None:
             # A run's credentials live as long as the run.
             import shutil
