@@ -22,17 +22,18 @@ sim: setup
 	$(SWARM) sim scenarios/demo.yaml --out runs/sim
 
 # The house rules as tools (import contracts, ruff, mypy; scripts/check.sh), then every
-# test, slow and container ones included (what CI runs). The image and the Rust participants
-# are built by the first test that needs them (a fixture, not timed as the test: func_only),
-# while the other worker runs the rest.
+# test, slow and container ones included (what CI runs), on two workers: the container tests
+# as one group on one worker (its first test builds the image), the other files whole and
+# longest first (tests/conftest.py; tests/durations.json, refreshed from runs/junit.xml by
+# scripts/test_durations.py).
 test: setup
 	scripts/check.sh
-	.venv/bin/python -m pytest -q -n 2 --dist loadfile --durations=30
+	.venv/bin/python -m pytest -q -n 2 --dist loadgroup --no-loadscope-reorder --durations=30 --junitxml=runs/junit.xml
 
 # Skip the slow, rendering and container tests while iterating.
 test-fast: setup
 	scripts/check.sh
-	.venv/bin/python -m pytest -q -n 2 --dist loadfile -m "not slow and not docker"
+	.venv/bin/python -m pytest -q -n 2 --dist loadgroup --no-loadscope-reorder -m "not slow and not docker"
 
 # Only the house rules: import contracts, the linter and the type checker.
 check: setup
@@ -41,15 +42,19 @@ check: setup
 bench: setup
 	.venv/bin/swarm bench filter --sats 3,6,12,25,50,100 --graph complete --out runs/bench/filter.json
 
-# The chaos soak: 200 fault episodes (agents killed, stopped and restarted, cameras off,
-# dropped messages, router restarts, one of two routers killed and restarted) over 1800
-# simulated seconds of the demo swarm at n = 10 on two meshed routers, every invariant
-# checked (README "Chaos campaigns"); runs/soak/chaos.json.
+# The chaos soak: 200 fault episodes of every kind a local run has (agents killed, stopped
+# and restarted, cameras off, dropped messages, the selector killed, router restarts, one of
+# two meshed routers killed and restarted, stalls of every role, dead, slow and lossy links
+# and satellites cut off) over 1800 simulated seconds of the demo swarm at n = 10 with a
+# greedy selector and the radio's link model on, every invariant checked (README "Chaos
+# campaigns"); runs/soak/chaos.json.
 SOAK_FAULTS ?= 200
 SOAK_DURATION ?= 1800
 SOAK_SATS ?= 10
 soak: setup
 	.venv/bin/swarm chaos scenarios/demo.yaml --faults $(SOAK_FAULTS) --duration $(SOAK_DURATION) --set n_sats=$(SOAK_SATS) \
+		--set selection.strategy=greedy --set selection.budget=20 \
+		--set links.enabled=true --set links.latency.speed_of_light=false \
 		--routers 2 --seed 1 --out runs/soak
 
 # The container image (makes the local base image and the wheelhouse when needed).

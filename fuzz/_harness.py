@@ -8,12 +8,13 @@ runs them all and reports.
 
 from __future__ import annotations
 
+import importlib
 import os
 import shlex
 import sys
 import warnings
 
-import atheris
+import atheris  # type: ignore[import-untyped]  # no types, no stub package (fuzz/ is outside mypy's files)
 
 # Libraries first, uninstrumented (only our modules' branches guide the fuzzer; numba's
 # compiled checks must stay plain Python bytecode for numba to compile them).
@@ -28,16 +29,23 @@ if ROOT not in sys.path:
 NEVER = ["swarmrt.bus.fastcheck", "swarmcore.kernels", "swarmcore.mekf"]  # numba-compiled: left as they are
 
 
-def fuzz(name: str, argv: list[str], include: tuple[str, ...] = (), own: tuple[str, ...] = ()) -> None:
+def fuzz(name: str, argv: list[str], include: tuple[str, ...] = (), own: tuple[str, ...] = (),
+         imports: tuple[str, ...] = ()) -> None:
     """Fuzz target ``name`` with atheris; ``include``: more packages to instrument (beyond
     swarmrt and swarm); ``own``: the harness's own options (what libFuzzer must repeat when it
-    starts the harness again itself, as ``-merge=1`` and ``-fork`` do)."""
+    starts the harness again itself, as ``-merge=1`` and ``-fork`` do); ``imports``: more
+    modules the target imports when first called (see below)."""
     with atheris.instrument_imports(include=["swarmrt", "swarm", *include], exclude=NEVER):
-        # What the targets import when first called: instrumented too.
+        # What the targets import when first called: instrumented too. Only a module
+        # imported inside this block is: one the target imports at its first call is plain
+        # bytecode, its branches invisible to the fuzzer.
         import swarmrt.netem
         import swarmrt.scenario_files
         import swarmrt.security  # noqa: F401
         from swarm.bench.fuzz_targets import target
+
+        for module in imports:
+            importlib.import_module(module)
 
         fn = target(name)
     # numpy's warnings are findings too: an overflowing cast, an invalid value.

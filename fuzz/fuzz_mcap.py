@@ -6,5 +6,9 @@ import sys
 
 from _harness import fuzz
 
+# What mcap_target imports at its first call (and mcaplog when it first reads a file): the
+# reader, the loader and the mcap library itself, instrumented only if imported by fuzz().
+IMPORTS = ("swarm.record.mcaplog", "swarm.record.recording", "mcap.reader", "mcap.stream_reader")
+
 if __name__ == "__main__":
-    fuzz("mcap", sys.argv[1:], include=("mcap",))
+    fuzz("mcap", sys.argv[1:], include=("mcap",), imports=IMPORTS)

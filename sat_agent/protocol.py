@@ -118,6 +118,7 @@ class AgentProtocol:
         self.done = False
         self.world_seen = False
         self.outbox = Outbox(skip_keys=("/fault",))  # this step's messages, sent again when the bus comes back
+        self._served = None  # what cov/<i> serves: the estimate at the end of the last step (serve_cov)
 
     @property
     def est(self):
@@ -126,9 +127,14 @@ class AgentProtocol:
 
     # -- queries and events -----------------------------------------------------
     def serve_cov(self, key: str):
-        """``cov/<i>``: what this agent's estimator serves a restarted peer (the full
-        estimate, for ``full``; an immutable value: safe to read from the bus's thread)."""
-        est = self.est
+        """``cov/<i>``: what this agent's estimator serves a restarted peer and the selector
+        (the full estimate, for ``full``): its estimate as of the end of its last step (or
+        its prior, before its first), never the prior of a step under way. The selector plans
+        step k from the posterior of k − 1, as the simulator does; the estimate of the moment
+        was the prior of k whenever the clock of k got here before the selector's query (a
+        router restart's resends, a loaded machine: the greedy schedule then differed from the
+        simulator's; CI saw it). An immutable value: safe to read from the bus's thread."""
+        est = self._served
         if est is None:
             return None
         return full_estimate_msg(est, run=self.run_id, sender=self.name, own=self.i)
@@ -273,6 +279,7 @@ class AgentProtocol:
                 self.started = True
                 self.last_step = self.estimator.step_index
                 self.log.info("restarted from agent %d's estimate at step %d", msg.own, self.estimator.step_index)
+        self._served = self.est
         yield Send(self.keys.est(self.i), view_msg(self.estimator.view(), run=self.run_id, sender=self.name, phase="prior",
                                                     estimator=self.estimator.kind))
 
@@ -323,6 +330,13 @@ class AgentProtocol:
         self.outbox.clear()
         clock = self.clocks.pop(k)
         t = clock.t_s
+        if not self.started and self.i not in clock.live_agents:
+            # Restarted cold, and this clock went out before the world counted us live again
+            # (our health report crossed it): no sensors of this step will come to start
+            # from. Say again that we are here and start at a step that lists us (a cold
+            # start tried here failed for want of a star tracker reading: CI saw it, loaded).
+            yield Send(self.keys.health(self.i), self._health(k, t))
+            return
         # Lockstep: what the world sends of the step may be held up by a stalled world
         # until its lease runs out (then the wait pauses while its token is held).
         timeout = world_wait_s(em) if em.time_mode == "lockstep" else 0.8 * self.sc.dt_s / em.realtime_factor
@@ -366,6 +380,7 @@ class AgentProtocol:
         else:
             report = e.step(inputs)
         self.last_step = k
+        self._served = self.est
         ms = (time.perf_counter() - t0) * 1e3 + ms_pred + (ms_own if self.rendered else 0.0)
         if report is not None:
             self.late_used += report.late_used

@@ -22,7 +22,8 @@
 #
 # Usage: scripts/docker-build.sh
 #   IMAGE=swarm-coloc:latest  BASE_IMAGE=debian:bookworm-slim
-#   WHEELS_PORT=0 (loopback port of the wheelhouse server; 0: any free one)  OFFLINE=1
+#   WHEELS_PORT=38517 (loopback port of the wheelhouse server: the first free one of it
+#   and the nine after it, else any free one)  OFFLINE=1
 #   DOCKER_BUILD_ARGS="--no-cache ..." (extra arguments for docker build)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -31,9 +32,13 @@ IMAGE=${IMAGE:-swarm-coloc:latest}
 BASE_IMAGE=${BASE_IMAGE:-debian:bookworm-slim}
 OFFLINE=${OFFLINE:-1}
 WHEELS=docker/.cache/wheels
-# Fixed by default: the port is a build argument, and a new value would
-# invalidate the cached dependency layer.
-WHEELS_PORT=${WHEELS_PORT:-0}  # 0: a free port the kernel picks
+# The port is part of a build argument (PIP_FIND_LINKS), and a build argument whose value
+# changed invalidates the cache of every RUN after it: a port picked afresh by the kernel
+# rebuilt the 2 GB dependency layer at every call (measured: the image rebuilt inside the
+# first compose test, 8 min into a CI run, after the image test's fixture had built it). So
+# the same port every time: WHEELS_PORT, or the next of ten when it is held (the cache then
+# misses once); only when all ten are held, any free port.
+WHEELS_PORT=${WHEELS_PORT:-38517}
 # The interpreter of the image (Debian bookworm): wheels are picked for it,
 # whatever Python the host has.
 TARGET_PY=3.11
@@ -85,23 +90,29 @@ if [ "$OFFLINE" = "1" ]; then
     rm -rf "$WHEELS"; mv "$tmp" "$WHEELS"
     log "wheelhouse: $(ls "$WHEELS" | wc -l) files, $(du -sh "$WHEELS" | cut -f1)"
   fi
-  # Serve it on loopback for the build (the build's RUN steps share the host's
-  # network namespace through --network host), on a port the kernel picks (a fixed
-  # one may be held by anything) unless WHEELS_PORT names one. The server reads its
-  # stdin, a pipe from this script, and exits at its end: whatever ends this script,
-  # a signal or SIGKILL included, the server goes with it.
+  # Serve it on loopback for the build (the build's RUN steps share the host's network
+  # namespace through --network host), on the first free port of WHEELS_PORT and the nine
+  # after it (above: why a fixed one), else one the kernel picks. The server reads its
+  # stdin, a pipe from this script, and exits at its end: whatever ends this script, a
+  # signal or SIGKILL included, the server goes with it.
   coproc WHEELSRV { "$PY" -c '
 import functools, http.server, sys, threading
 handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=sys.argv[1])
 handler.log_message = lambda *a: None
-srv = http.server.ThreadingHTTPServer(("127.0.0.1", int(sys.argv[2])), handler)
+first = int(sys.argv[2])
+for port in [*range(first, first + 10), 0] if first else [0]:
+    try:
+        srv = http.server.ThreadingHTTPServer(("127.0.0.1", port), handler)
+        break
+    except OSError:
+        continue
 print(srv.server_address[1], flush=True)
 threading.Thread(target=srv.serve_forever, daemon=True).start()
 sys.stdin.read()
 ' "$WHEELS" "$WHEELS_PORT" 2>/dev/null 9>&-; }
   server_pid=$WHEELSRV_PID
   if ! read -r -t 30 WHEELS_PORT <&"${WHEELSRV[0]}"; then
-    log "the wheelhouse server did not start (port ${WHEELS_PORT} on 127.0.0.1 busy? set WHEELS_PORT=0)"; exit 1
+    log "the wheelhouse server did not start"; exit 1
   fi
   log "wheelhouse served on 127.0.0.1:$WHEELS_PORT"
   build_args+=(--network host --build-arg "PIP_FIND_LINKS=http://127.0.0.1:$WHEELS_PORT/" --build-arg PIP_NO_INDEX=1)

@@ -50,6 +50,7 @@ class SelectorProtocol:
         self._asked_first: int | None = None  # the agent last asked for its step-0 prior
         self.world_seen = False
         self.outbox = Outbox()  # the latest two selections, sent again when the bus comes back
+        self._clock_only: set[int] = set()  # steps known plannable from the world's clock alone (lockstep)
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
@@ -68,8 +69,14 @@ class SelectorProtocol:
             m = ev.msg
             plan_k = m.k if m.phase == "prior" else m.k + 1
             self.next_plan[m.own] = max(plan_k, self.next_plan.get(m.own, -1))
+            self._clock_only.discard(plan_k)
         elif ev.kind == "health":
             self.camera_ok[ev.msg.sat] = ev.msg.camera_ok
+            # An agent's health report follows its update of step k (a drop fault loses its
+            # estimate, never its health): step k + 1 can be planned from what it serves. With
+            # the estimate alone a dropped one left the world waiting a step timeout for a plan.
+            self.next_plan[ev.msg.sat] = max(int(ev.msg.k) + 1, self.next_plan.get(ev.msg.sat, -1))
+            self._clock_only.discard(int(ev.msg.k) + 1)
         elif ev.kind == "fault":
             f: Fault = ev.msg
             if f.action == "camera" and f.phase == "command" and f.target is not None and f.camera is not None:
@@ -77,6 +84,18 @@ class SelectorProtocol:
         elif ev.kind == "clock":
             self.clock_seen = True
             self.done = self.done or ev.msg.done
+            k = int(ev.msg.k)
+            ref = self.ref_agent()
+            lockstep = self.sc.emulator.time_mode == "lockstep" and not ev.msg.done
+            if lockstep and k >= 1 and ref is not None and self.next_plan.get(ref, -1) < k:
+                # Lockstep: the world puts the clock of k only once every live agent has finished
+                # k − 1, and then waits for the selection of k. So the clock alone says step k can
+                # be planned from what the reference agent serves, even when its estimate and
+                # health of k − 1 never reached us (sent into a router's restart and resent
+                # before our subscriptions were back: CI saw the world wait 30 s and fall back).
+                # What it serves must then be of k − 1 at least (see plan).
+                self.next_plan[ref] = k
+                self._clock_only.add(k)
         return []
 
     def plan(self, k: int, ref: int, msg=None):
@@ -101,6 +120,11 @@ class SelectorProtocol:
         deadline = self.clock() + em.step_timeout_s
         while msg is None:
             msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
+            if msg is not None and k in self._clock_only and msg.k < k - 1:
+                # Planned on the clock alone, and the reference is still behind (a world that
+                # moved on without its estimate: stalled, say): not its estimate of k − 1 yet.
+                msg = None
+                yield Wait(lambda: self.done or k not in self._clock_only, 0.2)
             if msg is None and (self.clock() >= deadline or self.done):
                 break
         if msg is None:

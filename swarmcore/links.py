@@ -202,6 +202,7 @@ class LinkModel:
 
     def __post_init__(self) -> None:
         self.p = _resolve(self.links, self.n)
+        self._p0 = _resolve(self.links, self.n)  # the scenario's parameters, which a link fault's restore gives back
         self.rate_Bps = self.links.rate_Bps
         self.counters = LinkCounters.zeros(self.n)
         self._bad = np.zeros((self.n, self.n), dtype=bool)
@@ -235,6 +236,42 @@ class LinkModel:
             self._bad = u < L
         else:
             self._bad = np.where(self._bad, u >= self.p.ge_r, u < self.p.ge_p)
+
+    # -- link faults (the world carries them out: FaultSpec action "link") ----------------
+    def _fault_links(self, i: int, j: int | None) -> tuple[np.ndarray, np.ndarray]:
+        """(senders, receivers) of the directed links a fault on ``i`` (→ ``j``) acts on: the
+        one link i → j, or (``j`` None) every link of i both ways."""
+        if not 0 <= i < self.n or (j is not None and not 0 <= j < self.n) or i == j:
+            raise ValueError(f"link fault on {i} -> {j}: not a link of this {self.n}-satellite swarm")
+        if j is not None:
+            return np.array([i]), np.array([j])
+        others = np.array([m for m in range(self.n) if m != i])
+        return np.r_[np.full(len(others), i), others], np.r_[others, np.full(len(others), i)]
+
+    def impair(self, i: int, j: int | None = None, *, dead: bool = False, delay_s: float | None = None,
+               loss_rate: float | None = None) -> int:
+        """A link fault from now on (what the scenario's overrides do, at run time): the
+        link(s) made dead, ``delay_s`` added to their fixed latency (to the scenario's, not
+        to an earlier fault's), their loss made Bernoulli at ``loss_rate``. Copies already
+        on their way keep their fate. Returns the number of directed links."""
+        a, b = self._fault_links(i, j)
+        if dead:
+            self.p.dead[a, b] = True
+            self._reach[a, b] = False  # at once: nothing more is sent on them this step
+        if delay_s is not None:
+            self.p.fixed_s[a, b] = self._p0.fixed_s[a, b] + float(delay_s)
+        if loss_rate is not None:
+            self.p.loss_kind[a, b] = _LOSS["bernoulli"]
+            self.p.loss_rate[a, b] = float(loss_rate)
+        return len(a)
+
+    def restore(self, i: int, j: int | None = None) -> int:
+        """Give the link(s) back the scenario's parameters (undo every fault on them); a link
+        brought back to life is reachable again from the next step (range, line of sight)."""
+        a, b = self._fault_links(i, j)
+        for name in _Resolved.__dataclass_fields__:
+            getattr(self.p, name)[a, b] = getattr(self._p0, name)[a, b]
+        return len(a)
 
     def reachable(self, i: int, j: int) -> bool:
         return bool(self._reach[i, j])

@@ -447,6 +447,12 @@ FaultAction = Literal[
     "netem",
     "kill-router",
     "restart-router",
+    "stall-agent",
+    "stall-world",
+    "stall-selector",
+    "stall-recorder",
+    "stall-router",
+    "link",
 ]
 FAULT_ACTIONS: tuple[str, ...] = get_args(FaultAction)
 #: Faults on an agent's process, carried out by the supervisor (``swarm run``) or Docker.
@@ -459,10 +465,22 @@ NETWORK_FAULTS = ("partition", "heal", "netem")
 #: Faults on the bus itself: a Zenoh router's process (target: the router's index, 0 by
 #: default; ``swarm run --routers 2`` has two). Carried out by the supervisor or Docker.
 ROUTER_FAULTS = ("kill-router", "restart-router")
+#: A role's process stopped (SIGSTOP; ``docker pause`` under compose) for ``down_s`` wall
+#: seconds, then continued (SIGCONT; ``docker unpause``): a stall, not a death. Its sockets
+#: stay open; past the Zenoh lease (10 s) its router drops its session. The target of
+#: ``stall-agent`` is the satellite, of ``stall-router`` the router's index (0 by default).
+STALL_FAULTS = ("stall-agent", "stall-world", "stall-selector", "stall-recorder", "stall-router")
 #: Faults some process other than the bus roles carries out (supervisor, Docker).
-PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS + ROUTER_FAULTS
+PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS + ROUTER_FAULTS + STALL_FAULTS
+#: A fault of the radio (the world's link model; ``links.enabled`` runs only): the directed
+#: link ``target → peer`` (no peer: every link of ``target``, both ways) made dead
+#: (``state: off``), slower (``delay_s`` added to its fixed latency) or lossier (``rate``, a
+#: Bernoulli loss rate), or given back the scenario's parameters (``state: on``).
+RADIO_FAULTS = ("link",)
 #: Faults that name a satellite.
-TARGETED_FAULTS = (*AGENT_PROCESS_FAULTS, "camera", "drop", *NETWORK_FAULTS)
+TARGETED_FAULTS = (*AGENT_PROCESS_FAULTS, "camera", "drop", *NETWORK_FAULTS, "stall-agent", *RADIO_FAULTS)
+#: Faults that take ``down_s``: how long the router stays down, or the stall lasts (wall s).
+TIMED_FAULTS = ("restart-router", *STALL_FAULTS)
 
 
 class FaultSpec(_Model):
@@ -473,11 +491,15 @@ class FaultSpec(_Model):
     target: int | None = Field(None, ge=0, description="satellite id (agent and camera faults)")
     camera: int | None = Field(None, ge=0, le=5, description="camera index 0..5 (+z,+x,+y,−x,−y,−z)")
     state: Literal["on", "off"] | None = None
-    rate: float | None = Field(None, ge=0.0, le=1.0, description="drop: fraction of outgoing messages lost")
+    rate: float | None = Field(None, ge=0.0, le=1.0, description="drop: fraction of outgoing messages lost; link: its "
+                               "loss rate (Bernoulli) from now on")
     down_s: float | None = Field(
         None, ge=0.0, le=3600.0, description="restart-router: how long (wall s) the router stays down before a new one "
-        "starts on the same endpoint (default 0)"
+        "starts on the same endpoint (default 0); stall-*: how long (wall s) the process stays stopped (required)"
     )
+    peer: int | None = Field(None, ge=0, description="link: the receiving satellite of the link target → peer (absent: "
+                             "every link of target, both ways)")
+    delay_s: float | None = Field(None, ge=0.0, le=3600.0, description="link: latency (s) added to its fixed latency")
 
     @model_validator(mode="after")
     def _complete(self):
@@ -489,8 +511,23 @@ class FaultSpec(_Model):
             raise ValueError("action camera needs camera (0..5) and state (on|off)")
         if self.action == "drop" and self.rate is None:
             raise ValueError("action drop needs rate (0..1)")
-        if self.down_s is not None and self.action != "restart-router":
-            raise ValueError("down_s is for action restart-router")
+        if self.rate is not None and self.action not in ("drop", "link"):
+            raise ValueError("rate is for actions drop and link")
+        if (self.peer is not None or self.delay_s is not None) and self.action != "link":
+            raise ValueError("peer and delay_s are for action link")
+        if self.action == "link":
+            if self.state is None and self.delay_s is None and self.rate is None:
+                raise ValueError("action link needs state (off: dead, on: the scenario's parameters back), delay_s or rate")
+            if self.state == "on" and (self.delay_s is not None or self.rate is not None):
+                raise ValueError("action link with state on gives the link back as the scenario has it: no delay_s or rate")
+            if self.peer is not None and self.peer == self.target:
+                raise ValueError(f"peer: satellite {self.peer} has no link to itself")
+        elif self.state is not None and self.action != "camera":
+            raise ValueError("state is for actions camera and link")
+        if self.down_s is not None and self.action not in TIMED_FAULTS:
+            raise ValueError(f"down_s is for actions {', '.join(TIMED_FAULTS)}")
+        if self.action in STALL_FAULTS and not self.down_s:
+            raise ValueError(f"action {self.action} needs down_s > 0 (how long the process stays stopped, wall s)")
         return self
 
 
@@ -507,7 +544,10 @@ class Emulator(_Model):
         "(None: as fast as the agents allow); for demos and for faults typed by hand"
     )
     step_timeout_s: PosFloat = Field(10.0, description="lockstep: longest wait for a live peer's message")
-    select_timeout_s: PosFloat = Field(2.0, description="longest wait for the selector before falling back")
+    select_timeout_s: PosFloat = Field(
+        2.0, description="free-running: longest wait for the selector before falling back (lockstep waits for a live "
+        "selector as for a live agent: step_timeout_s plus the bus lease; a selector gone is replaced at once)"
+    )
     startup_timeout_s: PosFloat = Field(120.0, description="longest wait for every process to come up")
     flush_every_s: PosFloat = Field(1.0, description="recorder: flush to disk at least this often (sim time)")
     record_images: bool = Field(
@@ -665,4 +705,9 @@ class Scenario(_Model):
         for idx, f in enumerate(self.faults):
             if f.target is not None and f.target >= n:
                 raise ValueError(f"faults.{idx}.target: {f.target} is not a satellite id (0..{n - 1})")
+            if f.peer is not None and f.peer >= n:
+                raise ValueError(f"faults.{idx}.peer: {f.peer} is not a satellite id (0..{n - 1})")
+            if f.action in RADIO_FAULTS and not self.links.enabled:
+                raise ValueError(f"faults.{idx}.action: {f.action} acts on the radio's link model, which this scenario does "
+                                 "not run (links.enabled: false)")
         return self

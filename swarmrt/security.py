@@ -246,6 +246,21 @@ def size_limits(run: str, n_sats: int, links: bool = False) -> list[dict]:
             for limit, ks in sorted(by_limit.items())]
 
 
+def rate_limits(run: str, n_sats: int, links: bool, hz: float) -> list[dict]:
+    """Zenoh's ``downsampling`` section that would cap every agent identity's puts at ``hz``
+    per key, on the way in (one rule per key: Zenoh keeps one state per rule and transport).
+    Not applied to a run unless ``SWARM_ROUTER_RATE_LIMIT_HZ`` is set, and then only to
+    measure why not (``scripts/flood_bench.py --rate-limit-hz``; README, "Size limits on the
+    router"): Zenoh's downsampler passes a message only if 1/hz has gone by since the last it
+    passed on that rule, with no allowance for a burst, and a role whose bus came back sends
+    its last two steps' messages back to back (:class:`swarmrt.protocol.Outbox`), so the
+    second, the step's own, is dropped however high ``hz`` is short of the burst's spacing."""
+    keys = Keys(run)
+    rules = [{"key_expr": key, "freq": float(hz)}
+             for i in range(n_sats) for key in sorted(grants(keys, f"agent-{i}", links=links).put)]
+    return [{"id": "rate", "flows": ["ingress"], "messages": ["put"], "rules": rules}]
+
+
 def load_router_keys(keys_dir: str | Path) -> tuple[dict, Path, set[str]]:
     """What the router reads of a keys directory: ``router.json`` (or its default), the
     password dictionary's path and the user names in it. A missing or malformed file fails
@@ -298,6 +313,8 @@ def apply_router_security(cfg, keys_dir: str | Path, run: str, n_sats: int, link
     cfg.insert_json5("access_control", json.dumps(acl_config(run, n_sats, links, peer_zids)))
     if os.environ.get("SWARM_ROUTER_SIZE_LIMITS", "on") != "off":  # off: only to measure what they do (scripts/flood_bench.py)
         cfg.insert_json5("low_pass_filter", json.dumps(size_limits(run, n_sats, links)))
+    if (hz := os.environ.get("SWARM_ROUTER_RATE_LIMIT_HZ")):  # only to measure what a rate limit breaks (rate_limits)
+        cfg.insert_json5("downsampling", json.dumps(rate_limits(run, n_sats, links, float(hz))))
     if (keys_dir / "mesh.json").is_file():  # what it shows a router it meshes with
         load_credential(keys_dir / "mesh.json").apply(cfg)
     applied = []

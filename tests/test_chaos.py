@@ -47,7 +47,7 @@ def test_schedule_rules_hold(seed, routers):
     max_down = max(1, (n - 1) // 2)
     for e in eps:
         assert e.kind in KINDS and 2 <= e.start <= e.end <= K - 1 - settle, e
-        assert (e.end == e.start) == (e.kind == "router"), e
+        assert (e.end == e.start) == (e.kind in ("router", "stall")), e
     for k in range(K):
         down = [e.target for e in eps if e.kind in ("kill-agent", "stop-agent") and e.start <= k <= e.end]
         assert len(down) <= max_down, (k, down)
@@ -56,8 +56,10 @@ def test_schedule_rules_hold(seed, routers):
             meet = e.start <= o.end + 1 and o.start <= e.end + 1
             if meet and e.target is not None and e.target == o.target:
                 assert "camera" in (e.kind, o.kind), (e, o)  # one process or drop episode per agent at a time
-            if meet and (e.kind == o.kind == "selector" or {e.kind, o.kind} <= {"router", "failover"}):
-                raise AssertionError((e, o))  # one selector episode, one router episode at a time
+            on_router = [x.kind in ("router", "failover") or (x.kind == "stall" and x.role == "router") for x in (e, o)]
+            on_selector = [x.kind == "selector" or (x.kind == "stall" and x.role == "selector") for x in (e, o)]
+            if meet and (all(on_selector) or all(on_router) or e.kind == o.kind == "stall"):
+                raise AssertionError((e, o))  # one selector episode, one router episode, one stall at a time
     if routers == 1:
         assert all(e.kind != "failover" for e in eps)
     # Written into the scenario: valid fault entries, in step order.
@@ -84,9 +86,80 @@ def test_failover_kills_one_of_two_routers_and_brings_it_back():
         assert e.end > e.start
     # One router: the schedule drawn before the kind existed, and no way to ask for it.
     one = draw_schedule(sc, 10, seed=3)
-    assert one == draw_schedule(sc, 10, seed=3, routers=1) and all(e.router is None for e in one)
+    assert one == draw_schedule(sc, 10, seed=3, routers=1)
+    assert all(e.router is None for e in one if e.kind != "stall") and all(e.router in (None, 0) for e in one)
     with pytest.raises(ValueError, match="--routers 2"):
         draw_schedule(sc, 2, seed=0, kinds=("failover",))
+
+
+def test_stalls_stop_each_role_for_a_survivable_time():
+    """A stall episode stops one role (SIGSTOP) for a time drawn from its role's range — short
+    enough to be survived with the numbers of an unstalled run — then continues it."""
+    from swarm.studies.chaos import STALL_ROLES
+
+    eps = [e for seed in range(30) for e in draw_schedule(_sc(), 8, seed=seed, routers=2, kinds=("stall",))]
+    assert {e.role for e in eps} == set(STALL_ROLES)
+    for e in eps:
+        lo, hi = STALL_ROLES[e.role]
+        assert e.start == e.end and lo <= e.down_s <= hi, e
+        (spec,) = e.specs()
+        assert (spec.action, spec.at_step, spec.down_s) == (f"stall-{e.role}", e.start, e.down_s)
+        assert spec.target == (e.target if e.role == "agent" else e.router if e.role == "router" else None), e
+        assert (e.target is not None) == (e.role == "agent") and (e.router is not None) == (e.role == "router"), e
+        assert e.affects(5) == (([e.target], [e.target]) if e.role == "agent" else (list(range(5)), [])), e
+    # No selector, no selector stall.
+    assert all(e.role != "selector" for seed in range(10)
+               for e in draw_schedule(_sc(selection={"strategy": "none"}), 8, seed=seed, kinds=("stall",)))
+
+
+def test_link_episodes_impair_one_link_or_cut_a_satellite_off_and_give_it_back():
+    sc = _sc(links={"enabled": True})
+    eps = [e for seed in range(20) for e in draw_schedule(sc, 8, seed=seed, kinds=("link", "isolate"))]
+    assert {e.kind for e in eps} == {"link", "isolate"} and {e.impair for e in eps if e.kind == "link"} == {"dead", "delay", "loss"}
+    for e in eps:
+        bad, back = e.specs()
+        assert (bad.action, bad.target, bad.peer, bad.at_step) == ("link", e.target, e.peer, e.start) and e.end > e.start
+        assert (back.action, back.target, back.peer, back.state, back.at_step) == ("link", e.target, e.peer, "on", e.end)
+        if e.kind == "isolate":
+            assert e.peer is None and bad.state == "off"
+        else:
+            assert e.peer != e.target and {"dead": bad.state == "off", "delay": 0.5 <= (bad.delay_s or 0) <= 3.0,
+                                           "loss": 0.2 <= (bad.rate or 0) <= 0.8}[e.impair], e
+    # Without the link model they are never drawn, and asking for them says why.
+    assert all(e.kind not in ("link", "isolate") for seed in range(10) for e in draw_schedule(_sc(), 8, seed=seed))
+    with pytest.raises(ValueError, match=r"links\.enabled"):
+        draw_schedule(_sc(), 2, seed=0, kinds=("link",))
+
+
+def test_compose_campaigns_add_a_containers_network_and_drop_failover():
+    """Under compose (`--compose`): netem (delay with jitter and loss on an agent's container,
+    then cleared) and partition (off the bus network, then healed) are drawn, failover never;
+    locally they cannot be asked for. Every episode's commands are what `swarm fault` sends."""
+    from swarm.studies.chaos import COMPOSE_KINDS, Command
+    from swarmrt.netem import validate_field
+
+    sc = _sc()
+    eps = [e for seed in range(20) for e in draw_schedule(sc, 8, seed=seed, compose=True)]
+    kinds = {e.kind for e in eps}
+    assert {"netem", "partition", "stall", "kill-agent"} <= kinds <= set(COMPOSE_KINDS) and "failover" not in kinds
+    for e in (e for e in eps if e.kind in ("netem", "partition")):
+        bad, back = e.commands()
+        assert isinstance(bad, Command) and (bad.at_step, back.at_step, bad.target, back.target) == (e.start, e.end, e.target, e.target)
+        if e.kind == "netem":
+            assert bad.action == back.action == "netem" and back.netem == "clear"
+            assert validate_field(bad.netem) == bad.netem and "delay" in bad.netem, bad.netem  # canonical tc arguments
+        else:
+            assert (bad.action, back.action) == ("partition", "heal")
+        with pytest.raises(ValueError, match="container's network"):
+            e.specs()
+    # Every other kind's commands are its scenario entries.
+    for e in (e for e in eps if e.kind not in ("netem", "partition")):
+        assert [c.fields() | {"at_step": c.at_step} for c in e.commands()] == \
+            [{k: v for k, v in s.model_dump().items() if v is not None} for s in e.specs()]
+    with pytest.raises(ValueError, match="--compose"):
+        draw_schedule(sc, 2, seed=0, kinds=("netem",))
+    with pytest.raises(ValueError, match="not under compose"):
+        draw_schedule(sc, 2, seed=0, kinds=("failover",), compose=True)
 
 
 def test_bad_requests_say_why():
@@ -116,6 +189,34 @@ def test_reconvergence_is_the_first_of_enough_steps_within_3_sigma():
     assert RECONVERGED_STEPS == 3
 
 
+def test_an_estimate_lost_to_the_recorders_gap_and_a_kill_is_excused_and_nothing_else():
+    from swarm.studies.chaos import _lost_to_a_gap_and_a_kill
+
+    s = {"bus_gaps": [{"observer": "recorder", "last_step_before": 12, "first_step_after": 12}],
+         "faults": [{"action": "kill-agent", "phase": "done", "target": 2, "k": 13}]}
+    assert _lost_to_a_gap_and_a_kill(s, 2, 12)
+    assert not _lost_to_a_gap_and_a_kill(s, 1, 12)  # not the agent killed
+    assert not _lost_to_a_gap_and_a_kill(s, 2, 11)  # not the step before the kill
+    assert not _lost_to_a_gap_and_a_kill({**s, "bus_gaps": []}, 2, 12)  # no gap of the recorder: a real loss
+    assert not _lost_to_a_gap_and_a_kill({**s, "bus_gaps": [{**s["bus_gaps"][0], "observer": "world"}]}, 2, 12)
+    # The recorder's link came back within step 11, its subscriptions not yet at the router
+    # when agent 2 put its estimate of step 12: deaf one step past its gap, and no further.
+    s11 = {**s, "bus_gaps": [{"observer": "recorder", "last_step_before": 11, "first_step_after": 11}]}
+    assert _lost_to_a_gap_and_a_kill(s11, 2, 12)
+    s10 = {**s, "bus_gaps": [{"observer": "recorder", "last_step_before": 10, "first_step_after": 10}]}
+    assert not _lost_to_a_gap_and_a_kill(s10, 2, 12)  # two steps past the gap: a real loss
+
+
+def test_an_estimate_of_an_agent_off_the_bus_network_is_excused():
+    from swarm.studies.chaos import _partitioned
+
+    s = {"faults": [{"action": "partition", "phase": "done", "target": 1, "k": 15},
+                    {"action": "heal", "phase": "done", "target": 1, "k": 18},
+                    {"action": "partition", "phase": "done", "target": 1, "k": 30}]}
+    assert [k for k in range(40) if _partitioned(s, 1, k)] == [15, 16, 17, 18, *range(30, 40)]
+    assert not any(_partitioned(s, 0, k) for k in range(40))
+
+
 def test_few_pairs_one_miss_is_no_evidence_many_misses_are():
     from swarm.studies.chaos import _below
 
@@ -138,11 +239,11 @@ def test_a_missing_run_fails_its_invariants_with_evidence(tmp_path):
 @pytest.mark.slow
 def test_short_campaign_passes_every_invariant(tmp_path):
     """`swarm chaos` for real: the demo's 4 satellites with a greedy selector, 30 s, 6
-    faults (seed 8: a camera off twice, dropped messages, an agent killed and restarted, the
-    router restarted, the selector killed and restarted): every invariant holds, and
-    chaos.json says what fired."""
+    faults (seed 44: a camera off, dropped messages, an agent killed and one stopped, each
+    restarted, the selector killed and restarted, the world stalled 3.6 s): every invariant
+    holds, and chaos.json says what fired."""
     out = tmp_path / "chaos"
-    args = ["scenarios/demo.yaml", "--faults", "6", "--seed", "8", "--duration", "30", "--set", "selection.strategy=greedy",
+    args = ["scenarios/demo.yaml", "--faults", "6", "--seed", "44", "--duration", "30", "--set", "selection.strategy=greedy",
             "--set", "selection.budget=4"]
     p = subprocess.run([sys.executable, "-m", "swarm.cli", "chaos", *args, "--out", str(out)], capture_output=True, text=True,
                        timeout=600)
@@ -151,7 +252,11 @@ def test_short_campaign_passes_every_invariant(tmp_path):
     assert p.returncode == 0, [i for i in doc["invariants"] if not i["ok"]]
     assert doc["ok"] and all(i["ok"] for i in doc["invariants"])
     assert sum(d["fired"] for d in doc["fired"].values()) == 6
-    assert set(doc["fired"]) == {"camera", "drop", "kill-agent", "router", "selector"}, doc["fired"]
+    assert set(doc["fired"]) == {"camera", "drop", "kill-agent", "stop-agent", "selector", "stall"}, doc["fired"]
+    # The report page: the campaign's tables (every kind fired, every invariant), then its run.
+    page = (out / "report" / "report.html").read_text()
+    assert "<h2>Chaos campaign</h2>" in page and "every invariant holds" in page and "<h2>Errors per filter</h2>" in page
+    assert all(f"<td>{k}</td>" in page for k in doc["fired"]) and all(i["name"] in page for i in doc["invariants"])
     again = subprocess.run([sys.executable, "-m", "swarm.cli", "chaos", *args, "--schedule-only"], capture_output=True, text=True,
                            timeout=120)
     assert doc["schedule_sha256"][:12] in again.stderr.replace("\n", "")

@@ -1,6 +1,7 @@
 """Every input the fuzzers (or reading the loaders for them) found to break a loader, kept:
 each is now refused with the loader's documented error, naming the problem, or read."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -157,6 +158,30 @@ def test_seed_recordings_load(tmp_path):
         assert json.dumps(rec.counts)
 
 
+def _same(x, y) -> bool:
+    """Equal field by field, arrays element by element (NaN equal to NaN)."""
+    if isinstance(x, np.ndarray):
+        return isinstance(y, np.ndarray) and x.dtype == y.dtype and np.array_equal(x, y, equal_nan=x.dtype.kind == "f")
+    if dataclasses.is_dataclass(x):
+        return type(x) is type(y) and all(_same(getattr(x, f.name), getattr(y, f.name)) for f in dataclasses.fields(x))
+    if isinstance(x, (list, tuple)):
+        return type(x) is type(y) and len(x) == len(y) and all(_same(a, b) for a, b in zip(x, y))
+    return bool(x == y)
+
+
+def test_a_recording_loads_the_same_from_the_messages_read_already(tmp_path):
+    # fuzz_mcap reads each input once and gives both loads what the reader yielded.
+    far = M.encode(M.replace(TRUTH, k=2**40))
+    files = [F.seed_mcap(tmp_path / f"s{fin}.mcap", fin) for fin in (False, True)]
+    files.append(_recording(tmp_path / "r.mcap", [*_truths(3), ("swarm/fz/truth", far), ("swarm/fz/truth", far), ("swarm/fz/alive", b"\xff")]))
+    for p in files:
+        messages = list(iter_messages(p))
+        for n in (3, None):
+            a, b = load_recording(p, n, None), load_recording(p, n, None, messages=messages)
+            assert a.bus is not None and (a.cov_rows or p.name == "r.mcap"), p.name  # there is something to compare
+            assert _same(a, b), (p.name, n)
+
+
 # -- scenario files -----------------------------------------------------------------------------
 _LAUGHS = "a: &a [x,x,x,x,x,x,x,x,x,x]\n" + "".join(
     f"{chr(98 + i)}: &{chr(98 + i)} [" + ",".join([f"*{chr(97 + i)}"] * 10) + "]\n" for i in range(7))
@@ -279,3 +304,30 @@ def test_a_damaged_mcap_time_is_not_a_bus_time(tmp_path):
     w.close(finalize=False)
     rec = load_recording(tmp_path / "r.mcap", 3, None)
     assert rec.bus is not None and len(rec.bus.k) == 3 and rec.bus_latency_ms()["world"]["n"] == 3
+
+
+def test_a_recording_that_breaks_the_indexed_reader_midway_reads_each_message_once(tmp_path):
+    """A message record naming a channel that does not exist, partway through a checkpoint
+    recording: the indexed reader fails there, and the record-by-record reader that takes
+    over read the messages before it a second time (a checkpoint of 29 messages read as 56,
+    counted again by recover and load_recording; found by the MCAP fuzz harness)."""
+    import struct
+    from pathlib import Path
+
+    seed = Path(__file__).resolve().parents[1] / "fuzz" / "corpus" / "mcap" / "checkpoint.mcap"
+    data = seed.read_bytes()
+    messages, i = [], 8  # past the magic: opcode (1 byte), length (u64), body
+    while i + 9 <= len(data):
+        op, length = data[i], struct.unpack_from("<Q", data, i + 1)[0]
+        if op == 0x05:  # Message: channel id (u16) first
+            messages.append(i)
+        i += 9 + length
+    clean = list(iter_messages(seed))
+    assert len(messages) == len(clean) > 20
+    for which in (4, len(messages) // 2, len(messages) - 1):
+        bad = bytearray(data)
+        struct.pack_into("<H", bad, messages[which] + 9, 777)
+        p = tmp_path / f"bad-{which}.mcap"
+        p.write_bytes(bytes(bad))
+        got = [(t, d, lt, pt) for t, _s, d, lt, pt in iter_messages(p)]
+        assert len(got) == len(set(got)) == len(clean) - 1, (which, len(got), len(set(got)))

@@ -269,6 +269,7 @@ def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
     def flood(sw):
         keys = Keys(sw.run)
         targets, payloads, hdr, huge = _garbage(keys, sc.n_sats)
+        sent["keys"] = len(set(targets) | {keys.meas(0), keys.est(1), keys.clock()})
         # Well-formed messages that name satellites this swarm does not have.
         payloads.append(M.encode(M.MeasBatch(**{**hdr, "sender": "agent-7"}, observer=7, R_Bi=M.Matrix(shape=[0, 6, 6]))))
         payloads.append(M.encode(M.Clock(**{**hdr, "sender": "world"}, live_agents=[0, 1, 2, 50], mode="lockstep")))
@@ -295,6 +296,13 @@ def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
         assert code in (0, None), f"{name} exited with {code}"
     assert codes["world"] == 0 and rec.alive.all()
     assert summary["messages"].get("_malformed", 0) > 100 and sent.get("huge", 0) > 0
+    # The recorder's flood cap: at most 200 malformed messages written per key, the rest counted.
+    from swarm.record.recorder import FLOOD_CAP_MALFORMED_PER_KEY
+
+    cut = summary["messages"].get("not_recorded_over_the_flood_cap", {})
+    written = summary["messages"]["_malformed"]
+    assert cut and written <= FLOOD_CAP_MALFORMED_PER_KEY * sent["keys"], (written, cut, sent)
+    assert written + sum(cut.values()) >= sent["n"] * 0.5, (written, cut, sent)  # what the router passed, written or counted
     # Every agent counted what it dropped (its health reports say so).
     from swarm.record.mcaplog import iter_messages
 

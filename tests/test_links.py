@@ -129,6 +129,34 @@ def test_range_and_dead_links_are_unreachable_and_overrides_apply_per_direction(
     assert arr[(0, 2)] >= 3.0 and arr[(0, 1)] < 1e-6
 
 
+def test_link_faults_impair_and_restore_the_scenarios_links_at_run_time():
+    """A link fault (the world's ``link`` action) acts like a scenario override from the
+    step it is applied: dead (at once), latency added to the scenario's (not to an earlier
+    fault's), Bernoulli loss; ``restore`` gives back exactly the scenario's parameters."""
+    lm = model(n=3, latency={"fixed_s": 0.5, "speed_of_light": False}, overrides=[{"from": 2, "to": 0, "dead": True}])
+    lm.at_step(0, line(3))
+    assert lm.impair(0, 1, dead=True) == 1
+    assert lm.send(0, [1, 2], "a", 10, 0.0) == {1: "unreachable", 2: "queued"}
+    assert lm.impair(1, delay_s=2.0) == 4  # every link of 1, both ways
+    lm.impair(1, delay_s=1.0)  # added to the scenario's 0.5 s, not to the 2.5 s of the first
+    assert lm.p.fixed_s[1, 2] == lm.p.fixed_s[2, 1] == lm.p.fixed_s[0, 1] == 1.5 and lm.p.fixed_s[0, 2] == 0.5
+    lm.impair(2, 1, loss_rate=1.0)
+    assert lm.send(2, [1], "b", 10, 0.0) == {1: "queued"}
+    lm.at_step(1, line(3))
+    assert lm.send(0, [1], "c", 10, 1.0) == {1: "unreachable"}  # still dead
+    assert lm.restore(1) == 4 and lm.restore(0, 1) == 1
+    lm.at_step(2, line(3))
+    assert lm.send(0, [1], "d", 10, 2.0) == {1: "queued"}
+    for name in ("dead", "fixed_s", "loss_kind", "loss_rate"):
+        np.testing.assert_array_equal(getattr(lm.p, name), getattr(model(n=3, latency={"fixed_s": 0.5, "speed_of_light": False},
+                                                                         overrides=[{"from": 2, "to": 0, "dead": True}]).p, name))
+    assert lm.send(2, [0], "e", 10, 2.0) == {0: "unreachable"}  # the scenario's own dead link stays dead
+    lm.due(10.0)  # a copy lost on the channel counts when it would have arrived
+    assert lm.counters.lost[2, 1] == 1 and lm.counters.unreachable[0, 1] == 2
+    with pytest.raises(ValueError, match="not a link"):
+        lm.impair(1, 1, dead=True)
+
+
 def test_another_satellite_blocks_the_line_of_sight():
     lm = model(n=3, line_of_sight=True, radius=0.35)
     r = np.array([[0.0, 0, 0], [5.0, 0.1, 0], [10.0, 0, 0]])  # 1 sits between 0 and 2

@@ -64,6 +64,38 @@ def test_links_distributed_equal_in_process(tmp_path):
 
 
 @pytest.mark.integration
+def test_link_faults_at_run_time_act_on_the_radio(tmp_path):
+    """Scheduled link faults (the world carries them out at their step, before its radio):
+    satellite 1 cut off for 5 steps (every link both ways unreachable), 0 → 2 2 s slower for
+    4 steps (every batch late), 3 → 0 losing half for 4 steps; each given back the
+    scenario's parameters. Counted per directed link, reported done by the world."""
+    faults = [{"at_step": 5, "action": "link", "target": 1, "state": "off"},
+              {"at_step": 10, "action": "link", "target": 1, "state": "on"},
+              {"at_step": 12, "action": "link", "target": 0, "peer": 2, "delay_s": 2.0},
+              {"at_step": 16, "action": "link", "target": 0, "peer": 2, "state": "on"},
+              {"at_step": 18, "action": "link", "target": 3, "peer": 0, "rate": 0.5},
+              {"at_step": 22, "action": "link", "target": 3, "peer": 0, "state": "on"}]
+    sc = scenario(n_sats=4, duration_s=26, links={"enabled": True, "latency": {"speed_of_light": False}}, faults=faults)
+    rec, summary, codes, _sw = run_swarm(sc, tmp_path / "run")
+    assert codes["world"] == 0
+    per = summary["links"]["per_link"]
+    unreachable = np.array(per["unreachable"])
+    expect = np.zeros((4, 4), dtype=int)
+    expect[1, [0, 2, 3]] = expect[[0, 2, 3], 1] = 5
+    np.testing.assert_array_equal(unreachable, expect)
+    late = np.array(per["delivered_late"])
+    assert late[0, 2] == 4 and late.sum() == 4, late
+    lost = np.array(per["lost"])
+    assert lost[3, 0] >= 1 and lost.sum() == lost[3, 0], lost  # seeded draws at 50 % over 4 steps
+    done = [f for f in summary.get("faults", []) if f["action"] == "link" and f["phase"] == "done"] or \
+        [f for f in rec.faults if f.get("action") == "link" and f.get("phase") == "done"]
+    assert len(done) == 6 and {f["sender"] for f in done} == {"world"}, done
+    # Listed with what they did (a chaos campaign matches each fired command by these).
+    assert [(f["target"], f["peer"], f["state"], f["delay_s"], f["rate"]) for f in done] == \
+        [(x["target"], x.get("peer"), x.get("state"), x.get("delay_s"), x.get("rate")) for x in faults]
+
+
+@pytest.mark.integration
 def test_free_running_links_delay_in_wall_time_and_late_batches_are_replayed(tmp_path):
     """Free-running mode: the radio delays batches in (scaled) wall time; each agent takes
     what has arrived when it updates and replays the rest when it comes."""

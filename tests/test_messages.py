@@ -212,6 +212,12 @@ def _indefinite_R():
         ("fault", M.encode(M.Fault(**H, action="kill-agent", phase="command")), "needs a target"),
         ("health", _raw("health", camera_ok=[True] * 5), "camera_ok: 5 values"),
         ("fault", M.encode(M.Fault(**H, action="netem", phase="command", target=1)), "action netem needs netem"),
+        ("fault", M.encode(M.Fault(**H, action="stall-world", phase="command")), "stall-world needs down_s > 0"),
+        ("fault", M.encode(M.Fault(**H, action="stall-agent", phase="command", down_s=2.0)), "needs a target"),
+        ("fault", M.encode(M.Fault(**H, action="link", phase="command", target=1)), "link fault needs state, delay_s or rate"),
+        ("fault", M.encode(M.Fault(**H, action="link", phase="command", target=1, peer=1, state="off")), "no link to itself"),
+        ("fault", M.encode(M.Fault(**H, action="link", phase="command", target=1, peer=10_001, state="off")), "peer: satellite id 10001 out of range"),
+        ("fault", M.encode(M.Fault(**H, action="link", phase="command", target=1, delay_s=-1.0)), "delay_s"),
         ("rejoin", _raw("rejoin", fate="teleported"), "fate"),
         ("rejoin", _raw("rejoin", arrival_t_s=None), "needs its arrival time"),
         ("links", _raw("links", lost=matrix(-np.ones((3, 3)))), "lost: a negative count"),
@@ -317,7 +323,7 @@ def test_replace_as_dict_and_optional_fields():
     f = M.Fault(**H, action="kill-selector", phase="command")
     assert M.opt(f, "target") is None and f.target == 0
     d = M.as_dict(M.replace(f, phase="done", detail="x"), exclude=("schema_version", "run"))
-    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None, "down_s": None}
+    assert d == {"sender": "test", "k": 3, "t_s": 3.0, "action": "kill-selector", "phase": "done", "target": None, "camera": None, "state": None, "rate": None, "detail": "x", "netem": None, "down_s": None, "peer": None, "delay_s": None}
     assert f.phase == "command", "replace must not touch the original"
     g = M.replace(EXAMPLES["fault"], target=None)
     assert not g.HasField("target") and EXAMPLES["fault"].target == 1

@@ -110,6 +110,34 @@ def test_agent_steps_equal_the_filter_run_directly():
         np.testing.assert_array_equal(a.est.P, ref.est.P)
 
 
+def test_cov_serves_the_last_posterior_not_the_prior_of_the_step_under_way():
+    """What cov/<i> serves (the selector plans step k from it; a restarted peer starts from
+    it) is the estimate at the end of the agent's last step: once the clock and sensors of
+    the next step have come and the agent has predicted, still the posterior, as the
+    simulator plans from it (a query that came after the clock got the prior of the new
+    step; the greedy schedule then differed, seen in CI after a router restart)."""
+    from swarmrt.bus.convert import estimate_from_full
+
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
+    d = Driver(a, clock, answer=prior_answer(sc, world.truth))
+    assert a.serve_cov(K.cov(0)).k == 0  # before its first step: its prior of step 0
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), Event(K.alive("agent", 2), "alive", 2, alive=True))
+    world.advance(0)
+    d.feed(*world.events_for(0, 0))
+    d.feed(radio_event(0, [world.batch(1, 0), world.batch(2, 0)]))
+    posterior = a.est
+    world.advance(1)
+    d.feed(*world.events_for(0, 1))  # step 1 under way: predicted, its batch sent, waiting for the radio
+    assert d.sent_on(K.meas(0))[-1].k == 1 and a.est.step == 1 and a.est is not posterior
+    served = estimate_from_full(a.serve_cov(K.cov(0)), sc.n_sats)
+    assert served.step == 0
+    np.testing.assert_array_equal(served.P, posterior.P)
+    np.testing.assert_array_equal(served.r_H, posterior.r_H)
+
+
 def test_a_batch_the_radio_did_not_carry_is_missing_and_a_late_one_is_counted():
     sc = scenario()
     world = WorldScript(sc)
@@ -160,6 +188,28 @@ def test_restarted_agent_initialises_from_the_freshest_peer():
     assert [q.key for q in d.queries] == [K.cov(1)]
     (prior,) = d.sent_on(K.est(0))
     assert prior.phase == "prior" and prior.own == 0 and not a.estimator.prior_pending
+
+
+def test_a_cold_restart_waits_for_a_clock_that_lists_it_live():
+    """A restarted ci agent (no warm rejoin: it starts from its own star tracker and GPS)
+    whose health report crossed a clock that does not list it yet gets no sensors of that
+    step: it says again that it is here and starts cold at the next step that lists it,
+    rather than failing for want of a reading (seen in CI, on a loaded machine)."""
+    sc = scenario(estimator={"kind": "ci"})
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), restart=True, clock=clock)
+    d = Driver(a, clock)
+    assert len(d.sent_on(K.health(0))) == 1  # "here" as it starts
+    d.take()
+    for k in range(2):
+        world.advance(k)
+    d.feed(Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=1, t_s=world.truth.t, live_agents=[1, 2])))
+    assert [h.k for h in d.sent_on(K.health(0))] == [1] and not d.sent_on(K.meas(0)) and not a.started
+    d.take()
+    world.advance(2)
+    d.feed(*world.events_for(0, 2), radio_event(2, [world.batch(1, 2), world.batch(2, 2)]))
+    assert a.started and a.last_step == 2 and d.sent_on(K.meas(0)) and d.sent_on(K.est(0))
 
 
 def test_drop_and_camera_faults_addressed_to_this_agent():

@@ -15,8 +15,8 @@ RUN = "t"
 K = Keys(RUN)
 
 
-def scenario() -> Scenario:
-    return Scenario.model_validate({"name": "sel", "seed": 2, "n_sats": 4, "duration_s": 3,
+def scenario(time_mode: str = "lockstep") -> Scenario:
+    return Scenario.model_validate({"name": "sel", "seed": 2, "n_sats": 4, "duration_s": 3, "emulator": {"time_mode": time_mode},
                                     "selection": {"strategy": "greedy", "budget": 3}})
 
 
@@ -47,8 +47,10 @@ def test_step_zero_is_planned_from_agent_zero_once_every_agent_is_up():
     assert [q.key for q in d.queries][-1] == K.cov(0)
 
 
-def test_next_step_planned_from_the_lowest_live_agent_and_dead_observers_masked():
-    sc = scenario()
+def _running_selector(sc: Scenario | None = None):
+    """A selector of the four agents, past step 0's clock, every agent serving its initial
+    estimate: (driver, what each agent serves: replace an entry to serve another)."""
+    sc = sc or scenario()
     truth = initial_truth(sc)
     post = {i: initial_estimate(sc, truth, i) for i in range(4)}
     clock = FakeClock()
@@ -57,8 +59,67 @@ def test_next_step_planned_from_the_lowest_live_agent_and_dead_observers_masked(
     d.feed(alive(0), alive(1), alive(2), alive(3))
     d.feed(Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=0, t_s=0.0, live_agents=[0, 1, 2, 3])))
     d.take()
+    return d, post
+
+
+def test_next_step_planned_from_the_lowest_live_agent_and_dead_observers_masked():
+    d, post = _running_selector()
     d.feed(alive(0, up=False))
     d.feed(Event(K.est(1), "est", 1, msg=estimate_msg(post[1], run=RUN, sender="agent-1", own=1)))
     (sel,) = d.sent_on(K.select())
     assert sel.k == 1 and sel.ref_agent == 1
     assert all(o != 0 for o in sel.observer), "a dead satellite measures nothing"
+
+
+def test_a_dropped_estimate_of_the_reference_agent_does_not_hold_the_plan():
+    """A drop fault loses the reference agent's estimate of step k but never its health
+    report, which also follows its update: step k + 1 is planned from what it serves, at
+    once (with the estimate alone the world waited a whole step timeout, then fell back)."""
+    from swarmrt.bus.messages import Health
+
+    d, _post = _running_selector()
+    health = Health(run=RUN, sender="agent-0", k=0, t_s=0.0, sat=0, camera_ok=[True] * 6, drop_rate=0.5, host="h")
+    d.feed(Event(K.health(0), "health", 0, msg=health))
+    (sel,) = d.sent_on(K.select())
+    assert sel.k == 1 and sel.ref_agent == 0 and [q.key for q in d.queries][-1] == K.cov(0)
+
+
+def test_the_clock_of_a_step_is_enough_to_plan_it_in_lockstep():
+    """A router restart can lose the reference agent's estimate and health of step k − 1
+    (sent into the gap, resent before the selector's subscriptions were back). In lockstep
+    the world puts the clock of k only once every live agent has finished k − 1: the clock
+    alone lets the selector plan k from what the reference agent serves (CI saw the world
+    wait 30 s for a selection that never came, then fall back, changing the schedule)."""
+    d, _post = _running_selector()
+    assert not d.sent_on(K.select())
+    d.feed(Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=1, t_s=1.0, live_agents=[0, 1, 2, 3])))
+    (sel,) = d.sent_on(K.select())
+    assert sel.k == 1 and sel.ref_agent == 0 and [q.key for q in d.queries][-1] == K.cov(0)
+    # Its estimate arriving afterwards plans nothing twice.
+    d.take()
+    d.feed(Event(K.est(0), "est", 0, msg=estimate_msg(_post[0], run=RUN, sender="agent-0", own=0)))
+    assert not d.sent_on(K.select())
+
+
+def test_free_running_the_clock_alone_plans_nothing():
+    """Free-running, the clock does not wait for the agents: a step is planned only from
+    the reference agent's own estimate or health of the step before."""
+    d, _post = _running_selector(scenario("free"))
+    d.feed(Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=1, t_s=1.0, live_agents=[0, 1, 2, 3])))
+    assert not d.sent_on(K.select())
+
+
+def test_on_the_clock_alone_a_reference_still_behind_is_waited_for():
+    """The world moved on to step 2 without the reference agent's estimate of step 1 (a
+    stalled agent past the step timeout): what it serves is of step 0, older than step 1, so
+    the selector does not plan from it; once it serves its estimate of step 1, it plans."""
+    import dataclasses
+
+    d, served = _running_selector()  # every agent serves its estimate of step 0
+    d.feed(Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=2, t_s=2.0, live_agents=[0, 1, 2, 3])))
+    d.elapse(1.0)
+    assert not d.sent_on(K.select()) and d.queries[-1].key == K.cov(0)
+    served[0] = dataclasses.replace(served[0], step=1, t=1.0)  # it finished step 1
+    d.elapse(0.3)
+    (sel,) = d.sent_on(K.select())
+    assert sel.k == 2 and sel.ref_agent == 0

@@ -134,7 +134,9 @@ def test_scheduled_camera_fault_is_announced_and_silences_that_camera():
     assert not w.camera_ok[0, 0] and w.camera_ok[1].all()
 
 
-def test_selector_choice_is_used_and_a_dead_selector_brings_the_fallback():
+def _world_with_a_selector():
+    """A world of three agents (priors in) and a greedy selector, select_timeout_s 1 s:
+    (scenario, driver)."""
     sc = scenario(selection={"strategy": "greedy", "budget": 2}, emulator={"select_timeout_s": 1.0})
     clock = FakeClock()
     w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock)
@@ -142,6 +144,11 @@ def test_selector_choice_is_used_and_a_dead_selector_brings_the_fallback():
     d.feed(alive("recorder"), alive("selector"))
     for i in range(3):
         d.feed(alive("agent", i), est(i, 0, "prior"))
+    return sc, d
+
+
+def test_selector_choice_is_used_and_a_dead_selector_brings_the_fallback():
+    sc, d = _world_with_a_selector()
     assert not d.sent, "the world waits for the selector's plan of step 0"
     sel = select_msg([0, 2], [1, 0], run=RUN, sender="selector", k=0, t_s=0.0, strategy="greedy")
     d.feed(Event(K.select(), "select", None, msg=sel))
@@ -153,6 +160,25 @@ def test_selector_choice_is_used_and_a_dead_selector_brings_the_fallback():
     (fb,) = d.sent_on(K.select())
     assert fb.fallback and fb.sender == "world" and fb.k == 1 and fb.strategy == sc.selection.fallback
     assert len(fb.observer) >= 1
+
+
+def test_a_live_selector_is_waited_for_like_an_agent_in_lockstep():
+    """A selection late by more than select_timeout_s (the selector, the agent it plans from
+    or the router stalled) is waited for while the selector lives: the schedule does not
+    change; a selector silent past the step timeout plus the lease is replaced."""
+    from swarmrt.protocol import world_wait_s
+
+    sc, d = _world_with_a_selector()
+    d.elapse(5.0)  # five times select_timeout_s: still waiting, no fallback
+    assert not d.sent_on(K.select()) and not d.sent_on(K.cam(0))
+    sel = select_msg([0, 2], [1, 0], run=RUN, sender="selector", k=0, t_s=0.0, strategy="greedy")
+    d.feed(Event(K.select(), "select", None, msg=sel))
+    assert [x.target for x in d.sent_on(K.cam(0))[0].detections] == [1] and not d.sent_on(K.select())
+    d.take()
+    d.feed(*finish(0))
+    d.elapse(world_wait_s(sc.emulator) + 0.5)  # silent past the step timeout and the lease: the fallback
+    (fb,) = d.sent_on(K.select())
+    assert fb.fallback and fb.sender == "world" and fb.k == 1
 
 
 def test_fallback_never_schedules_a_dead_observer():
@@ -179,6 +205,55 @@ def test_scheduled_kill_waits_until_the_agent_is_gone():
     assert not d.sent_on(K.clock()), "step 1 starts only once agent 2 is gone"
     d.feed(alive("agent", 2, up=False))
     assert d.sent_on(K.clock())[0].live_agents == [0, 1]
+
+
+#: Agent 2 killed at step 1 and restarted at step 2.
+RESTART = [{"at_step": 1, "action": "kill-agent", "target": 2}, {"at_step": 2, "action": "restart-agent", "target": 2}]
+
+
+def _health(i: int, k: int = 0) -> Event:
+    return Event(K.health(i), "health", i, msg=Health(run=RUN, sender=f"agent-{i}", k=k, t_s=float(k), sat=i, camera_ok=[True] * 6))
+
+
+def _restarted_world(order: str):
+    """Agent 2 killed at step 1 and restarted at step 2; the restarted (cold) agent's health
+    report and its liveliness token reach the world in ``order``."""
+    sc = scenario(faults=RESTART)
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(*finish(0))
+    d.feed(alive("agent", 2, up=False))
+    d.feed(*finish(1, (0, 1)))
+    assert [f.action for f in d.sent_on(K.fault())][-1] == "restart-agent"
+    assert [c.k for c in d.sent_on(K.clock())] == [1], "step 2 waits for the restarted agent"
+    h = _health(2)
+    d.feed(*([alive("agent", 2), h] if order == "token first" else [h, alive("agent", 2)]))
+    return d
+
+
+@pytest.mark.parametrize("order", ["token first", "health first"])
+def test_a_restarted_agent_is_in_the_next_clock_whichever_of_its_token_and_health_comes_first(order):
+    """Its token (a declaration) and its health report (a put) take different paths to the
+    world's inbox: either may come first. CI saw the health first, ignored as from a dead
+    agent, and the world waited out startup_timeout_s (120 s) and started step 8 without it:
+    other numbers than a run where the token came first."""
+    d = _restarted_world(order)
+    clocks = d.sent_on(K.clock())
+    assert [c.k for c in clocks] == [1, 2]
+    assert clocks[-1].live_agents == [0, 1, 2]
+
+
+def test_a_health_report_of_a_killed_agent_before_its_restart_command_does_not_count():
+    """What the killed process said before the restart command is not the new process
+    being ready: the world still waits for the restarted agent's own report."""
+    sc = scenario(faults=RESTART)
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(*finish(0))
+    d.feed(alive("agent", 2, up=False), _health(2))  # the killed process's last word
+    d.feed(*finish(1, (0, 1)))
+    d.feed(alive("agent", 2))
+    assert [c.k for c in d.sent_on(K.clock())] == [1], "the token alone is not ready: the new process has not reported"
 
 
 def test_the_run_ends_with_a_done_clock_and_queries_stop_serving_priors():

@@ -101,3 +101,40 @@ def test_every_shipped_scenario_loads():
     assert files
     for f in files:
         load_scenario(f)
+
+
+def test_a_stall_fault_needs_its_length_and_only_timed_faults_take_one():
+    from swarmcore.scenario import FaultSpec
+
+    ok = FaultSpec(at_step=3, action="stall-world", down_s=12.0)
+    assert ok.target is None and ok.down_s == 12.0
+    assert FaultSpec(at_step=3, action="stall-router", target=1, down_s=2.0).target == 1
+    with pytest.raises(ValueError, match="stall-agent needs down_s > 0"):
+        FaultSpec(at_step=3, action="stall-agent", target=1)
+    with pytest.raises(ValueError, match="stall-agent needs a target"):
+        FaultSpec(at_step=3, action="stall-agent", down_s=2.0)
+    with pytest.raises(ValueError, match="down_s is for actions restart-router, stall-agent"):
+        FaultSpec(at_step=3, action="kill-agent", target=1, down_s=2.0)
+
+
+def test_a_link_fault_names_what_it_does_and_needs_the_link_model():
+    from swarmcore.scenario import FaultSpec, Scenario
+
+    assert FaultSpec(at_step=2, action="link", target=1, peer=2, delay_s=1.5).delay_s == 1.5
+    assert FaultSpec(at_step=2, action="link", target=1, state="off").peer is None
+    with pytest.raises(ValueError, match="link needs state"):
+        FaultSpec(at_step=2, action="link", target=1)
+    with pytest.raises(ValueError, match="no link to itself"):
+        FaultSpec(at_step=2, action="link", target=1, peer=1, state="off")
+    with pytest.raises(ValueError, match="state on gives the link back"):
+        FaultSpec(at_step=2, action="link", target=1, state="on", rate=0.3)
+    with pytest.raises(ValueError, match="peer and delay_s are for action link"):
+        FaultSpec(at_step=2, action="kill-agent", target=1, peer=2)
+    with pytest.raises(ValueError, match="rate is for actions drop and link"):
+        FaultSpec(at_step=2, action="kill-agent", target=1, rate=0.5)
+    fault = {"at_step": 2, "action": "link", "target": 1, "state": "off"}
+    with pytest.raises(ValueError, match=r"faults.0.action: link acts on the radio's link model.*links.enabled: false"):
+        Scenario(n_sats=3, faults=[fault])
+    with pytest.raises(ValueError, match=r"faults.0.peer: 5 is not a satellite id"):
+        Scenario(n_sats=3, links={"enabled": True}, faults=[{**fault, "peer": 5}])
+    assert Scenario(n_sats=3, links={"enabled": True}, faults=[fault]).faults[0].action == "link"

@@ -62,7 +62,7 @@ from swarmrt.bus.messages import (
     Select,
     replace,
 )
-from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped
+from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped, world_wait_s
 
 __all__ = ["WorldProtocol"]
 
@@ -101,6 +101,10 @@ class WorldProtocol:
         self.use_selector = sc.selection.strategy != "none" if expect_selector is None else expect_selector
         self.alive_agents: set[int] = set()
         self.ready: set[int] = set()  # agents with an estimate for the current step
+        # Agents being restarted whose new process has reported its health (since the
+        # restart command): its token and its report reach us by different paths, in
+        # either order, and a report before the token must still count.
+        self._reported_since_restart: set[int] = set()
         self.alive_roles: set[str] = set()
         self.camera_ok = np.ones((sc.n_sats, 6), dtype=bool)
         self.selections: dict[int, Select] = {}
@@ -209,6 +213,7 @@ class WorldProtocol:
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
             if ev.msg.sat in self.alive_agents:
                 self.ready.add(ev.msg.sat)
+            self._reported_since_restart.add(ev.msg.sat)
         elif ev.kind == "meas":
             m = ev.msg
             if (m.k, m.observer) in self._aired:  # a copy sent again
@@ -239,7 +244,33 @@ class WorldProtocol:
             log.info("camera %d of satellite %d %s", f.camera, f.target, f.state)
             done = replace(f, phase="done", sender="world", k=self.k, t_s=self.k * self.sc.dt_s)
             return [Send(self.keys.fault_report("world"), done)]
+        if f.action == "link":
+            return [Send(self.keys.fault_report("world"), self._link_fault(f))]
         return []
+
+    def _link_fault(self, f: Fault) -> Fault:
+        """A link fault on the radio (the link model): carried out at once, at the step it
+        came in (a scheduled one before the radio of its step); reported done or failed."""
+        at = {"sender": "world", "k": self.k, "t_s": self.k * self.sc.dt_s}
+        if self.links is None:
+            return replace(f, phase="failed", detail="links are off (links.enabled: false): no link model to act on", **at)
+        i, j = int(f.target), (int(f.peer) if f.HasField("peer") else None)
+        what = f"{i} -> {j}" if j is not None else f"every link of {i}"
+        try:
+            if f.HasField("state") and f.state == "on":
+                count = self.links.restore(i, j)
+                detail = f"{what}: the scenario's parameters back"
+            else:
+                count = self.links.impair(i, j, dead=f.HasField("state") and f.state == "off",
+                                          delay_s=f.delay_s if f.HasField("delay_s") else None,
+                                          loss_rate=f.rate if f.HasField("rate") else None)
+                detail = f"{what}: " + ", ".join(x for x in (
+                    "dead" if f.HasField("state") else "", f"+{f.delay_s:g} s latency" if f.HasField("delay_s") else "",
+                    f"loss {f.rate:g}" if f.HasField("rate") else "") if x)
+        except ValueError as exc:
+            return replace(f, phase="failed", detail=str(exc)[:200], **at)
+        log.info("step %d: link fault, %s (%d directed links)", self.k, detail, count)
+        return replace(f, phase="done", detail=detail, **at)
 
     def live(self) -> list[int]:
         return sorted(self.alive_agents & self.ready)
@@ -338,25 +369,37 @@ class WorldProtocol:
     def _apply_scheduled_faults(self, k: int):
         em = self.sc.emulator
         for spec in [f for f in self.sc.faults if f.at_step == k]:
+            if spec.action == "restart-agent":
+                # From here on a health report of its satellite is the new process's.
+                self.ready.discard(spec.target)
+                self._reported_since_restart.discard(spec.target)
             cmd = Fault(run=self.run_id, sender="world", k=k, t_s=k * self.sc.dt_s, phase="command", action=spec.action, target=spec.target,
-                        camera=spec.camera, state=spec.state, rate=spec.rate, down_s=spec.down_s, detail="scheduled")
+                        camera=spec.camera, state=spec.state, rate=spec.rate, down_s=spec.down_s, peer=spec.peer,
+                        delay_s=spec.delay_s, detail="scheduled")
             log.info("step %d: fault %s target=%s", k, spec.action, spec.target)
             yield Send(self.keys.fault(), cmd)
             t = spec.target
-            if spec.action == "camera":
+            if spec.action in ("camera", "link"):
                 yield from self._on_fault(cmd)
             elif spec.action in AGENT_PROCESS_FAULTS and spec.action != "restart-agent":
                 yield Wait(lambda: t not in self.alive_agents, em.step_timeout_s)
-            elif spec.action == "restart-agent":
-                self.ready.discard(t)
+            elif spec.action == "restart-agent" and t is not None:  # the scenario's validation names its satellite
+                def back(t: int = t) -> bool:
+                    return t in self.alive_agents and (t in self.ready or t in self._reported_since_restart)
+
                 if self.links is None:
-                    yield Wait(lambda: t in self.alive_agents and t in self.ready, em.startup_timeout_s)
+                    ok = yield Wait(back, em.startup_timeout_s)
                 else:
                     # Its state crosses the radio and arrives some steps later: wait until it
                     # has asked for it (at this step, so the transfer's fate is reproducible),
                     # not until it is back.
-                    yield Wait(lambda: t in self.alive_agents and (t in self.ready or any(m.sat == t for m in self._rejoin_log)),
-                               em.startup_timeout_s)
+                    ok = yield Wait(lambda: back() or (t in self.alive_agents and any(m.sat == t for m in self._rejoin_log)),
+                                    em.startup_timeout_s)
+                if back():
+                    self.ready.add(t)  # its report came before its token: ready now that both are here
+                if not ok:
+                    log.warning("step %d: restarted agent %d not back within %.0f s (startup_timeout_s); going on without it",
+                                k, t, em.startup_timeout_s)
             elif spec.action == "kill-selector":
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
@@ -376,7 +419,14 @@ class WorldProtocol:
             return edges(self.G)
         em = self.sc.emulator
         if "selector" in self.alive_roles:
-            yield Wait(lambda: k in self.selections or "selector" not in self.alive_roles, em.select_timeout_s)
+            # Lockstep: a live selector is waited for as a live agent is (the step timeout
+            # plus the lease): a stall of the selector, of the agent it plans from or of the
+            # router shorter than that delays its selection and changes nothing; only a
+            # selector gone (its token) or silent that long is replaced by the fallback. A
+            # flat 2 s made a 2 s router stall change the schedule (a chaos campaign saw it).
+            # Free-running: select_timeout_s, the clock does not wait.
+            wait_s = max(em.select_timeout_s, world_wait_s(em)) if em.time_mode == "lockstep" else em.select_timeout_s
+            yield Wait(lambda: k in self.selections or "selector" not in self.alive_roles, wait_s)
         sel = self.selections.pop(k, None)
         if sel is not None:
             if self.fallback_active:

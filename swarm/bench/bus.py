@@ -294,6 +294,33 @@ def process_tree_memory(root_pid: int) -> dict:
     return {"processes": count, "rss_bytes": rss, "pss_bytes": pss}
 
 
+def role_cpu_seconds(root_pid: int, procs: dict) -> dict[str, float]:
+    """CPU seconds (user + system) so far of every live process under ``root_pid``, summed by
+    role: a process of ``procs`` (``LocalSwarm.procs``: name → process) counts under its name
+    less its index (``agent-3`` → ``agent``), its descendants under the same; anything else
+    (the agents' fork server) under ``other``."""
+    import psutil
+
+    owner = {p.pid: name.rsplit("-", 1)[0] if name.rsplit("-", 1)[-1].isdigit() else name
+             for name, p in procs.items() if p is not None}
+    out: dict[str, float] = {}
+    for p in psutil.Process(root_pid).children(recursive=True):
+        try:
+            role = None
+            q: psutil.Process | None = p
+            while q is not None and q.pid != root_pid:
+                if q.pid in owner:
+                    role = owner[q.pid]
+                    break
+                q = q.parent()
+            t = p.cpu_times()
+        except (psutil.NoSuchProcess, psutil.AccessDenied):
+            continue
+        role = role or "other"
+        out[role] = out.get(role, 0.0) + t.user + t.system
+    return out
+
+
 def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | None, security: bool, estimator: str = "full",
                     graph: str = "complete", agent_start: str = "fork") -> list[dict]:
     import os
@@ -319,14 +346,28 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
                     peak.update(m)
 
         sampler = threading.Thread(target=sample, name="memory", daemon=True)
+        # CPU by role over the steady stepping: a snapshot at the clock of step 2 and at the
+        # last step (the clock is heard here, on the supervisor's thread).
+        cpu_marks: dict[int, dict[str, float]] = {}
+        last_k = sc.steps - 1
+
+        def progress(k_plus_1: int, _steps: int, marks=cpu_marks, sw=sw, last=last_k) -> None:
+            k = k_plus_1 - 1
+            if (k == 2 or k == last) and k not in marks:
+                marks[k] = role_cpu_seconds(os.getpid(), sw.procs)
+
         t_start, t_start_ns = time.perf_counter(), time.time_ns()
         try:
             sw.start()
             sampler.start()
-            code = sw.run_to_end()
+            code = sw.run_to_end(progress=progress)
         finally:
             stop.set()
             sw.stop()
+        role_ms: dict[str, float] = {}
+        if 2 in cpu_marks and last_k in cpu_marks and last_k > 2:
+            a, b = cpu_marks[2], cpu_marks[last_k]
+            role_ms = {r: 1e3 * (b.get(r, 0.0) - a.get(r, 0.0)) / (last_k - 2) for r in sorted(set(a) | set(b))}
         total = time.perf_counter() - t_start
         from swarmrt.bus.messages import MessageError, decode
 
@@ -374,6 +415,10 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
             "codec_share_of_filter": share,
             "codec_share_of_filter_mean": float(e[:, 2].sum() / e[:, 1].sum()) if len(e) and e[:, 1].sum() > 0 else None,
             "world_exit_code": code,
+            # CPU (ms) per simulated step of every process of the run, summed by role (agent:
+            # all of them), between the clocks of step 2 and of the last step.
+            "cpu_ms_per_step_by_role": role_ms,
+            "cpu_ms_per_step_total": sum(role_ms.values()) if role_ms else None,
         }
         log(
             f"n={n:3d} {estimator}/{graph} ({agent_start}) security {row['security']:3s}: PSS peak {row['pss_peak_gib']:.2f} GiB "
@@ -382,5 +427,8 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
             f"{_ms(row['realtime_factor'], spec='.1f')}×, start-up {startup:.1f} s (total {total:.1f} s); agent per step: filter "
             f"{_ms(filt_cpu)} ms CPU, messages {_ms(codec_cpu)} ms CPU ({_ms(share, 100, '.0f')} % of the filter)"
         )
+        if role_ms:
+            log("  CPU per step by role: " + ", ".join(f"{r} {v:.0f} ms" for r, v in sorted(role_ms.items(), key=lambda kv: -kv[1]))
+                + f" (total {sum(role_ms.values()):.0f} ms)")
         rows.append(row)
     return rows

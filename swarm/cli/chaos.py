@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import subprocess
 import time
 from pathlib import Path
 
@@ -21,7 +22,8 @@ def chaos(
     duration: float | None = typer.Option(None, "--duration", min=1.0, help="the run's simulated duration (s; duration_s)"),
     out: Path = typer.Option(Path("runs/chaos"), "--out", "-o", help="campaign folder: chaos.json, run/ (swarm run's folder)"),
     kinds: list[str] | None = typer.Option(None, "--kind", help="draw only these kinds (repeatable): kill-agent, stop-agent, "
-                                           "camera, drop, selector, router"),
+                                           "camera, drop, selector, router, failover, stall, link, isolate; under --compose "
+                                           "also netem, partition"),
     settle: int | None = typer.Option(None, "--settle", min=1, help="steps after the last recovery (default: max(4, steps/6))"),
     sets: list[str] | None = SetOpt,
     timeout: float | None = typer.Option(None, help="stop the run after this many wall seconds"),
@@ -30,23 +32,39 @@ def chaos(
                                 "in; adds the failover kind: one router killed, then restarted)"),
     twice: bool = typer.Option(False, "--twice", help="run the campaign a second time (OUT/run-2) and check both give "
                                "the same numbers, bit for bit"),
+    compose: bool = typer.Option(False, "--compose", help="run the swarm of `docker compose up` (the image: make image) and "
+                                 "send every fault as `swarm fault --compose` does (Docker: kill, stop, restart, pause, tc "
+                                 "netem, network disconnect); adds the netem and partition kinds; SCENARIO must be a file of "
+                                 "scenarios/"),
 ):
     """Draw a seeded schedule of faults (agents killed, stopped and restarted, cameras off,
-    dropped messages, the selector killed, the router restarted; with --routers 2 one of two
-    routers killed and restarted while the clients fail over), run the swarm with it
-    (as `swarm run`), and check the invariants: every process ended; never finished with
-    agents gone; the recording readable and every fired fault in summary.json; every step
-    complete and the filters within 3σ once reconverged (recovery time per kind, p50/p99);
-    the same seed, the same schedule. Writes OUT/chaos.json; exit 1 if an invariant fails."""
-    from swarm.studies.chaos import KINDS, chaos_scenario, check_run, draw_schedule, same_numbers, schedule_digest
+    dropped messages, the selector killed, the router restarted, a role stalled; with
+    --routers 2 one of two routers killed and restarted while the clients fail over; with the
+    link model on, links made dead, slow or lossy; under --compose a container's network
+    delayed and lossy (tc netem) or cut), run the swarm with it (as `swarm run`, or as `docker
+    compose up`), and check the invariants: every process ended; never finished with agents
+    gone; the recording readable and every fired fault in summary.json; every step complete
+    and the filters within 3σ once reconverged (recovery time per kind, p50/p99); the same
+    seed, the same schedule. Writes OUT/chaos.json; exit 1 if an invariant fails."""
+    from swarm.studies.chaos import COMPOSE_KINDS, KINDS, chaos_scenario, check_run, draw_schedule, same_numbers, schedule_digest
 
     sets = [*(sets or ()), *([f"duration_s={duration}"] if duration is not None else [])]
+    if compose:
+        from swarm.supervise.compose_chaos import PACE
+
+        if routers != 1 or twice:
+            console.print("[red]error:[/red] --compose runs one router, once (its faults come from outside the swarm: "
+                          "not reproducible bit for bit, so no --twice)", highlight=False)
+            raise typer.Exit(2)
+        if not any(x.startswith("emulator.lockstep_max_realtime_factor=") for x in sets):
+            sets.append(f"emulator.lockstep_max_realtime_factor={PACE:g}")
     sc = _load(scenario, sets)
-    if bad := [k for k in kinds or () if k not in KINDS]:
-        console.print(f"[red]error:[/red] --kind {bad[0]!r}: one of {', '.join(KINDS)}", highlight=False)
+    known = COMPOSE_KINDS if compose else KINDS
+    if bad := [k for k in kinds or () if k not in known]:
+        console.print(f"[red]error:[/red] --kind {bad[0]!r}: one of {', '.join(known)}", highlight=False)
         raise typer.Exit(2)
     try:
-        episodes = draw_schedule(sc, faults, seed, settle, tuple(kinds) if kinds else None, routers=routers)
+        episodes = draw_schedule(sc, faults, seed, settle, tuple(kinds) if kinds else None, routers=routers, compose=compose)
     except ValueError as exc:
         console.print(f"[red]error:[/red] {exc}", highlight=False)
         raise typer.Exit(2) from None
@@ -54,7 +72,11 @@ def chaos(
     for col in ("from step", "to step", "kind", "target", "detail"):
         t.add_column(col)
     for e in episodes:
-        detail = (f"camera {e.camera}" if e.camera is not None else f"rate {e.rate}" if e.rate is not None
+        detail = (f"{e.role}{'' if e.router is None else f' {e.router}'} stopped {e.down_s} s" if e.kind == "stall"
+                  else "every link dead" if e.kind == "isolate"
+                  else f"-> {e.peer} " + ("dead" if e.impair == "dead" else f"+{e.delay_s} s" if e.impair == "delay"
+                                          else f"loss {e.rate}") if e.kind == "link"
+                  else f"camera {e.camera}" if e.camera is not None else f"rate {e.rate}" if e.rate is not None
                   else f"down {e.down_s} s" if e.down_s is not None else f"router {e.router}" if e.router is not None else "")
         t.add_row(str(e.start), str(e.end), e.kind, "" if e.target is None else str(e.target), detail)
     console.print(t)
@@ -62,8 +84,10 @@ def chaos(
         return
     from swarm.api import run as run_swarm
 
-    sc_chaos = chaos_scenario(sc, episodes)
     out.mkdir(parents=True, exist_ok=True)
+    if compose:
+        return _compose_campaign(scenario, sets, sc, episodes, seed, faults, settle, kinds, out, timeout)
+    sc_chaos = chaos_scenario(sc, episodes)
     t0 = time.monotonic()
     with _progress() as prog:
         task = prog.add_task(f"chaos {sc.name} n={sc.n_sats}", total=sc.steps)
@@ -84,19 +108,50 @@ def chaos(
     (out / "chaos.json").write_text(json.dumps(report.to_json(), indent=1) + "\n")
     _print_report(report)
     console.print(f"wrote {out / 'chaos.json'} (run folder {out / 'run'}; {wall_s:.0f} s)", highlight=False)
+    _write_report(out)
+    if not report.ok:
+        raise typer.Exit(1)
+
+
+def _compose_campaign(scenario: Path, sets: list[str], sc, episodes, seed: int, faults: int, settle, kinds, out: Path,
+                      timeout) -> None:
+    """The campaign under docker compose (swarm/supervise/compose_chaos.py runs it)."""
+    from swarm.studies.chaos import check_run
+    from swarm.supervise.compose_chaos import run_compose_campaign
+
+    root = Path(__file__).resolve().parents[2]
+    commands = sorted((c for e in episodes for c in e.commands()), key=lambda c: c.at_step)
+    t0 = time.monotonic()
+    try:
+        with _progress() as prog:
+            task = prog.add_task(f"chaos (compose) {sc.name} n={sc.n_sats}", total=sc.steps)
+            code = run_compose_campaign(root, scenario, sets, commands, sc.n_sats, sc.steps, sc.dt_s, out,
+                                        log=lambda s: console.print(s, highlight=False),
+                                        progress=lambda k, K: prog.update(task, completed=k), timeout_s=timeout)
+    except (RuntimeError, ValueError, subprocess.TimeoutExpired) as exc:
+        console.print(f"[red]error:[/red] {exc}", highlight=False)
+        raise typer.Exit(2) from None
+    wall_s = time.monotonic() - t0
+    report = check_run(out / "run", sc, episodes, seed, -1 if code is None else code, n_faults=faults, settle=settle,
+                       kinds=tuple(kinds) if kinds else None, compose=True)
+    report.extra["wall_s"] = round(wall_s, 1)
+    report.extra["compose"] = True
+    (out / "chaos.json").write_text(json.dumps(report.to_json(), indent=1) + "\n")
+    _print_report(report)
+    console.print(f"wrote {out / 'chaos.json'} (run folder {out / 'run'}; {wall_s:.0f} s)", highlight=False)
+    _write_report(out)
     if not report.ok:
         raise typer.Exit(1)
 
 
 def _print_report(report) -> None:
+    from swarm.studies.chaos import FIRED_COLUMNS, fired_rows
+
     t = Table(title=f"faults fired ({report.scenario}, seed {report.seed})")
-    for col in ("kind", "scheduled", "fired", "outage p50 (s)", "reconverged", "not reconverged", "recovery p50 (s)",
-                "recovery p99 (s)"):
+    for col in FIRED_COLUMNS:
         t.add_column(col)
-    for kind, d in sorted(report.fired.items()):
-        r = report.recovery.get(kind, {})
-        t.add_row(kind, str(d["scheduled"]), str(d["fired"]), _s(r.get("outage_p50_s")), str(r.get("n", 0)),
-                  str(r.get("not_reconverged", 0)), _s(r.get("p50_s")), _s(r.get("p99_s")))
+    for row in fired_rows(report.fired, report.recovery):
+        t.add_row(*row)
     console.print(t)
     t = Table(title="invariants")
     t.add_column("invariant")
@@ -107,5 +162,14 @@ def _print_report(report) -> None:
     console.print(t)
 
 
-def _s(x) -> str:
-    return "-" if x is None else f"{x:.1f}"
+def _write_report(out: Path) -> None:
+    """The campaign's report page (``swarm report OUT`` writes the same): its tables, then its
+    run's. A run too broken to plot still leaves chaos.json, which is the verdict."""
+    from swarm.studies.report import make_report
+
+    try:
+        page = make_report(out)
+    except (OSError, ValueError) as exc:
+        console.print(f"[yellow]no report page:[/yellow] {exc} (chaos.json holds the verdict)", highlight=False)
+        return
+    console.print(f"wrote {page}", highlight=False)

@@ -226,6 +226,60 @@ def fault_drop(ctx: typer.Context, sat: int, rate: float = typer.Option(..., "--
     _send_fault(ctx, action="drop", target=sat, rate=rate)
 
 
+_STALL_HELP = ("wall seconds the process stays stopped; past the Zenoh lease (10 s) its router drops its session: a world "
+               "or router stall is survived, an agent's, the selector's or the recorder's breaks the run (exit 5)")
+
+
+@fault_app.command("stall-agent")
+def fault_stall_agent(ctx: typer.Context, sat: int,
+                      down_s: float = typer.Option(..., "--down-s", min=0.001, max=3600.0, help=_STALL_HELP)):
+    """Stop satellite SAT's agent (SIGSTOP; `docker pause` under compose) for --down-s
+    seconds, then continue it: a stall, not a death (a VM pause, a long GC, a starved CPU)."""
+    _send_fault(ctx, action="stall-agent", target=sat, down_s=down_s)
+
+
+def _role_stall(role: str) -> None:
+    def command(ctx: typer.Context, down_s: float = typer.Option(..., "--down-s", min=0.001, max=3600.0, help=_STALL_HELP)):
+        _send_fault(ctx, action=f"stall-{role}", down_s=down_s)
+
+    command.__doc__ = (f"Stop the {role} (SIGSTOP; `docker pause` under compose) for --down-s seconds, then continue it.")
+    command.__name__ = f"fault_stall_{role}"
+    fault_app.command(f"stall-{role}")(command)
+
+
+_role_stall("world")
+_role_stall("selector")
+_role_stall("recorder")
+
+
+@fault_app.command("stall-router")
+def fault_stall_router(ctx: typer.Context, router: int = typer.Argument(0, help="the router's index (0; 0 or 1 with --routers 2)"),
+                       down_s: float = typer.Option(..., "--down-s", min=0.001, max=3600.0, help=_STALL_HELP)):
+    """Stop a Zenoh router (SIGSTOP; `docker pause` under compose) for --down-s seconds,
+    then continue it: every client's link to it hangs instead of closing."""
+    _send_fault(ctx, action="stall-router", target=router, down_s=down_s)
+
+
+@fault_app.command("link")
+def fault_link(
+    ctx: typer.Context,
+    sat: int = typer.Argument(..., help="the transmitting satellite"),
+    peer: int | None = typer.Argument(None, help="the receiving satellite (none: every link of SAT, both ways)"),
+    state: str | None = typer.Option(None, "--state", help="off: the link carries nothing; on: the scenario's parameters "
+                                     "back (undoes every fault on it)"),
+    delay_s: float | None = typer.Option(None, "--delay-s", min=0.0, max=3600.0, help="latency (s) added to its fixed latency"),
+    loss: float | None = typer.Option(None, "--loss", min=0.0, max=1.0, help="its loss rate (Bernoulli) from now on"),
+):
+    """Impair a radio link (the world's link model; scenarios with links.enabled): `link 2 3
+    --state off` (dead), `link 2 --state off` (satellite 2 cut off from the swarm), `link 2 3
+    --delay-s 1.5`, `link 2 3 --loss 0.4`, `link 2 3 --state on` (as the scenario has it)."""
+    if state not in (None, "on", "off") or (state is None and delay_s is None and loss is None) or \
+            (state == "on" and (delay_s is not None or loss is not None)):
+        console.print("[red]error:[/red] link: --state off|on, --delay-s or --loss (--state on alone)", highlight=False)
+        raise typer.Exit(2)
+    _send_fault(ctx, action="link", target=sat, peer=peer, state=state, delay_s=delay_s, rate=loss)
+
+
 _sat_fault("partition", "Cut satellite SAT's container off the bus network (compose only).")
 _sat_fault("heal", "Reconnect satellite SAT's container to the bus network (compose only).")
 
@@ -308,12 +362,13 @@ def recover(recording: Path = typer.Argument(..., help="a damaged MCAP file"), o
 
 @app.command()
 def report(
-    run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison / links-study folder"),
+    run: Path = typer.Argument(..., help="a run folder (swarm sim / swarm run), an MCAP file, or a Monte Carlo / comparison / links-study / chaos-campaign folder"),
     out: Path | None = typer.Option(None, "--out", "-o", help="folder for the figures and report.html (default: RUN/report)"),
 ):
     """Figures and one self-contained HTML page: errors against ±3σ per filter, NEES with
     its χ² band, gate rejections, the measurement schedule, faults on every time axis; with
-    links, the link table, latencies, per-step link events, queues and late measurements."""
+    links, the link table, latencies, per-step link events, queues and late measurements;
+    for a chaos campaign's folder, its faults, recovery times and invariants first."""
     from swarm.studies.report import make_report
 
     try:

@@ -67,6 +67,18 @@ class _LinkChange:
         self.wall_ns = time.time_ns()
 
 
+#: The flood cap: the most messages the recorder writes of one key and step, and the most
+#: malformed ones of one key. A run puts one message per key and step, a few more when the
+#: bus came back (each role sends its step again); a flood (a stolen credential putting on its
+#: own keys as fast as it can, under the router's size limits) is cut there and counted. A
+#: message of a step beyond the run is malformed. So a recording holds at most
+#: PER_STEP · (K + 1) well-formed messages per key, each within its key's size limit on the
+#: router (``swarmrt.security.size_limit_of``), and MALFORMED_PER_KEY malformed ones, each
+#: kept to its first 64 KiB.
+FLOOD_CAP_PER_STEP = 8
+FLOOD_CAP_MALFORMED_PER_KEY = 200
+
+
 class Recorder:
     def __init__(self, run: str, out: str, bus, flush_every_s: float = 1.0, derive_foxglove: bool = True, scenario=None):
         self.keys = Keys(run)
@@ -82,6 +94,12 @@ class Recorder:
         self.last_flush_t: float | None = None  # the simulated time of the last step-boundary flush
         self.last_flush_wall = time.monotonic()
         self.malformed = 0
+        # The flood cap (above): messages written per (key, step) and malformed ones per key,
+        # and those over it not written, per key.
+        self.steps = scenario.steps if scenario is not None else None
+        self._per_key_step: dict[tuple[str, int], int] = {}
+        self._malformed_per_key: dict[str, int] = {}
+        self.not_recorded: dict[str, int] = {}
         self._subs = [
             self.session.declare_subscriber(self.keys.everything(), self.inbox.callback),
             self.session.liveliness().declare_subscriber(f"{self.keys.root}/alive/**", self.inbox.callback, history=True),
@@ -177,6 +195,14 @@ class Recorder:
                 raise MessageError("unexpected delete")
             msg = decode(kind, s.payload)
             check_key(s.key, kind, _sat, msg)
+            k_msg = getattr(msg, "k", None)
+            if self.steps is not None and k_msg is not None:
+                if k_msg > self.steps:
+                    raise MessageError(f"step {k_msg}: beyond the run's {self.steps} steps")
+                seen = self._per_key_step[(s.key, k_msg)] = self._per_key_step.get((s.key, k_msg), 0) + 1
+                if seen > FLOOD_CAP_PER_STEP:
+                    self.not_recorded[s.key] = self.not_recorded.get(s.key, 0) + 1
+                    return
             if kind == "est" and msg.phase == "posterior":
                 self._est_at.setdefault(msg.k, set()).add(msg.own)
                 self._est_at.pop(msg.k - 3, None)
@@ -209,6 +235,10 @@ class Recorder:
                 self.flush(msg.t_s)
         except MessageError as exc:
             self.malformed += 1
+            seen = self._malformed_per_key[s.key] = self._malformed_per_key.get(s.key, 0) + 1
+            if self.steps is not None and seen > FLOOD_CAP_MALFORMED_PER_KEY:
+                self.not_recorded[s.key] = self.not_recorded.get(s.key, 0) + 1
+                return
             body = Malformed(key=s.key, error=str(exc), payload=bytes(s.payload[:65536])).SerializeToString()
             self.w.add(self._channel(f"{self.keys.root}/_malformed", "malformed"), body, now)
 
@@ -289,6 +319,13 @@ class Recorder:
                                     last_step_before=self.last_k, first_step_after=-1))
         if self.gaps:
             self._write_gaps(-1)
+        for key, count in sorted(self.not_recorded.items()):
+            # What the flood cap cut, on a channel of its own (the count as the payload).
+            body = Malformed(key=key, error=f"not recorded: {count} messages over the recorder's flood cap ({FLOOD_CAP_PER_STEP} "
+                             f"per key and step, {FLOOD_CAP_MALFORMED_PER_KEY} malformed per key)",
+                             payload=str(count).encode()).SerializeToString()
+            self.w.add(self._channel(f"{self.keys.root}/_not_recorded", "malformed"), body, time.time_ns())
+            log.warning("not recorded: %d messages on %s (over the flood cap)", count, key)
         for undeclare in [*(s.undeclare for s in self._subs), self._transports.undeclare]:
             with contextlib.suppress(Exception):
                 undeclare()

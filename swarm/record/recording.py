@@ -7,6 +7,7 @@ it (JSON messages, schemas named ``swarm.<Message>``) are refused with a message
 from __future__ import annotations
 
 import contextlib
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -19,7 +20,7 @@ from swarmcore.metrics import pose_errors, pose_nees, relative_pose_errors, run_
 from swarmcore.scenario import Scenario
 from swarmcore.sim import link_summary
 from swarmrt.bus.convert import array, pairs_from_select
-from swarmrt.bus.messages import BusGap, LinkStats, Liveliness, MessageError, as_dict, decode, parse_key
+from swarmrt.bus.messages import BusGap, LinkStats, Liveliness, Malformed, MessageError, as_dict, decode, parse_key
 
 __all__ = ["Recording", "BusTimes", "RecordingError", "load_recording"]
 
@@ -60,6 +61,7 @@ class Recording:
     link_series: list = field(default_factory=list)  # (k, cumulative totals, queue bytes) per step
     rejoins: list = field(default_factory=list)  # the radio's fates of restarted agents' state transfers
     dropped: dict = field(default_factory=dict)  # agent-<i> or world -> (malformed, of which key mismatch): its last report's counts
+    not_recorded: dict = field(default_factory=dict)  # key -> messages the recorder's flood cap did not write
     bus: BusTimes | None = None  # every bus message's sender, kind, step, publish and receive time
     gaps: list = field(default_factory=list)  # the recorder's bus gaps (no router reachable)
     resent: int = 0  # messages recorded twice (sent again after a bus gap; read once)
@@ -143,7 +145,7 @@ class Recording:
                 **({"bus_latency_ms": lat} if (lat := self.bus_latency_ms()) else {}),
                 "faults": self.faults,
                 "selector_fallback_steps": self.fallback_steps,
-                "messages": self.counts,
+                "messages": {**self.counts, **({"not_recorded_over_the_flood_cap": self.not_recorded} if self.not_recorded else {})},
                 "security": security_summary(sc.emulator.security, self.dropped),
                 **({"bus_gaps": self.gaps} if self.gaps else {}),
             },
@@ -213,7 +215,18 @@ def _check_format(topic: str, schema: str) -> None:
         )
 
 
-def _shape(path, n: int | None = None) -> tuple[int, int]:
+#: A message as :func:`~swarm.record.mcaplog.iter_messages` yields it: topic, schema name,
+#: data, log time and publish time (ns).
+RecordedMessage = tuple[str, str, bytes, int, int]
+
+
+def _read(path, messages: Sequence[RecordedMessage] | None) -> Iterable[RecordedMessage]:
+    """The recording's messages: those given (read already by the caller), else the file's,
+    streamed from it (a recording larger than memory loads too)."""
+    return iter_messages(path) if messages is None else messages
+
+
+def _shape(path, n: int | None = None, messages: Sequence[RecordedMessage] | None = None) -> tuple[int, int]:
     """(n, K) from the truth messages of a recording (of ``n`` satellites if given).
 
     n is the size most truth messages have. K is one past the last step k whose truth, with
@@ -221,7 +234,7 @@ def _shape(path, n: int | None = None) -> tuple[int, int]:
     every step, so a step far beyond what was recorded is a damaged number, not a step (a
     flipped bit in one step number must not ask for terabytes of arrays)."""
     steps: dict[int, set[int]] = {}  # size → steps with a truth of that size
-    for topic, schema, data, _lt, _pt in iter_messages(path):
+    for topic, schema, data, _lt, _pt in _read(path, messages):
         try:
             kind = parse_key(topic)[1]
         except MessageError:
@@ -251,9 +264,15 @@ _NS_MAX = 2**63  # Unix nanoseconds as int64 (the year 2262)
 _USED = ("truth", "est", "select", "meas", "fault", "links", "rejoin")
 
 
-def load_recording(path: str | Path, n: int | None = None, K: int | None = None) -> Recording:
+def load_recording(path: str | Path, n: int | None = None, K: int | None = None, *,
+                   messages: Sequence[RecordedMessage] | None = None) -> Recording:
+    """The run recorded in ``path``: of ``n`` satellites and ``K`` steps, or as many as its
+    truth messages say. ``messages``: the file's messages as
+    :func:`~swarm.record.mcaplog.iter_messages` yields them, for a caller that has read them
+    already (and loads them more than one way, as the fuzz target); by default the file is
+    read here, twice if n or K is not given (once for the shape, once for the contents)."""
     if n is None or K is None:
-        n0, K0 = _shape(path, n)
+        n0, K0 = _shape(path, n, messages)
         n, K = n or n0, K or K0
     nan = np.nan
     F = n
@@ -284,13 +303,18 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
     counts: dict[str, int] = {}
     bus_rows: list[tuple[str, str, int, int, int]] = []
     seen: set[tuple[str, int, int, int]] = set()  # (topic, step, size, hash of the payload) read so far
-    for topic, schema, data, log_ns, pub_ns in iter_messages(path):
+    for topic, schema, data, log_ns, pub_ns in _read(path, messages):
         _check_format(topic, schema)
         try:
             _run, kind, _sat = parse_key(topic)
         except MessageError:
             # Our alive / _malformed channels, and the derived Foxglove ones.
             kind = topic if topic.startswith("/") else topic.rsplit("/", 1)[-1]
+        if kind == "_not_recorded":  # the recorder's flood cap: one record per key it cut, the count its payload
+            with contextlib.suppress(DecodeError, ValueError):
+                m = Malformed.FromString(data)
+                rec.not_recorded[m.key] = rec.not_recorded.get(m.key, 0) + int(m.payload.decode())
+            continue
         counts[kind] = counts.get(kind, 0) + 1
         if kind == "alive":
             with contextlib.suppress(DecodeError):
@@ -385,7 +409,7 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None)
         elif kind == "fault":
             d = as_dict(m)
             rec.faults.append({**{f: d[f] for f in ("k", "t_s", "action", "phase", "sender", "target", "camera", "state", "rate",
-                                                  "netem", "detail")}, "log_time_ns": log_ns})
+                                                  "netem", "down_s", "peer", "delay_s", "detail")}, "log_time_ns": log_ns})
     if rec.resent:
         counts["resent_after_gap"] = rec.resent
     rec.counts = counts

@@ -22,10 +22,31 @@ selector      ``kill-selector`` (the world falls back)       ``restart-selector`
 router        ``restart-router`` (down 0.5–2 s wall)         (the restart itself)
 failover      ``kill-router r`` (r of two: ``--routers 2``;  ``restart-router r``
               the clients fail over to the other)
+link          ``link i j``: the directed link i → j dead,   ``link i j on`` (the scenario's
+              or +0.5–3 s latency, or 20–80 % loss          parameters back)
+isolate       ``link i off``: every link of i dead, both    ``link i on``
+              ways (i's radio cut off from the swarm)
+netem         ``netem i``: +50–400 ms (± a quarter),     ``netem i clear``
+              0–10 % loss on agent i's container
+              (``--compose`` only)
+partition     ``partition i``: agent i's container off the  ``heal i``
+              bus network (``--compose`` only)
+stall         ``stall-<role>``: SIGSTOP, SIGCONT after       (the SIGCONT)
+              ``down_s`` wall seconds; role drawn from
+              agent i (1–6 s), world (1–15 s), recorder
+              (1–6 s), router (1–6 s), selector (0.3–1.2 s)
 ============  =============================================  ==================================
 
-``failover`` is drawn only for a run with two routers (``swarm chaos --routers 2``); a run with
-one draws exactly the schedule it drew before the kind existed.
+A stall is drawn to be survived with the numbers of an unstalled run (lockstep): an agent's,
+the recorder's and a router's stay under the step timeout and the Zenoh lease (10 s), the
+selector's under the world's wait for a selection (2 s); the world's may outlast the lease
+(its peers hold its token for ``bus_lost_after_s``). A stall past the lease of any other role
+breaks the run by design (README "A stalled process"); ``tests/test_stall.py`` covers those.
+
+``failover`` is drawn only for a run with two routers (``swarm chaos --routers 2``); ``link`` and
+``isolate`` only for a scenario whose radio runs the link model (``links.enabled``); ``netem``
+and ``partition`` only under compose (``swarm chaos --compose``: one container per role, the
+faults carried out with Docker, stalls with ``docker pause``), where ``failover`` is not drawn.
 
 Episodes overlap in time, within rules that keep the run meaningful: at most
 ``max(1, (n − 1) // 2)`` agents down at once (a restarted agent needs a live peer), no two
@@ -71,11 +92,20 @@ import numpy as np
 from swarmcore.scenario import FaultSpec, Scenario
 from swarmcore.streams import stream
 
-__all__ = ["KINDS", "Episode", "draw_schedule", "chaos_scenario", "schedule_digest", "check_run", "Invariant", "CampaignReport",
+__all__ = ["KINDS", "COMPOSE_KINDS", "Command", "Episode", "draw_schedule", "chaos_scenario", "schedule_digest", "check_run", "Invariant", "CampaignReport",
+           "FIRED_COLUMNS", "fired_rows",
            "RECONVERGED_STEPS", "CONSISTENT_FRACTION", "SIGNIFICANCE", "NEES_3SIGMA_6DOF", "NUMBERS", "same_numbers"]
 
 #: The episode kinds a local run (``swarm run``) can carry out.
-KINDS = ("kill-agent", "stop-agent", "camera", "drop", "selector", "router", "failover")
+KINDS = ("kill-agent", "stop-agent", "camera", "drop", "selector", "router", "failover", "stall", "link", "isolate")
+#: Kinds on the radio's link model (scenarios with links.enabled).
+_LINK_KINDS = ("link", "isolate")
+#: Kinds on a container's network: compose campaigns only.
+_NETWORK_KINDS = ("netem", "partition")
+#: What a compose campaign (``swarm chaos --compose``) can carry out.
+COMPOSE_KINDS = tuple(k for k in KINDS if k != "failover") + _NETWORK_KINDS
+#: The roles a stall episode stops, and the range (wall s) of its length.
+STALL_ROLES = {"agent": (1.0, 6.0), "world": (1.0, 15.0), "recorder": (1.0, 6.0), "router": (1.0, 6.0), "selector": (0.3, 1.2)}
 #: Kinds on a router (one at a time); ``failover`` needs a second router to fail over to.
 _ROUTER_KINDS = ("router", "failover")
 #: An episode has reconverged once its pairs stay within 3σ this many steps in a row.
@@ -90,6 +120,28 @@ _PROCESS_KINDS = ("kill-agent", "stop-agent")
 
 
 @dataclass(frozen=True)
+class Command:
+    """One fault command of a schedule: a :class:`FaultSpec`'s fields and ``netem`` (a
+    container's network faults cannot be scenario entries: they are sent by ``swarm fault
+    --compose``, which a compose campaign does for every command)."""
+
+    at_step: int
+    action: str
+    target: int | None = None
+    camera: int | None = None
+    state: str | None = None
+    rate: float | None = None
+    down_s: float | None = None
+    peer: int | None = None
+    delay_s: float | None = None
+    netem: str | None = None
+
+    def fields(self) -> dict[str, Any]:
+        """The command's fields as ``swarm fault`` sends them (those set)."""
+        return {k: v for k, v in asdict(self).items() if k != "at_step" and v is not None}
+
+
+@dataclass(frozen=True)
 class Episode:
     """One fault and its recovery: ``kind`` (:data:`KINDS`) from step ``start`` to step
     ``end`` (the recovery's step; ``end == start`` for a router restart)."""
@@ -100,8 +152,23 @@ class Episode:
     target: int | None = None  # the satellite (agent, camera, drop episodes)
     camera: int | None = None
     rate: float | None = None  # drop
-    down_s: float | None = None  # router
-    router: int | None = None  # failover: the router killed (0 or 1)
+    down_s: float | None = None  # router: down this long; stall: stopped this long (wall s)
+    router: int | None = None  # failover: the router killed (0 or 1); stall of a router: which
+    role: str | None = None  # stall: the role stopped (agent, world, recorder, router, selector)
+    peer: int | None = None  # link: the receiving satellite (target → peer)
+    impair: str | None = None  # link: dead, delay or loss
+    delay_s: float | None = None  # link (delay): latency added (s)
+    netem: str | None = None  # netem: tc netem arguments
+
+    def commands(self) -> list[Command]:
+        """Every fault command of the episode, in order (a scenario's entries where they can
+        be: :meth:`specs`)."""
+        i, a, b = self.target, self.start, self.end
+        if self.kind == "netem":
+            return [Command(a, "netem", target=i, netem=self.netem), Command(b, "netem", target=i, netem="clear")]
+        if self.kind == "partition":
+            return [Command(a, "partition", target=i), Command(b, "heal", target=i)]
+        return [Command(**s.model_dump()) for s in self.specs()]
 
     def specs(self) -> list[FaultSpec]:
         """The scenario's fault entries of this episode."""
@@ -120,6 +187,16 @@ class Episode:
         if self.kind == "failover":
             return [FaultSpec(at_step=a, action="kill-router", target=self.router),
                     FaultSpec(at_step=b, action="restart-router", target=self.router)]
+        if self.kind == "stall":
+            target = i if self.role == "agent" else self.router if self.role == "router" else None
+            return [FaultSpec(at_step=a, action=f"stall-{self.role}", target=target, down_s=self.down_s)]
+        if self.kind in _LINK_KINDS:
+            bad = ({"state": "off"} if self.impair in ("dead", None) else {"delay_s": self.delay_s} if self.impair == "delay"
+                   else {"rate": self.rate})
+            return [FaultSpec(at_step=a, action="link", target=i, peer=self.peer, **bad),
+                    FaultSpec(at_step=b, action="link", target=i, peer=self.peer, state="on")]
+        if self.kind in _NETWORK_KINDS:
+            raise ValueError(f"a {self.kind} episode acts on a container's network: no scenario entry holds it (commands())")
         raise ValueError(f"unknown episode kind {self.kind!r} (known: {', '.join(KINDS)})")
 
     @property
@@ -129,16 +206,16 @@ class Episode:
     def affects(self, n: int) -> tuple[list[int], list[int]]:
         """(filters whose every estimate it affects, satellites whose estimate by every
         filter it affects)."""
-        if self.target is None:
+        if self.target is None or (self.kind == "stall" and self.role != "agent") or self.kind in _LINK_KINDS:
             return list(range(n)), []
         return [self.target], [self.target]
 
 
 def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = None, kinds: tuple[str, ...] | None = None,
-                  max_tries: int = 500, routers: int = 1) -> list[Episode]:
-    """``n_faults`` episodes for scenario ``sc`` run with ``routers`` routers (see the
-    module docstring), the same for the same arguments. Raises ValueError, saying why,
-    when they do not fit."""
+                  max_tries: int = 500, routers: int = 1, compose: bool = False) -> list[Episode]:
+    """``n_faults`` episodes for scenario ``sc`` run with ``routers`` routers, as local
+    processes or (``compose``) under docker compose (see the module docstring), the same for
+    the same arguments. Raises ValueError, saying why, when they do not fit."""
     if n_faults < 0:
         raise ValueError(f"--faults {n_faults}: a count of faults (0 or more)")
     K, n = sc.steps, sc.n_sats
@@ -147,13 +224,20 @@ def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = N
     if n_faults and last_end - first < 2:
         raise ValueError(f"{K} steps leave no room for faults: they need steps {first}..{K - 1 - settle} "
                          f"(a longer --duration, or fewer settle steps)")
+    if kinds and compose and "failover" in kinds:
+        raise ValueError("failover: not under compose (its campaigns run one router)")
     if kinds and "failover" in kinds and routers < 2:
         raise ValueError("failover kills one of two routers: run the campaign with --routers 2")
-    allowed = tuple(kinds or (k for k in KINDS if k != "failover" or routers >= 2))
+    if kinds and not sc.links.enabled and (asked := [k for k in kinds if k in _LINK_KINDS]):
+        raise ValueError(f"{', '.join(asked)} act on the radio's link model: a scenario with links.enabled: true")
+    known = COMPOSE_KINDS if compose else KINDS
+    if kinds and not compose and (asked := [k for k in kinds if k in _NETWORK_KINDS]):
+        raise ValueError(f"{', '.join(asked)} act on a container's network: a campaign under compose (--compose)")
+    allowed = tuple(kinds or (k for k in known if (k != "failover" or routers >= 2) and (k not in _LINK_KINDS or sc.links.enabled)))
     if sc.selection.strategy == "none":
         allowed = tuple(k for k in allowed if k != "selector")  # no selector to kill
-    if unknown := [k for k in allowed if k not in KINDS]:
-        raise ValueError(f"unknown fault kinds {unknown} (known: {', '.join(KINDS)})")
+    if unknown := [k for k in allowed if k not in known]:
+        raise ValueError(f"unknown fault kinds {unknown} (known: {', '.join(known)})")
     if n_faults and not allowed:
         raise ValueError("no fault kind is left to draw from")
     rng = stream(seed, "chaos", K, n)
@@ -168,13 +252,40 @@ def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = N
         kind = str(allowed[int(rng.integers(len(allowed)))])
         start = int(rng.integers(first, last_end))  # [first, last_end)
         span = int(rng.integers(2, 7))  # 2..6 steps down
-        end = start if kind == "router" else min(start + span, last_end)
-        target = int(rng.integers(n)) if kind in (*_PROCESS_KINDS, "camera", "drop") else None
+        end = start if kind in ("router", "stall") else min(start + span, last_end)
+        target = int(rng.integers(n)) if kind in (*_PROCESS_KINDS, "camera", "drop", *_NETWORK_KINDS) else None
         camera = int(rng.integers(6)) if kind == "camera" else None
         rate = round(float(rng.uniform(0.2, 0.8)), 2) if kind == "drop" else None
         down_s = round(float(rng.uniform(0.5, 2.0)), 2) if kind == "router" else None
         router = int(rng.integers(2)) if kind == "failover" else None
-        ep = Episode(kind, start, end, target, camera, rate, down_s, router)
+        role = None
+        if kind == "stall":
+            roles = [r for r in STALL_ROLES if r != "selector" or sc.selection.strategy != "none"]
+            role = roles[int(rng.integers(len(roles)))]
+            lo, hi = STALL_ROLES[role]
+            down_s = round(float(rng.uniform(lo, hi)), 2)
+            target = int(rng.integers(n)) if role == "agent" else None
+            router = int(rng.integers(routers)) if role == "router" else None
+        peer = impair = delay_s = None
+        if kind in _LINK_KINDS:
+            target = int(rng.integers(n))
+            if kind == "link":
+                peer = int((target + 1 + rng.integers(n - 1)) % n) if n > 1 else None
+                impair = ("dead", "delay", "loss")[int(rng.integers(3))]
+                if impair == "delay":
+                    delay_s = round(float(rng.uniform(0.5, 3.0)), 2)
+                elif impair == "loss":
+                    rate = round(float(rng.uniform(0.2, 0.8)), 2)
+            if n < 2:
+                continue
+        netem = None
+        if kind == "netem":
+            from swarmrt.netem import Netem
+
+            d_ms = int(rng.integers(50, 401))
+            netem = Netem(delay_s=d_ms / 1e3, jitter_s=(d_ms // 4) / 1e3, loss_pct=float(rng.integers(0, 11))).args()
+        ep = Episode(kind, start, end, target, camera, rate, down_s, router, role, peer=peer, impair=impair, delay_s=delay_s,
+                     netem=netem)
         if _fits(ep, out, max_down):
             out.append(ep)
     return sorted(out, key=lambda e: (e.start, e.end, e.kind, e.target if e.target is not None else -1))
@@ -189,20 +300,35 @@ def _fits(ep: Episode, placed: list[Episode], max_down: int) -> bool:
     for o in placed:
         if not _overlap(ep, o):
             continue
-        same_sat = ep.target is not None and ep.target == o.target
+        if ep.kind in _LINK_KINDS and o.kind in _LINK_KINDS and (
+                {ep.target, ep.peer} & {o.target, o.peer} - {None} or "isolate" in (ep.kind, o.kind)):
+            # One link episode per satellite at a time, and an isolation alone (a restore gives
+            # back every fault on its links, and two isolated satellites share one link).
+            return False
+        same_sat = ep.target is not None and ep.target == o.target and ep.kind not in _LINK_KINDS and o.kind not in _LINK_KINDS
         if same_sat and ep.kind != "camera" and o.kind != "camera":
             return False  # one process or drop episode per agent at a time
         if same_sat and ep.kind == o.kind == "camera" and ep.camera == o.camera:
             return False
-        if ep.kind == o.kind == "selector" or (ep.kind in _ROUTER_KINDS and o.kind in _ROUTER_KINDS):
+        if ep.kind == o.kind == "selector" or (_on_a_router(ep) and _on_a_router(o)):
             return False
-    if ep.kind in _PROCESS_KINDS:
-        # At every step of this episode, the agents down (this one included) within the bound.
+        if ep.kind == o.kind == "stall" or (_on_the_selector(ep) and _on_the_selector(o)):
+            return False  # one stall at a time; the selector killed or stopped, not both
+    if ep.kind in (*_PROCESS_KINDS, "partition"):
+        # At every step of this episode, the agents down or cut off (this one included) within the bound.
         for k in range(ep.start, ep.end + 1):
-            down = {o.target for o in placed if o.kind in _PROCESS_KINDS and o.start <= k <= o.end}
+            down = {o.target for o in placed if o.kind in (*_PROCESS_KINDS, "partition") and o.start <= k <= o.end}
             if len(down | {ep.target}) > max_down:
                 return False
     return True
+
+
+def _on_a_router(e: Episode) -> bool:
+    return e.kind in _ROUTER_KINDS or (e.kind == "stall" and e.role == "router")
+
+
+def _on_the_selector(e: Episode) -> bool:
+    return e.kind == "selector" or (e.kind == "stall" and e.role == "selector")
 
 
 def chaos_scenario(sc: Scenario, episodes: list[Episode]) -> Scenario:
@@ -250,6 +376,25 @@ class CampaignReport:
         d = asdict(self)
         d["ok"] = self.ok
         return d
+
+
+#: The campaign table's columns (the terminal's, chaos.json's report page's): one row per kind.
+FIRED_COLUMNS = ("kind", "scheduled", "fired", "outage p50 (s)", "reconverged", "not reconverged", "recovery p50 (s)",
+                 "recovery p99 (s)")
+
+
+def fired_rows(fired: dict[str, dict[str, int]], recovery: dict[str, dict[str, Any]]) -> list[tuple[str, ...]]:
+    """The campaign table (:data:`FIRED_COLUMNS`) of a report's ``fired`` and ``recovery``
+    (a :class:`CampaignReport`'s, or chaos.json's), as text: seconds to a tenth, "-" for none."""
+    def s(x) -> str:
+        return "-" if x is None else f"{x:.1f}"
+
+    rows: list[tuple[str, ...]] = []
+    for kind, d in sorted(fired.items()):
+        r = recovery.get(kind, {})
+        rows.append((kind, str(d.get("scheduled", 0)), str(d.get("fired", 0)), s(r.get("outage_p50_s")), str(r.get("n", 0)),
+                     str(r.get("not_reconverged", 0)), s(r.get("p50_s")), s(r.get("p99_s"))))
+    return rows
 
 
 def _leftover_processes(run_dir: Path, info: dict) -> list[str]:
@@ -303,17 +448,52 @@ def _clocks(path: Path, n: int) -> dict[int, set[int]]:
     return out
 
 
+def _lost_to_a_gap_and_a_kill(summary: dict, i: int, k: int) -> bool:
+    """Agent i's estimate of step k may be missing from the recording although the world had
+    it: the recorder was deaf at step k and agent i was killed or stopped by a fault of step
+    k + 1, before it could send it again (see check_run). Deaf: from its link's loss (a gap
+    in ``bus_gaps``) until its subscriptions, re-declared once the link is back, have reached
+    the router the agent publishes to, which a client cannot observe: a put in between reaches
+    no subscriber of the recorder (its resend waits for the recorder's token, declared after
+    the subscriptions). So the gap counts to one step past the step its link came back in
+    (seen in CI: the recorder's link down for 4 ms within step 11, agent 2's estimate of step 12
+    put to router 0 before the recorder's subscriptions were there, agent 2 killed at 13)."""
+    gaps = [(int(g.get("last_step_before", -1)), int(g.get("first_step_after", -1)))
+            for g in (summary.get("bus_gaps") or []) if g.get("observer") == "recorder"]
+    killed = any(f.get("action") in ("kill-agent", "stop-agent") and f.get("phase") == "done" and f.get("target") == i
+                 and int(f.get("k", -1)) == k + 1 for f in (summary.get("faults") or []))
+    return killed and any(a <= k <= b + 1 or (b < 0 and a <= k) for a, b in gaps)
+
+
+def _partitioned(summary: dict, i: int, k: int) -> bool:
+    """Agent i was off the bus network at step k (compose: between a ``partition`` of its
+    container and the ``heal`` after it, both steps included): nothing it sent could reach
+    the recorder, as a drop fault's losses cannot."""
+    done = sorted((int(f.get("k", -1)), f.get("action")) for f in (summary.get("faults") or [])
+                  if f.get("action") in ("partition", "heal") and f.get("phase") == "done" and f.get("target") == i)
+    start = None
+    for step, action in done:
+        if action == "partition":
+            start = step if start is None else start
+        elif start is not None:
+            if start <= k <= step:
+                return True
+            start = None
+    return start is not None and k >= start
+
+
 def _percentile(xs: list[float], q: float) -> float | None:
     return float(np.percentile(xs, q)) if xs else None
 
 
 def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: int, exit_code: int,
               n_faults: int | None = None, settle: int | None = None, kinds: tuple[str, ...] | None = None,
-              routers: int = 1) -> CampaignReport:
+              routers: int = 1, compose: bool = False) -> CampaignReport:
     """Check a finished chaos run in ``run_dir`` (``swarm run``'s folder: ``run.json``,
-    ``run.mcap``, ``summary.json``) against the invariants of the module docstring.
-    ``sc``: the scenario it ran (the schedule's faults in it); ``exit_code``: what
-    ``swarm run`` returned."""
+    ``run.mcap``, ``summary.json``; under compose the recorder's, and a ``run.json`` the
+    campaign wrote) against the invariants of the module docstring. ``sc``: the scenario it
+    ran (the schedule's faults in it, those a scenario can hold); ``exit_code``: what ``swarm
+    run`` (under compose: the world's container) returned."""
     from swarm.record.recording import load_recording
     from swarmrt.protocol import DROP_ESTIMATE, message_dropped
 
@@ -323,11 +503,18 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
     info = _read_json(run_dir / "run.json")
     summary = _read_json(run_dir / "summary.json")
 
-    # (a) every process ended.
-    left = _leftover_processes(run_dir, info)
-    inv.append(Invariant("a. every process ended", not left and bool(info),
-                         f"{len(info.get('pids') or {})} processes in run.json, none left running" if not left and info
-                         else ("no run.json" if not info else f"still running: {', '.join(left)}")))
+    # (a) every process ended (under compose: every container of the project, which the
+    # campaign listed after `docker compose down`).
+    if "compose_project" in info:
+        left = list(info.get("containers_left") or [])
+        inv.append(Invariant("a. every process ended", not left,
+                             f"compose project {info['compose_project']}: {info.get('containers', 0)} containers, none left"
+                             if not left else f"containers left: {', '.join(left)}"))
+    else:
+        left = _leftover_processes(run_dir, info)
+        inv.append(Invariant("a. every process ended", not left and bool(info),
+                             f"{len(info.get('pids') or {})} processes in run.json, none left running" if not left and info
+                             else ("no run.json" if not info else f"still running: {', '.join(left)}")))
 
     # (c, first half) the recording, to its last complete step.
     rec = None
@@ -353,8 +540,19 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
                 rate = r
         return message_dropped(sc.seed, i, k, DROP_ESTIMATE, rate)
 
+    # The one way an estimate the world had can be missing from the recording: its agent
+    # published it while the recorder was off the bus (a router fault; the recorder's gap
+    # spans the step, or the one after: see _lost_to_a_gap_and_a_kill), and was SIGKILLed (or
+    # stopped) by a fault of the next step before its resend, which every role makes when a
+    # peer's token comes back, left it (a killed process's unsent socket data goes with it).
+    # Seen twice in CI: router 1 killed at step 12, agent 2 killed at 13. Listed as excused,
+    # with the gap, not counted as incomplete.
+    def excused(i: int, k: int) -> bool:
+        return _lost_to_a_gap_and_a_kill(summary, i, k) or _partitioned(summary, i, k)
+
     # Steps complete: every agent listed live has its estimate (or its drop fault lost it).
     incomplete: list[str] = []
+    excuses: list[str] = []
     complete_steps = []
     if rec is not None:
         for k in range(last_truth + 1):
@@ -363,6 +561,10 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
                 incomplete.append(f"step {k}: no clock")
                 continue
             missing = [i for i in sorted(live) if not rec.alive[k, i] and not est_lost(i, k)]
+            excuses += [f"agent {i} at step {k} (" + ("its container off the bus network" if _partitioned(summary, i, k) else
+                                                     f"sent while the recorder was off the bus or re-subscribing, killed at {k + 1}") + ")"
+                        for i in missing if excused(i, k)]
+            missing = [i for i in missing if not excused(i, k)]
             if missing:
                 incomplete.append(f"step {k}: no estimate of agents {missing}")
             else:
@@ -383,7 +585,7 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
     inv.append(Invariant("b. not finished with agents gone", b_ok, b_ev))
 
     # (c) readable; every fired fault in summary.json.
-    scheduled = [s for e in episodes for s in e.specs()]
+    scheduled = [c for e in episodes for c in e.commands()]
     fired_upto = last_truth
     listed = summary.get("faults") or []
     unlisted = []
@@ -447,6 +649,7 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
         worst = min((fr for fr, _m in fractions.values() if fr is not None), default=None)
         d_ok = not incomplete and not bad and not never
         d_ev = (f"{len(complete_steps)}/{last_truth + 1} steps complete" + (f" (INCOMPLETE: {'; '.join(incomplete[:5])})" if incomplete else "")
+                + (f" (excused: {'; '.join(excuses[:5])})" if excuses else "")
                 + (f"; worst filter {worst:.4f} of its pairs within 3σ once reconverged (≥ {CONSISTENT_FRACTION}, or not "
                    f"significantly less: binomial p ≥ {SIGNIFICANCE})" if worst is not None else "")
                 + (f"; BELOW: {', '.join(bad)}" if bad else "")
@@ -458,7 +661,7 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
 
     # (e) the schedule again from the seed.
     again = draw_schedule(sc.model_copy(update={"faults": []}), len(episodes) if n_faults is None else n_faults, seed, settle, kinds,
-                          routers=routers)
+                          routers=routers, compose=compose)
     same = schedule_digest(again) == schedule_digest(episodes)
     inv.append(Invariant("e. same seed, same schedule", same, f"schedule sha256 {schedule_digest(episodes)[:16]}… drawn again: "
                          + ("equal" if same else f"DIFFERENT ({schedule_digest(again)[:16]}…)")))
@@ -511,7 +714,7 @@ def _below(fraction: float, pairs: int) -> bool:
     return fraction < CONSISTENT_FRACTION and p is not None and p < SIGNIFICANCE
 
 
-def _same_target(s: FaultSpec, f: dict) -> bool:
+def _same_target(s: Command, f: dict) -> bool:
     if s.action in ("kill-selector", "restart-selector"):
         return True
     if s.action == "restart-router":
@@ -520,6 +723,10 @@ def _same_target(s: FaultSpec, f: dict) -> bool:
         return f.get("target") == s.target and f.get("camera") == s.camera and f.get("state") == s.state
     if s.action == "drop":
         return f.get("target") == s.target and abs(float(f.get("rate") or 0.0) - float(s.rate or 0.0)) < 1e-9
+    if s.action == "link":
+        return all(f.get(x) == getattr(s, x) for x in ("target", "peer", "state", "rate", "delay_s"))
+    if s.action == "netem":
+        return f.get("target") == s.target and f.get("netem") == s.netem
     return f.get("target") == s.target
 
 

@@ -32,6 +32,7 @@ import numpy as np
 from scipy.stats import chi2
 
 from swarm.outputs import NO_DATA, no_data_reason, number
+from swarm.studies.chaos import FIRED_COLUMNS, fired_rows
 from swarmcore import quat
 
 __all__ = ["RunData", "LinkData", "load_run", "make_report"]
@@ -559,13 +560,38 @@ def _faults_table(faults: list) -> str:
     ) + "</table>"
 
 
+def _chaos_section(c: dict) -> str:
+    """A chaos campaign's ``chaos.json`` (``swarm chaos``) as the terminal shows it: faults
+    fired and recovery per kind, then every invariant with its evidence."""
+    fired = "<table><tr>" + "".join(f"<th>{h}</th>" for h in FIRED_COLUMNS) + "</tr>" + "".join(
+        "<tr>" + "".join(f"<td>{html.escape(v)}</td>" for v in r) + "</tr>"
+        for r in fired_rows(c.get("fired", {}), c.get("recovery", {}))) + "</table>"
+    inv = "<table><tr><th>invariant</th><th></th><th>evidence</th></tr>" + "".join(
+        f"<tr><td>{html.escape(str(i.get('name', '')))}</td><td>{'pass' if i.get('ok') else '<b>FAIL</b>'}</td>"
+        f"<td>{html.escape(str(i.get('evidence', '')))}</td></tr>" for i in c.get("invariants", [])) + "</table>"
+    head = (f"<p>{html.escape(str(c.get('scenario', '')))}, seed {c.get('seed')}, {c.get('n_faults')} faults over "
+            f"{c.get('steps')} steps (schedule sha256 {html.escape(str(c.get('schedule_sha256', ''))[:12])}); exit code "
+            f"{c.get('exit_code')}; {'every invariant holds' if c.get('ok') else '<b>an invariant is violated</b>'}"
+            + (f"; broken: {html.escape(str(c['broken']))}" if c.get("broken") else "") + ".</p>")
+    return "<h2>Chaos campaign</h2>" + head + "<h3>Faults fired and recovery</h3>" + fired + "<h3>Invariants</h3>" + inv
+
+
 def make_report(path: str | Path, out: str | Path | None = None) -> Path:
-    """Write figures and ``report.html``; returns the HTML path."""
+    """Write figures and ``report.html``; returns the HTML path. ``path`` is a run folder (or
+    its recording), a study's folder, or a chaos campaign's (``chaos.json``: the campaign's
+    tables, then its run's report)."""
     p = Path(path)
     out = Path(out) if out else (p.parent if p.is_file() else p) / "report"
     out.mkdir(parents=True, exist_ok=True)
     sections = []
-    if p.is_dir() and (p / "mc.json").exists():
+    campaign = None
+    if p.is_dir() and (p / "chaos.json").exists():
+        campaign = json.loads((p / "chaos.json").read_text())
+        sections.append(_chaos_section(campaign))
+        p = p / "run"
+    if campaign is not None and not (p / "run.mcap").exists():
+        title = f"Chaos campaign: {p.parent.name} (its run left no recording)"
+    elif p.is_dir() and (p / "mc.json").exists():
         figs, table = _mc_figures(p, out)
         sections.append("<h2>Monte Carlo</h2>" + table + "".join(_img(f, f.stem) for f in figs))
         title = f"Monte Carlo report: {p.name}"
@@ -588,7 +614,8 @@ def make_report(path: str | Path, out: str | Path | None = None) -> Path:
         title = f"Estimators compared: {p.name}"
     else:
         data = load_run(p)
-        title = f"Run report: {data.name} (n = {data.n}, {len(data.t)} steps)"
+        title = (f"Chaos campaign: {p.parent.name}, seed {campaign.get('seed')}" if campaign is not None else "Run report") \
+            + f": {data.name} (n = {data.n}, {len(data.t)} steps)"
         sections.append("<h2>Summary</h2>" + _summary_table(data.summary))
         if (est := _estimator_table(data.summary)):
             sections.append("<h2>Estimator</h2>" + est)

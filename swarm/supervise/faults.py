@@ -23,7 +23,7 @@ from pathlib import Path
 import zenoh
 
 from swarm.supervise.netem import CLEAR, NO_QDISC, UNKNOWN_QDISC, netemd_args, show_script, tc_script
-from swarmcore.scenario import NETWORK_FAULTS, PROCESS_FAULTS, ROUTER_FAULTS, SELECTOR_PROCESS_FAULTS
+from swarmcore.scenario import NETWORK_FAULTS, PROCESS_FAULTS, ROUTER_FAULTS, SELECTOR_PROCESS_FAULTS, STALL_FAULTS
 from swarmrt.bus.messages import SCHEMA_VERSION, Fault, Keys, MessageError, opt, replace, validate
 from swarmrt.bus.session import BusConfig
 from swarmrt.node import Node
@@ -111,6 +111,14 @@ def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | 
             _docker("start", ids[0])
             return f"docker kill, then start {service} ({ids[0][:12]}) after {down:g} s"
         return f"docker kill {service} ({ids[0][:12]})"
+    if cmd.action in STALL_FAULTS and cmd.action != "stall-agent":
+        role = cmd.action.removeprefix("stall-")
+        # Router 0 is service "router", router 1 "router2" (compose.routers2.yaml).
+        service = role if role != "router" or not opt(cmd, "target") else f"router{cmd.target + 1}"
+        ids = [c["ID"] for c in cont if c["service"] == service and c["State"] == "running"]
+        if not ids:
+            raise RuntimeError(f"no running container of service {service}")
+        return _pause(ids[0], float(opt(cmd, "down_s") or 0.0), service)
     if cmd.action in SELECTOR_PROCESS_FAULTS:
         ids = [c["ID"] for c in cont if c["service"] == "selector"]
     elif cmd.action == "heal":
@@ -154,6 +162,8 @@ def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | 
         _docker("restart", cid)
     elif cmd.action == "netem":
         return _netem(cid, cmd.netem, project)
+    elif cmd.action == "stall-agent":
+        return _pause(cid, float(opt(cmd, "down_s") or 0.0), f"satellite {cmd.target}'s agent")
     elif cmd.action in NETWORK_FAULTS:
         nets = json.loads(_docker("inspect", "--format", "{{json .NetworkSettings.Networks}}", cid)) or {}
         net = network or next((n for n in nets if n.endswith("_bus")), None)
@@ -165,6 +175,22 @@ def _compose_action(node: Node, cmd: Fault, project: str | None, network: str | 
             net = network or _bus_network(project)
             _docker("network", "connect", net, cid)
     return f"{cmd.action} on container {cid[:12]}"
+
+
+def _pause(cid: str, down_s: float, what: str) -> str:
+    """A stall under compose: ``docker pause`` (the cgroup freezer: every process of the
+    container stops, its sockets stay), ``down_s`` wall seconds, ``docker unpause``."""
+    t0 = time.monotonic()
+    _docker("pause", cid)
+    try:
+        time.sleep(down_s)  # the fault itself: the container stays frozen this long
+    finally:
+        try:
+            _docker("unpause", cid)
+        except RuntimeError:  # once more: a container left frozen is worse than a late unpause
+            time.sleep(1.0)
+            _docker("unpause", cid)
+    return f"docker pause {what} ({cid[:12]}), unpause after {time.monotonic() - t0:.2f} s"
 
 
 def netem_helper_name(cid: str) -> str:
@@ -258,9 +284,11 @@ def _bus_network(project: str | None) -> str:
 
 
 def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, project=None, network=None, timeout: float = 30.0,
-               credential: str | None = None, **fields) -> str:
+               credential: str | None = None, stamp: tuple[int, float] | None = None, **fields) -> str:
     """Send one fault command as the ``cli`` identity (``credential``, or the run's or
-    ``$SWARM_KEYS``' cli.json) and wait for whoever carries it out to report."""
+    ``$SWARM_KEYS``' cli.json) and wait for whoever carries it out to report. ``stamp``:
+    the (step, t_s) to stamp the command with (a campaign that knows the step it sends it
+    for); by default the step of the next clock heard."""
     endpoints, run, n, cred = _target(run_dir, connect, run_id, compose)
     cred = credential or cred
     endpoint = ",".join(endpoints)
@@ -283,12 +311,13 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
         node.subscribe(keys.faults())
         node.subscribe(keys.clock())
         node.subscribe(keys.health())
-        k, t = 0, 0.0
-        ev = node.next_event(5.0)  # learn the current step (to stamp the command)
-        while ev is not None and ev.kind != "clock":
-            ev = node.next_event(5.0)
-        if ev is not None:
-            k, t = ev.msg.k, ev.msg.t_s
+        k, t = stamp if stamp is not None else (0, 0.0)
+        if stamp is None:
+            ev = node.next_event(5.0)  # learn the current step (to stamp the command)
+            while ev is not None and ev.kind != "clock":
+                ev = node.next_event(5.0)
+            if ev is not None:
+                k, t = ev.msg.k, ev.msg.t_s
         cmd = Fault(schema_version=SCHEMA_VERSION, run=run, sender="cli", k=k, t_s=t, phase="command", **fields)
         try:
             validate(cmd)

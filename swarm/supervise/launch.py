@@ -49,7 +49,7 @@ from pathlib import Path
 import yaml
 
 from swarm.supervise.forkserver import AgentForkServer, ForkedAgent
-from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, STALL_FAULTS, Scenario
 from swarmrt.bus.messages import Fault, Keys, as_dict, opt, replace
 from swarmrt.bus.session import BusConfig
 from swarmrt.node import Node
@@ -61,6 +61,7 @@ __all__ = ["LocalSwarm", "Interrupted", "free_port", "client_bus"]
 _ROLE_GRACE_S = 15.0  # a normal end: the roles are finishing by themselves
 _INTERRUPT_GRACE_S = 5.0  # an interrupted run: "within a few seconds"
 _RECORDER_GRACE_S = 60.0  # the recorder rewrites run.mcap as an indexed file on close
+_CLEAN_EXIT_GRACE_S = 10.0  # an agent that exited 0 saw the world's last clock; ours may lag that long
 _ORPHAN_GRACE_S = 5.0  # lifeline: a child whose supervisor vanished
 _ORPHAN_RECORDER_GRACE_S = 15.0
 
@@ -140,7 +141,11 @@ class LocalSwarm:
         self.broken: str | None = None  # why the run could not go on (bus lost, world gone, an agent gone by itself)
         self.broken_code: int | None = None  # the exit status that says so, when not the world's
         self._faulted: set[int] = set()  # pids this supervisor killed or stopped (a fault): their end is no surprise
+        # Processes stopped by a stall fault: (when to continue them, monotonic; process; the command; the
+        # safety net that continues it should this supervisor die meanwhile; SIGSTOP's time)
+        self._stalled: list[tuple[float, subprocess.Popen | ForkedAgent, Fault, subprocess.Popen | None, float]] = []
         self.world_done = False  # the world's last clock (done) has come: agents may leave
+        self._clean_exit_at: dict[int, float] = {}  # pid of an agent that exited 0 → when (monotonic) that was seen
         self._dropped: str | None = None  # a role whose session the router dropped while it ran (see _token_gone)
         self._started_at: dict[str, float] = {}  # process name → when (monotonic) its current process was started
         self.router_faults: list[dict] = []  # router faults executed here (the bus may not have carried the report)
@@ -382,8 +387,12 @@ class LocalSwarm:
     def execute(self, f: Fault) -> None:
         if f.action in ROUTER_FAULTS:
             return self._router_fault(f)
+        if f.action in STALL_FAULTS:
+            return self._stall(f)
         name = f"agent-{f.target}" if f.action in AGENT_PROCESS_FAULTS else "selector"
         p = self.procs.get(name)
+        if p is not None:
+            self.continue_stalled(process=p)  # a stopped process would not act on SIGTERM; it is ended now anyway
         if p is not None and p.poll() is not None:
             p = None  # not running
         if f.action in ("kill-agent", "kill-selector"):
@@ -421,6 +430,58 @@ class LocalSwarm:
                 self.spawn_selector()
             self._write_run_json()
             self._report(f, "done", f"started pid {self.procs[name].pid}")
+
+    def _stall(self, f: Fault) -> None:
+        """stall-*: SIGSTOP the role's process group now and SIGCONT it ``down_s`` wall
+        seconds later (:meth:`continue_stalled`, from the run's loop: the supervisor goes on
+        carrying out other faults meanwhile); reported done once continued. A stall is not
+        a death: its end is no fault of ours, and a token lost past the lease still breaks
+        the run (:meth:`_token_gone`)."""
+        role = f.action.removeprefix("stall-")
+        if role == "agent":
+            name = f"agent-{f.target}"
+        elif role == "router":
+            i = int(opt(f, "target") or 0)
+            name = self.router_names[i] if 0 <= i < self.n_routers else f"router {i}"
+        else:
+            name = role
+        p = self.procs.get(name)
+        if p is None or p.poll() is not None:
+            self._report(f, "failed", f"{name} is not running")
+            return
+        if any(q is p for _t, q, _f, _n, _s in self._stalled):
+            self._report(f, "failed", f"{name} is already stopped")
+            return
+        down_s = float(opt(f, "down_s") or 0.0)
+        # The safety net: should this supervisor be SIGKILLed meanwhile, nothing here would
+        # ever continue the process (its lifeline cannot act while it is stopped, and it
+        # leads its own session, so no orphaned-group SIGCONT comes from the kernel): a shell
+        # of its own, in a session of its own, continues its group down_s later.
+        net = subprocess.Popen(["sh", "-c", f"sleep {down_s:.3f}; kill -CONT -- -{p.pid} 2>/dev/null"], start_new_session=True,
+                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        _kill_group(p, signal.SIGSTOP)
+        self._stalled.append((time.monotonic() + down_s, p, f, net, time.time()))
+        self.say(f"step {self.k}: {name} (pid {p.pid}) stopped for {down_s:g} s")
+
+    def continue_stalled(self, everyone: bool = False, process=None) -> None:
+        """SIGCONT the stalled processes whose time is up (``everyone``: all of them;
+        ``process``: that one, at once, before another fault acts on it) and report each
+        stall done."""
+        now = time.monotonic()
+        due = [x for x in self._stalled if everyone or x[0] <= now or x[1] is process]
+        if not due:
+            return
+        self._stalled = [x for x in self._stalled if x not in due]
+        for _t, p, f, net, t_stop in due:
+            gone = p.poll() is not None
+            _kill_group(p, signal.SIGCONT)
+            if net is not None and net.poll() is None:
+                _kill_group(net, signal.SIGKILL)
+                net.wait()
+            detail = (f"SIGSTOP pid {p.pid}, " + ("gone since" if gone else f"SIGCONT after {time.time() - t_stop:.2f} s")
+                      + (" (cut short by the run's end or another fault)" if _ended_early(t_stop, f) else ""))
+            with contextlib.suppress(Exception):  # the bus may be gone at the run's end: the stall still ends
+                self._report(f, "done", detail)
 
     def _router_fault(self, f: Fault) -> None:
         """kill-router / restart-router (target: the router's index, default 0). While no
@@ -479,6 +540,7 @@ class LocalSwarm:
             return self.interrupted is not None or (world is not None and world.poll() is not None)
 
         def tick() -> float:
+            self.continue_stalled()  # a stall ends on time even while a router fault is carried out
             return time.monotonic() + 0.1
 
         n.wait_for(lambda: (n.bus_up and bool(n._routers)) or over(), 5.0 if f.action == "kill-router" else 30.0, on_event, wake=tick)
@@ -532,9 +594,11 @@ class LocalSwarm:
                 return None
             if deadline is not None and time.monotonic() > deadline:
                 self.say(f"timeout: stopping the run after {timeout:.0f} s")
+                self.continue_stalled(everyone=True)  # a stopped world would not act on SIGTERM
                 world.terminate()
                 break
-            ev = self._node().next_event(0.2)
+            self.continue_stalled()
+            ev = self._node().next_event(0.1 if self._stalled else 0.2)
             if ev is not None:
                 self._handle(ev)
                 if ev.kind == "clock" and progress is not None:
@@ -589,6 +653,14 @@ class LocalSwarm:
         for name, p in list(self.procs.items()):
             if name.startswith("agent-") and p.poll() is not None and p.pid not in self._faulted and p.returncode != EXIT_BUS_LOST:
                 code = p.returncode
+                if code == 0:
+                    # An agent exits 0 only after the world's last clock (done): it saw the end
+                    # first, and this supervisor's copy of that clock is still on its way or
+                    # queued behind other events. Wait a bounded time for it (or for the world
+                    # to exit) before calling the agent's end a surprise.
+                    seen = self._clean_exit_at.setdefault(p.pid, time.monotonic())
+                    if time.monotonic() - seen < _CLEAN_EXIT_GRACE_S:
+                        continue
                 how = f"was killed by {signal.Signals(-code).name}" if code is not None and code < 0 else f"exited with status {code}"
                 return (f"{name} (pid {p.pid}) {how} at step {self.k} while the world still ran, not by a fault "
                         f"(see {self.out / 'logs' / (name + '.log')})")
@@ -600,6 +672,7 @@ class LocalSwarm:
         they are finishing by themselves; after an interrupt each gets a few seconds.
         Whatever is still there after its grace period is killed with its process group."""
         interrupted = self.interrupted is not None or self.broken is not None
+        self.continue_stalled(everyone=True)  # a stopped process would not act on SIGTERM
         rec = self.procs.get("recorder")
         world = self.procs.get("world")
         if not interrupted and rec is not None and world is not None and world.poll() is not None:
@@ -643,6 +716,11 @@ class LocalSwarm:
             except subprocess.TimeoutExpired:
                 _kill_group(p, signal.SIGKILL)
                 p.wait()
+
+
+def _ended_early(t_stop_unix_s: float, f: Fault) -> bool:
+    """Whether a stall is being ended before its time (``down_s`` after its SIGSTOP)."""
+    return time.time() - t_stop_unix_s < float(opt(f, "down_s") or 0.0) - 0.05
 
 
 def _broken_reason(code: int) -> str:

@@ -83,7 +83,7 @@ from swarm.v1.recording_pb2 import BusGap, Liveliness, Malformed
 from swarm.v1.selection_pb2 import Select
 from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
 from swarm.v1.truth_pb2 import Truth
-from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
+from swarmcore.scenario import FAULT_ACTIONS, STALL_FAULTS, TARGETED_FAULTS
 
 SCHEMA_VERSION = 1
 MAX_SAT_ID = 10_000
@@ -606,24 +606,44 @@ class _Memo:
     """Arrays a validation computed, kept for the conversion that follows (at n = 40 an
     agent would otherwise convert every batch's columns twice a step). Keyed by the
     message's id with the message itself held, so an id cannot be reused while it is here;
-    bounded, oldest first out."""
+    bounded in entries and in bytes (the arrays' and, as much again, the message's own copy
+    of those numbers), oldest first out. A single value over the byte bound is not kept:
+    its conversion is simply done again."""
 
-    def __init__(self, size: int = 2048):
+    def __init__(self, size: int = 2048, max_bytes: int = 64 << 20):
         self._d: collections.OrderedDict[int, tuple] = collections.OrderedDict()
         self._size = size
+        self._max_bytes = max_bytes
+        self.bytes = 0  # what is held now, counted as above
         self._lock = threading.Lock()
 
+    @staticmethod
+    def _cost(value) -> int:
+        return 2 * sum(int(getattr(a, "nbytes", 0)) for a in value)
+
     def put(self, msg, value) -> None:
+        cost = self._cost(value)
+        if cost > self._max_bytes:
+            return
         with self._lock:
-            self._d[id(msg)] = (msg, value)
-            if len(self._d) > self._size:
-                self._d.popitem(last=False)
+            old = self._d.pop(id(msg), None)
+            if old is not None:
+                self.bytes -= old[2]
+            self._d[id(msg)] = (msg, value, cost)
+            self.bytes += cost
+            while len(self._d) > self._size or self.bytes > self._max_bytes:
+                self.bytes -= self._d.popitem(last=False)[1][2]
 
     def take(self, msg):
         """The value kept for this very message (and forget it), or None."""
         with self._lock:
             hit = self._d.pop(id(msg), None)
+            if hit is not None:
+                self.bytes -= hit[2]
         return hit[1] if hit is not None and hit[0] is msg else None
+
+    def __len__(self) -> int:
+        return len(self._d)
 
 
 _MEMO = _Memo()
@@ -818,6 +838,16 @@ def _fault(m: Fault, top: int) -> None:
         raise MessageError("rate: a drop fault needs a rate")
     if m.HasField("down_s") and not 0.0 <= m.down_s <= 3600.0:
         raise MessageError(f"down_s: {m.down_s} is not in [0, 3600] s")
+    if m.action in STALL_FAULTS and m.phase == "command" and not (m.HasField("down_s") and m.down_s > 0.0):
+        raise MessageError(f"down_s: {m.action} needs down_s > 0 (how long the process stays stopped, wall s)")
+    if m.HasField("peer"):
+        _id(top, "peer", m.peer)
+        if m.HasField("target") and m.peer == m.target:
+            raise MessageError(f"peer: satellite {m.peer} has no link to itself")
+    if m.HasField("delay_s") and not 0.0 <= m.delay_s <= 3600.0:
+        raise MessageError(f"delay_s: {m.delay_s} is not in [0, 3600] s")
+    if m.action == "link" and m.phase == "command" and not (m.HasField("state") or m.HasField("delay_s") or m.HasField("rate")):
+        raise MessageError("link: a link fault needs state, delay_s or rate")
     if m.HasField("netem") and not 1 <= len(m.netem) <= 200:
         raise MessageError(f"netem: {len(m.netem)} characters (1-200 allowed)")
     if m.action == "netem" and not m.HasField("netem"):

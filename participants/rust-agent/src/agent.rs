@@ -346,16 +346,15 @@ fn received_from_batch(b: &MeasBatch) -> Received {
 
 /// Rows `rows` of one observer's measurement columns (a batch's, or a run of a step's
 /// batches laid end to end) as measurements: the one row builder of both radio paths.
-fn rel_rows(observer: usize, target: &[u32], q_bj_bi: &[f64], r_ij_bi_m: &[f64], r_bi: &[f64],
-            rows: std::ops::Range<usize>) -> Vec<Rel> {
+fn rel_rows(observer: usize, target: &[u32], q_bj_bi: &[f64], r_ij_bi_m: &[f64], r_bi: &[f64], rows: std::ops::Range<usize>) -> Vec<Rel> {
     rows.map(|r| Rel {
-            observer,
-            target: target[r] as usize,
-            q: std::array::from_fn(|x| q_bj_bi[4 * r + x]),
-            r: std::array::from_fn(|x| r_ij_bi_m[3 * r + x]),
-            cov: std::array::from_fn(|x| std::array::from_fn(|y| r_bi[36 * r + 6 * x + y])),
-        })
-        .collect()
+        observer,
+        target: target[r] as usize,
+        q: std::array::from_fn(|x| q_bj_bi[4 * r + x]),
+        r: std::array::from_fn(|x| r_ij_bi_m[3 * r + x]),
+        cov: std::array::from_fn(|x| std::array::from_fn(|y| r_bi[36 * r + 6 * x + y])),
+    })
+    .collect()
 }
 
 fn view_msg(v: &View, st: &State, phase: &str) -> pb::Estimate {
@@ -524,6 +523,14 @@ impl Agent {
         self.st.previous = std::mem::take(&mut self.st.sends);
         let clock = self.st.clocks.remove(&k).expect("the step's clock");
         let t = clock.t_s;
+        if !self.st.ci.started() && !clock.live_agents.contains(&(i as u32)) {
+            // Restarted cold, and this clock went out before the world counted us live again
+            // (our health report crossed it): no sensors of this step will come to start
+            // from. Say again that we are here and start at a step that lists us.
+            let h = self.st.health(k, t, &self.node.counters);
+            self.send(&format!("health/{i}"), &h);
+            return Ok(());
+        }
         let timeout = self.st.sc.emulator.step_timeout_s;
         if clock.live_agents.contains(&(i as u32)) {
             self.wait_for(|st| st.sensors.contains_key(&k) && st.cams.contains_key(&k), timeout)?;
@@ -580,7 +587,8 @@ impl Agent {
             self.send(&format!("meas/{i}"), &batch);
         }
         self.st.sent_k = ki(k);
-        let received = if self.st.sc.links_enabled { self.linked_radio(k, &clock, timeout)? } else { self.ideal_radio(k, &clock, timeout)? };
+        let received =
+            if self.st.sc.links_enabled { self.linked_radio(k, &clock, timeout)? } else { self.ideal_radio(k, &clock, timeout)? };
         let inputs = StepInputs { step: k, t, gyro, absolute: sens.as_ref().and_then(absolute_of), own: rel_own, received };
         let (t1, c1) = (Instant::now(), bus::thread_cpu_ns());
         let report: Option<StepReport>;

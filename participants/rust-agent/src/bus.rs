@@ -103,13 +103,20 @@ pub struct Node {
     pub epoch: u64,
 }
 
+/// How long a client may take to reach one of its routers at start.
+pub const CONNECT_TIMEOUT_MS: u64 = 10_000;
+
 /// The Zenoh configuration of a client of `endpoints` with the credential file `cred`.
 pub fn zenoh_config(endpoints: &[String], cred: Option<&str>) -> Result<zenoh::Config, String> {
+    client_config(endpoints, cred, CONNECT_TIMEOUT_MS)
+}
+
+fn client_config(endpoints: &[String], cred: Option<&str>, timeout_ms: u64) -> Result<zenoh::Config, String> {
     let mut c = zenoh::Config::default();
     let mut set = |k: &str, v: String| c.insert_json5(k, &v).map_err(|e| format!("zenoh config {k}: {e}"));
     set("mode", "\"client\"".into())?;
     set("connect/endpoints", serde_json::to_string(endpoints).unwrap_or_default())?;
-    set("connect/timeout_ms", "10000".into())?;
+    set("connect/timeout_ms", timeout_ms.to_string())?;
     // Rejoin quickly after a partition heals (as the Python roles: swarmrt.bus.session).
     set("connect/retry", r#"{"period_init_ms": 250, "period_max_ms": 1000, "period_increase_factor": 2}"#.into())?;
     set("scouting/multicast/enabled", "false".into())?;
@@ -126,18 +133,40 @@ pub fn zenoh_config(endpoints: &[String], cred: Option<&str>) -> Result<zenoh::C
         // compose's bus network) a credential that names one is used as it is.
         let tls: Vec<&String> = endpoints.iter().filter(|e| e.starts_with("tls/")).collect();
         if !tls.is_empty() {
-            return Err(format!(
-                "endpoint {}: TLS, and this agent is built without Zenoh's TLS transport (TCP endpoints only)",
-                tls[0]
-            ));
+            return Err(format!("endpoint {}: TLS, and this agent is built without Zenoh's TLS transport (TCP endpoints only)", tls[0]));
         }
     }
     Ok(c)
 }
 
+/// A session of a client of `endpoints`: the first router that is up, within
+/// [`CONNECT_TIMEOUT_MS`] in all. As swarmrt.bus.session.open_session, and for the same
+/// reason: a Zenoh 1.x client whose connect/timeout_ms is set retries its first endpoint
+/// until the timeout and never tries the others (a router of two that is down when the
+/// agent starts would keep it off the bus), so each attempt puts another endpoint first,
+/// with a share of the time.
+pub fn open_client(endpoints: &[String], cred: Option<&str>) -> Result<zenoh::Session, String> {
+    let fail = |e: zenoh::Error| format!("cannot open a Zenoh session: {e}");
+    if endpoints.len() < 2 {
+        return zenoh::open(client_config(endpoints, cred, CONNECT_TIMEOUT_MS)?).wait().map_err(fail);
+    }
+    let deadline = Instant::now() + Duration::from_millis(CONNECT_TIMEOUT_MS);
+    let share_ms = (CONNECT_TIMEOUT_MS / (2 * endpoints.len() as u64)).max(500);
+    let mut attempt = 0usize;
+    loop {
+        let mut order = endpoints.to_vec();
+        order.rotate_left(attempt % endpoints.len());
+        let left_ms = deadline.saturating_duration_since(Instant::now()).as_millis() as u64;
+        match zenoh::open(client_config(&order, cred, share_ms.min(left_ms).max(100))?).wait() {
+            Ok(session) => return Ok(session),
+            Err(e) if Instant::now() >= deadline => return Err(fail(e)),
+            Err(_) => attempt += 1,
+        }
+    }
+}
+
 impl Node {
-    pub fn open(config: zenoh::Config, run: &str, n: usize, limits: BusLimits, stop: Arc<AtomicBool>) -> Result<Node, String> {
-        let session = zenoh::open(config).wait().map_err(|e| format!("cannot open a Zenoh session: {e}"))?;
+    pub fn open(session: zenoh::Session, run: &str, n: usize, limits: BusLimits, stop: Arc<AtomicBool>) -> Result<Node, String> {
         let (tx, rx) = mpsc::channel();
         let watcher_stop = Arc::new(AtomicBool::new(false));
         // The link to the routers: polled (transport events are an unstable Zenoh API).

@@ -369,9 +369,7 @@ fn delivery(m: &Delivery, top: u32) -> R {
             return Err(format!("items.{j}.arrival_t_s: not finite"));
         }
         let b = it.batch.as_ref().ok_or_else(|| format!("items.{j}: no batch"))?;
-        header(b.schema_version, &b.run, &b.sender, b.t_s)
-            .and_then(|_| meas_batch(b, top))
-            .map_err(|e| format!("items.{j}.batch: {e}"))?;
+        header(b.schema_version, &b.run, &b.sender, b.t_s).and_then(|_| meas_batch(b, top)).map_err(|e| format!("items.{j}.batch: {e}"))?;
         if b.observer == m.sat {
             return Err(format!("items.{j}.batch: satellite {}'s own batch delivered to it", m.sat));
         }
@@ -379,7 +377,7 @@ fn delivery(m: &Delivery, top: u32) -> R {
     Ok(())
 }
 
-const FAULT_ACTIONS: [&str; 12] = [
+const FAULT_ACTIONS: [&str; 18] = [
     "kill-agent",
     "restart-agent",
     "stop-agent",
@@ -392,8 +390,15 @@ const FAULT_ACTIONS: [&str; 12] = [
     "netem",
     "kill-router",
     "restart-router",
+    "stall-agent",
+    "stall-world",
+    "stall-selector",
+    "stall-recorder",
+    "stall-router",
+    "link",
 ];
-const TARGETED: [&str; 8] = ["kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal", "netem"];
+const TARGETED: [&str; 10] =
+    ["kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal", "netem", "stall-agent", "link"];
 
 fn fault(m: &Fault, top: u32) -> R {
     if !FAULT_ACTIONS.contains(&m.action.as_str()) {
@@ -430,6 +435,23 @@ fn fault(m: &Fault, top: u32) -> R {
         if !(0.0..=3600.0).contains(&d) {
             return Err(format!("down_s: {d} is not in [0, 3600] s"));
         }
+    }
+    if m.action.starts_with("stall-") && m.phase == "command" && !m.down_s.is_some_and(|d| d > 0.0) {
+        return Err(format!("down_s: {} needs down_s > 0 (how long the process stays stopped, wall s)", m.action));
+    }
+    if let Some(p) = m.peer {
+        id(top, "peer", p)?;
+        if m.target == Some(p) {
+            return Err(format!("peer: satellite {p} has no link to itself"));
+        }
+    }
+    if let Some(d) = m.delay_s {
+        if !(0.0..=3600.0).contains(&d) {
+            return Err(format!("delay_s: {d} is not in [0, 3600] s"));
+        }
+    }
+    if m.action == "link" && m.phase == "command" && m.state.is_none() && m.delay_s.is_none() && m.rate.is_none() {
+        return Err("link: a link fault needs state, delay_s or rate".into());
     }
     if let Some(n) = &m.netem {
         if !(1..=200).contains(&n.len()) {

@@ -224,7 +224,8 @@ impl Ci {
         // Late batches are dropped (filter.late: drop): counted as the Python ci counts them,
         // the late measurements of this satellite.
         let own = self.own;
-        rep.late_dropped = inputs.received.iter().filter(|r| r.step < k).map(|r| r.meas.iter().filter(|m| m.target == own).count() as u32).sum();
+        rep.late_dropped =
+            inputs.received.iter().filter(|r| r.step < k).map(|r| r.meas.iter().filter(|m| m.target == own).count() as u32).sum();
         let (mut nis, mut dof) = (0.0, 0u32);
         if let Some(a) = &inputs.absolute {
             let (post, n, d) = filter::absolute_update(self.e(), a).map_err(|NotPd| "absolute update: not positive-definite")?;

@@ -95,7 +95,8 @@ fn main() {
     if cred.is_none() {
         log::warn("SECURITY OFF (no SWARM_CREDENTIAL): connecting without a credential");
     }
-    let config = bus::zenoh_config(&endpoints, cred.as_deref()).unwrap_or_else(|e| fail(2, &e));
+    // The configuration checked first (a credential it cannot use: exit 2), then opened.
+    bus::zenoh_config(&endpoints, cred.as_deref()).unwrap_or_else(|e| fail(2, &e));
     let em = sc.emulator.clone();
     let limits = bus::BusLimits { hold_s: em.liveliness_hold_s, bus_grace_s: em.bus_grace_s, bus_lost_after_s: em.bus_lost_after_s };
     let stop = Arc::new(AtomicBool::new(false));
@@ -113,7 +114,8 @@ fn main() {
             })
             .expect("a thread");
     }
-    let mut node = match bus::Node::open(config, &run, sc.n_sats, limits, stop.clone()) {
+    let session = bus::open_client(&endpoints, cred.as_deref()).unwrap_or_else(|e| fail(1, &e));
+    let mut node = match bus::Node::open(session, &run, sc.n_sats, limits, stop.clone()) {
         Ok(n) => n,
         Err(e) => fail(1, &e),
     };
