@@ -93,14 +93,16 @@ RUN python3 -m venv /tmp/build-venv \
 FROM deps
 COPY --from=wheel /dist/ /tmp/dist/
 # Install the project (not editable); fail the build, not the first run, when
-# a library is missing; and run the demo once (and the bus's batch checks) so
-# numba's compiled kernels are cached in the image (each container would
-# otherwise spend ~3 s compiling; on a CPU of another kind numba notices and
-# compiles afresh).
+# a library is missing; and compile every kernel an agent warms up (the filter's,
+# the ci estimator's, the orbit propagator's, the bus's batch checks) and run the
+# demo once, so numba's compiled kernels are cached in the image (a container
+# would otherwise compile at each start: the ci kernel alone is 1.1 s on a quiet
+# machine, more under load, and a restarted agent's container came back late; on
+# a CPU of another kind numba notices and compiles afresh).
 RUN pip install -q --no-deps --no-index /tmp/dist/*.whl \
  && mv /tmp/dist/scenarios /app/scenarios \
  && rm -rf /tmp/dist /root/.cache \
- && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli; from swarmrt.bus import fastcheck; fastcheck.warm_up()" \
+ && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli; from swarmrt.bus import fastcheck; fastcheck.warm_up(); from swarmcore import kernels, orbit; kernels.warm_up(); orbit.warm_up()" \
  && { swarm sim scenarios/demo.yaml --out /tmp/warm --no-arrays >/tmp/warm.log 2>&1 \
       || { cat /tmp/warm.log; exit 1; }; } \
  && rm -rf /tmp/warm /tmp/warm.log

@@ -281,8 +281,11 @@ def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     assert not rec.alive[dead, 2].any()
     frac, cnt = within_3sigma_fraction(rec, [0, 1, 3], 2, k_from=k0 + 2, k_to=k1)
     assert cnt > 0 and frac >= 0.97, frac
-    # The restarted agent is back.
-    assert rec.alive[k1 + 5 :, 2].mean() > 0.9
+    # The restarted agent is back (a cold container: the world does not wait for it, so how many
+    # steps its start-up takes depends on the machine's load; once back it stays back).
+    back2 = np.flatnonzero(rec.alive[k1:, 2])
+    assert back2.size and back2[0] <= 90, f"satellite 2's agent not back within 90 steps of its restart: {back2[:5]}"
+    assert rec.alive[k1 + back2[0] + 5 :, 2].mean() > 0.9, rec.alive[:, 2].astype(int)
     # Camera 0 of satellite 1 produced nothing after the fault.
     from swarm.record.mcaplog import iter_messages
     from swarmrt.bus.messages import decode
