@@ -16,9 +16,21 @@ from typing import Any
 import zenoh
 
 from swarmcore.scenario import Scenario
-from swarmrt.bus.messages import KeyMismatch, Keys, MessageError, check_key, counted, decode, encode, parse_key, prepare
+from swarmrt.bus.messages import (
+    MAX_PAYLOAD_DEFAULT,
+    KeyMismatch,
+    Keys,
+    MessageError,
+    check_key,
+    counted,
+    decode,
+    encode,
+    parse_key,
+    prepare,
+)
 from swarmrt.bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
 from swarmrt.protocol import BusLost, Event, Query, RunBroken, Send, Wait
+from swarmrt.security import size_limit_of
 
 __all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scenario"]
 
@@ -45,6 +57,9 @@ class Node:
         self.malformed = 0
         self.key_mismatch = 0  # of the malformed: a message on a key its sender may not use
         self._malformed_logged = 0
+        # Puts of ours over the router's size limit of their key (security on: the router
+        # applies swarmrt.security.size_limits; without a credential there is no limit).
+        self.over_size_limit = 0
         self._malformed_lock = threading.Lock()
         self.stop = threading.Event()
         self.bus = bus
@@ -71,6 +86,7 @@ class Node:
         self._ticking = False  # started by announce(): after start-up (compiling kernels holds the interpreter)
         self.session = open_session(bus)
         cred = bus.identity()
+        self._size_limited = cred is not None
         self.log.info("on the bus at %s as %s", bus.connect or bus.listen, cred.user if cred is not None else "(no credential)")
         self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
         self.token: zenoh.LivelinessToken | None = None
@@ -218,7 +234,28 @@ class Node:
         self.token = None
 
     def put(self, key: str, msg) -> None:
-        self.session.put(key, encode(msg), congestion_control=zenoh.CongestionControl.BLOCK)
+        payload = encode(msg)
+        if self._size_limited and len(payload) > (limit := self._size_limit(key)):
+            self._note_over_size_limit(key, len(payload), limit)
+        self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def _size_limit(self, key: str) -> int:
+        """The router's size limit for a put on ``key`` (:func:`swarmrt.security.size_limit_of`)."""
+        try:
+            kind = parse_key(key)[1]
+        except MessageError:
+            return MAX_PAYLOAD_DEFAULT  # not a message key of the run: the receivers' default
+        return size_limit_of(kind, self.n)
+
+    def _note_over_size_limit(self, key: str, size: int, limit: int) -> None:
+        """A put of ours the router's size limit will drop, unseen by anyone (Zenoh's
+        low-pass filter drops silently and counts nothing): counted here, and said, so that
+        a plug-in whose messages outgrew the limit is told why its peers never hear it."""
+        self.over_size_limit += 1
+        if self.over_size_limit <= 10 or self.over_size_limit % 1000 == 0:
+            self.log.error("put on %s of %d bytes is over the router's size limit of %d bytes for its key "
+                           "(swarmrt.security.size_limit_of): the router drops it (%d such puts so far)",
+                           key, size, limit, self.over_size_limit)
 
     def queryable(self, key: str, handler, notify: bool = False) -> None:
         """``handler(query_key) -> message | None``; runs on a Zenoh thread, keep it quick.

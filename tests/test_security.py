@@ -145,6 +145,43 @@ def test_the_router_drops_a_message_over_its_identitys_size_limit(router):
         assert not any(len(p) > limit for _key, p in ests.got), "a message over the limit got through the router"
 
 
+def test_a_role_counts_and_says_its_own_puts_over_the_routers_limit(router, caplog):
+    """Zenoh's size filter drops silently and counts nothing, so a role's node does: a health
+    report of agent 1 over its key's limit is counted and logged as an error naming the key,
+    its size and the limit (what a plug-in whose messages outgrew the limit needs to hear),
+    and the router drops it; one under the limit, put after it (in order: the control),
+    reaches the recorder and counts nothing."""
+    import logging
+
+    from swarmrt.bus.session import BusConfig
+    from swarmrt.node import Node
+
+    endpoint, keys = router
+    k = M.Keys(RUN)
+    limit = size_limit_of("health", 4)
+    big = M.Health(run=RUN, sender="agent-1", sat=1, camera_ok=[True] * 6, host="x" * (limit + 1))
+    small = M.Health(run=RUN, sender="agent-1", sat=1, camera_ok=[True] * 6, host="control")
+    cfg = BusConfig(mode="client", connect=[endpoint], credential_file=str(keys / "agent-1.json"))
+    with _open(endpoint, str(keys / "recorder.json")) as rec:
+        health = Witness(rec, k.health())
+        node = Node("agent", 1, RUN, 4, cfg, announce=False)
+        try:
+            assert _until_seen(lambda: node.put(k.health(1), small), health, lambda key, p: b"control" in p)
+            assert node.over_size_limit == 0
+            with caplog.at_level(logging.ERROR, logger="agent-1"):
+                node.put(k.health(1), big)
+            assert node.over_size_limit == 1
+            said = [r.getMessage() for r in caplog.records if r.name == "agent-1" and r.levelno == logging.ERROR]
+            assert len(said) == 1 and k.health(1) in said[0] and f"of {limit} bytes" in said[0], said
+            health.got.clear()
+            node.put(k.health(1), small)
+            assert health.wait_for(lambda key, p: b"control" in p)
+            assert not any(len(p) > limit for _key, p in health.got), "a report over the limit got through the router"
+            assert node.over_size_limit == 1
+        finally:
+            node.close()
+
+
 def test_size_limits_cover_every_key_an_identity_may_put():
     """Every key some identity may put (but the mesh's) has one limit; estimates, health and
     fault reports are sized from the swarm, the rest from what receivers accept."""
