@@ -92,7 +92,7 @@ class EstimatorCodec:
     def to_msg(self, payload: Any):
         """The message to put in the batch (None when the estimator sent nothing)."""
         from swarmrt.bus.convert import ci_state_msg, pairwise_state_msg
-        from swarmrt.bus.messages import EstimatorMessage
+        from swarmrt.bus.messages import MAX_OPAQUE_BYTES, EstimatorMessage
 
         if payload is None:
             return None
@@ -101,7 +101,13 @@ class EstimatorCodec:
             return EstimatorMessage(kind=kind, version=version, ci=ci_state_msg(payload))
         if isinstance(payload, PairwiseState):
             return EstimatorMessage(kind=kind, version=version, pairwise=pairwise_state_msg(payload))
-        return EstimatorMessage(kind=kind, version=version, opaque=self.cls.encode(payload))
+        opaque = self.cls.encode(payload)
+        if len(opaque) > MAX_OPAQUE_BYTES:
+            # Every receiver refuses it (swarmrt.bus.messages.validate): said here, at the
+            # sender, the same in `swarm sim` and `swarm run`, not as peers that never hear it.
+            raise ValueError(f"estimator {kind!r}: its message of step {getattr(payload, 'step', '?')} encodes to {len(opaque)} bytes, "
+                             f"over the {MAX_OPAQUE_BYTES} an EstimatorMessage.opaque may hold (proto/swarm/v1/estimators.proto)")
+        return EstimatorMessage(kind=kind, version=version, opaque=opaque)
 
     def from_msg(self, msg, sender: int, step: int) -> Any:
         """The estimator's value of a received message; None when it is another estimator's

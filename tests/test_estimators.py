@@ -187,6 +187,27 @@ def test_hostile_estimator_messages_are_refused_naming_the_problem(est, why):
         M.decode("meas", wire, n_sats=4)
 
 
+def test_a_plugin_message_over_the_opaque_limit_is_an_error_at_its_sender():
+    """Every receiver refuses an opaque body over MAX_OPAQUE_BYTES; the sender's codec (used by
+    `swarm sim` and the agent alike) says so with the sizes instead of sending it."""
+
+    class Big:
+        kind, message_version = "big", 1
+        size = M.MAX_OPAQUE_BYTES + 1
+
+        @classmethod
+        def encode(cls, payload) -> bytes:
+            return b"x" * cls.size
+
+    codec = EstimatorCodec(Big)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=f"'big'.*encodes to {M.MAX_OPAQUE_BYTES + 1} bytes, over the {M.MAX_OPAQUE_BYTES}"):
+        codec.to_msg(object())
+    Big.size = M.MAX_OPAQUE_BYTES  # at the limit: sent, and every receiver takes it
+    msg = codec.to_msg(object())
+    wire = M.encode(M.MeasBatch(run="r", sender="agent-0", k=0, t_s=0.0, observer=0, estimator=msg, R_Bi=M.Matrix(shape=[0, 6, 6])))
+    assert len(M.decode("meas", wire, n_sats=4).estimator.opaque) == M.MAX_OPAQUE_BYTES
+
+
 def test_encounter_schedule_is_a_matching_every_step():
     G = incidence(9, "complete")
     colour, C = encounter_schedule(G)
