@@ -79,3 +79,21 @@ def test_from_env_names_a_missing_variable(capsys):
     env = {"SWARM_SAT_ID": "1", "SWARM_RUN": "r", "SWARM_CONNECT": "tcp/127.0.0.1:1", "SWARM_SCENARIO_JSON": "s.json",
            "SWARM_RESTART": "0"}
     assert environment(env)["SWARM_CREDENTIAL"] == ""
+
+
+def test_c13_takes_the_token_back_whichever_the_recorder_heard_first():
+    """The times of CI's failed run (ns after the agent's first token): killed at 4.897 s,
+    its token gone at 4.902 s, the new process's token at 5.598423 s, the supervisor's
+    report that it started it 0.3 ms later. The token is back; one that never went is not
+    taken for a return; a token up before the kill is not the new process's."""
+    from swarm.conformance.judge import token_gone_and_back
+
+    s = 1_000_000_000
+    events = [(True, 0), (False, 4_901_609_541), (True, 5_598_423_075)]
+    gone, ups = token_gone_and_back(events, t_kill_cmd=4_897_397_269, t_started=5_598_711_249)
+    assert gone and ups == [5_598_423_075]
+    gone, ups = token_gone_and_back([(True, 0)], t_kill_cmd=4 * s, t_started=5 * s)
+    assert not gone and ups == []
+    gone, ups = token_gone_and_back([(True, 0), (False, 4 * s + 1)], t_kill_cmd=4 * s, t_started=5 * s)
+    assert gone and ups == []
+

@@ -375,6 +375,19 @@ def c12(kit: Kit) -> Judgement:
                   f"{_ranges(lost_e)}, as drawn; health at {kit.K}/{kit.K} steps; slowest step {slow:.2f} s")
 
 
+def token_gone_and_back(events: list[tuple[bool, int]], t_kill_cmd: int, t_started: int) -> tuple[bool, list[int]]:
+    """Whether the agent's token went between the kill command (less 1 s) and the
+    supervisor's report that it started the new process, and the times (ns, the recorder's)
+    the token came up after it went: the new process's. Not "after the supervisor's report":
+    the recorder hears that report and the new token by different paths, and a program that
+    starts quickly declares its token first (a Rust agent's came 0.3 ms before the report
+    and was judged never back; CI, 2026-12-05)."""
+    went = [t for a, t in events if not a and t_kill_cmd - 1_000_000_000 <= t <= t_started]
+    if not went:
+        return False, [t for a, t in events if a and t >= t_started]
+    return True, [t for a, t in events if a and t > went[0]]
+
+
 @judges("C13", "restart")
 def c13(kit: Kit) -> Judgement:
     run, ev = kit.runs["restart"], _ev(kit, "restart")
@@ -383,11 +396,11 @@ def c13(kit: Kit) -> Judgement:
     if not kill or not back:
         raise Inconclusive(f"the supervisor reported kill {len(kill)}, restart {len(back)}")
     t_kill, t_back = kill[0][1], back[0][1]
-    evs = ev.token_events()
     cmd = ev.fault_commands("kill-agent")
     t_cmd = cmd[0][1] if cmd else t_kill
-    gone = any(not a and t_cmd - 1e9 <= t <= t_back for a, t in evs)
-    ups = [t for a, t in evs if a and t >= t_back]
+    again = ev.fault_commands("restart-agent")
+    t_again = again[0][1] if again else t_back
+    gone, ups = token_gone_and_back(ev.token_events(), t_cmd, t_back)
     problems = []
     if not gone:
         problems.append("its token did not go after the SIGKILL: the agent outlived it (kill-agent kills the process group "
@@ -406,7 +419,7 @@ def c13(kit: Kit) -> Judgement:
         problems.append(f"listed live but no health at {_ranges(no_health)}")
     if problems:
         return False, "; ".join(problems)
-    up_s = (ups[0] - t_back) / 1e9  # the supervisor reports once it started the new process
+    up_s = max(0.0, (ups[0] - t_again) / 1e9)
     est_after = sum(1 for k in range(kit.restart_at, kit.K) if ev.posterior(k) is not None)
     if est_after == 0 and not any(kit.sat in ev.clocks[k][1] for k in after):
         # docs/agent-contract.md, "Known deviations": the world readmits a restarted agent
@@ -415,7 +428,7 @@ def c13(kit: Kit) -> Judgement:
     else:
         est_after_note = ""
     return True, (f"killed at step {kit.kill_at} (token gone), restarted at step "
-                  f"{kit.restart_at}: token back {up_s:.1f} s after it was started; estimates at "
+                  f"{kit.restart_at}: token back {up_s:.1f} s after the restart command; estimates at "
                   f"{est_after}/{kit.K - kit.restart_at} steps after{est_after_note}; {_code(run.agent_code)}; nothing of the killed process left")
 
 
