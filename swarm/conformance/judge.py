@@ -575,9 +575,13 @@ def c21(kit: Kit) -> Judgement:
     back = ev.fault_reports("restart-agent", sender="supervisor")
     if not back:
         raise Inconclusive("no restart")
-    t_back = back[0][1]
+    # After the restart command, not after the supervisor's report that it started the
+    # process: the recorder hears the report and the agent by different paths (see
+    # token_gone_and_back); the killed process is dead by then, so a prior is the new one's.
+    again = ev.fault_commands("restart-agent")
+    t_from = again[0][1] if again else back[0][1]
     c0 = ev.clocks.get(kit.restart_at)
-    pri = [(k, t) for k, t in ev.priors() if t >= t_back and (c0 is None or t <= c0[0])]
+    pri = [(k, t) for k, t in ev.priors() if t >= t_from and (c0 is None or t <= c0[0])]
     if not pri:
         problems.append(f"no prior estimate after the restart before step {kit.restart_at}'s clock")
     elif pri[0][0] < kit.restart_at - 1:
