@@ -87,6 +87,7 @@ class Node:
         self.session = open_session(bus)
         cred = bus.identity()
         self._size_limited = cred is not None
+        self._size_limits: dict[str, int] = {}  # key → the router's limit for it (a role puts on a few keys)
         self.log.info("on the bus at %s as %s", bus.connect or bus.listen, cred.user if cred is not None else "(no credential)")
         self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
         self.token: zenoh.LivelinessToken | None = None
@@ -240,12 +241,16 @@ class Node:
         self.session.put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def _size_limit(self, key: str) -> int:
-        """The router's size limit for a put on ``key`` (:func:`swarmrt.security.size_limit_of`)."""
-        try:
-            kind = parse_key(key)[1]
-        except MessageError:
-            return MAX_PAYLOAD_DEFAULT  # not a message key of the run: the receivers' default
-        return size_limit_of(kind, self.n)
+        """The router's size limit for a put on ``key`` (:func:`swarmrt.security.size_limit_of`),
+        worked out once per key: this is on every put's path."""
+        limit = self._size_limits.get(key)
+        if limit is None:
+            try:
+                limit = size_limit_of(parse_key(key)[1], self.n)
+            except MessageError:
+                limit = MAX_PAYLOAD_DEFAULT  # not a message key of the run: the receivers' default
+            self._size_limits[key] = limit
+        return limit
 
     def _note_over_size_limit(self, key: str, size: int, limit: int) -> None:
         """A put of ours the router's size limit will drop, unseen by anyone (Zenoh's

@@ -388,6 +388,13 @@ def token_gone_and_back(events: list[tuple[bool, int]], t_kill_cmd: int, t_start
     return True, [t for a, t in events if a and t > went[0]]
 
 
+def _restart_commanded_at(ev, started: int) -> int:
+    """When the restart was commanded (the world's command; else the supervisor's report
+    ``started``): what a restarted agent does is counted from there (see token_gone_and_back)."""
+    cmd = ev.fault_commands("restart-agent")
+    return cmd[0][1] if cmd else started
+
+
 @judges("C13", "restart")
 def c13(kit: Kit) -> Judgement:
     run, ev = kit.runs["restart"], _ev(kit, "restart")
@@ -398,8 +405,7 @@ def c13(kit: Kit) -> Judgement:
     t_kill, t_back = kill[0][1], back[0][1]
     cmd = ev.fault_commands("kill-agent")
     t_cmd = cmd[0][1] if cmd else t_kill
-    again = ev.fault_commands("restart-agent")
-    t_again = again[0][1] if again else t_back
+    t_again = _restart_commanded_at(ev, t_back)
     gone, ups = token_gone_and_back(ev.token_events(), t_cmd, t_back)
     problems = []
     if not gone:
@@ -575,11 +581,8 @@ def c21(kit: Kit) -> Judgement:
     back = ev.fault_reports("restart-agent", sender="supervisor")
     if not back:
         raise Inconclusive("no restart")
-    # After the restart command, not after the supervisor's report that it started the
-    # process: the recorder hears the report and the agent by different paths (see
-    # token_gone_and_back); the killed process is dead by then, so a prior is the new one's.
-    again = ev.fault_commands("restart-agent")
-    t_from = again[0][1] if again else back[0][1]
+    # The killed process is dead by the restart command, so a prior after it is the new one's.
+    t_from = _restart_commanded_at(ev, back[0][1])
     c0 = ev.clocks.get(kit.restart_at)
     pri = [(k, t) for k, t in ev.priors() if t >= t_from and (c0 is None or t <= c0[0])]
     if not pri:
