@@ -371,18 +371,16 @@ def test_compose_cluster_profile_runs_a_study(tmp_path, cluster_image):
     two workers from swarm-coloc:latest; a tiny MC from the host against it gives the local
     pool's numbers; the default services are not started, the keys service neither (the
     cluster needs no keys: none are made)."""
-    import shutil
     import uuid
 
     from swarm.studies.executor import connect
+    from swarm.supervise.compose_chaos import compose_command
     from swarm.supervise.launch import free_port
 
-    if subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
-        compose = ["docker", "compose"]
-    elif shutil.which("docker-compose"):
-        compose = ["docker-compose"]
-    else:
-        pytest.skip("neither `docker compose` nor `docker-compose` is installed")
+    try:
+        compose = compose_command()
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
     port = free_port()
     project = f"swc{uuid.uuid4().hex[:8]}"
     keys = tmp_path / "keys"  # does not exist, and must not after

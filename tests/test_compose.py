@@ -24,13 +24,12 @@ pytestmark = [pytest.mark.docker, pytest.mark.integration, pytest.mark.timeout(6
 
 
 def _compose_cmd() -> list[str]:
-    if shutil.which("docker") is None:
-        pytest.skip("no docker CLI on this machine")
-    if subprocess.run(["docker", "compose", "version"], capture_output=True).returncode == 0:
-        return ["docker", "compose"]
-    if shutil.which("docker-compose"):
-        return ["docker-compose"]
-    pytest.skip("neither `docker compose` nor `docker-compose` is installed")
+    from swarm.supervise.compose_chaos import compose_command
+
+    try:
+        return compose_command()
+    except RuntimeError as exc:
+        pytest.skip(str(exc))
 
 
 @pytest.fixture(scope="module")
@@ -238,6 +237,14 @@ def _wait_step(c: Compose, k: int, timeout=300):
     assert ok, f"the swarm never reached step {k}"
 
 
+def _back_and_stays(rec, sat: int, k: int, within: int, what: str) -> None:
+    """Satellite ``sat``'s agent estimates again within ``within`` steps of step ``k``, and
+    at more than 90 % of the steps from 5 after its return."""
+    back = np.flatnonzero(rec.alive[k:, sat])
+    assert back.size and back[0] <= within, f"satellite {sat}'s agent not back within {within} steps of {what}: {back[:5]}"
+    assert rec.alive[k + back[0] + 5 :, sat].mean() > 0.9, rec.alive[:, sat].astype(int)
+
+
 @pytest.mark.slow
 def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     from swarm.record.recording import load_recording
@@ -283,9 +290,7 @@ def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     assert cnt > 0 and frac >= 0.97, frac
     # The restarted agent is back (a cold container: the world does not wait for it, so how many
     # steps its start-up takes depends on the machine's load; once back it stays back).
-    back2 = np.flatnonzero(rec.alive[k1:, 2])
-    assert back2.size and back2[0] <= 90, f"satellite 2's agent not back within 90 steps of its restart: {back2[:5]}"
-    assert rec.alive[k1 + back2[0] + 5 :, 2].mean() > 0.9, rec.alive[:, 2].astype(int)
+    _back_and_stays(rec, 2, k1, within=90, what="its restart")
     # Camera 0 of satellite 1 produced nothing after the fault.
     from swarm.record.mcaplog import iter_messages
     from swarmrt.bus.messages import decode
@@ -300,9 +305,7 @@ def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     kp, kh = done["partition"], done["heal"]
     frac3, cnt3 = within_3sigma_fraction(rec, [0, 1], 3, k_from=kp)
     assert cnt3 > 0 and frac3 >= 0.97, frac3
-    back = np.flatnonzero(rec.alive[kh:, 3])
-    assert back.size and back[0] <= 40, f"satellite 3's agent not back within 40 steps of the heal: {back[:5]}"
-    assert rec.alive[kh + back[0] + 5 :, 3].mean() > 0.9, rec.alive[:, 3].astype(int)
+    _back_and_stays(rec, 3, kh, within=40, what="the heal")
     # The recording is complete for the processes that were up: every live survivor, every step.
     assert rec.alive[:, [0, 1]].all()
     assert np.isfinite(rec.t).all()
