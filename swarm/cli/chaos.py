@@ -105,12 +105,7 @@ def chaos(
                                progress=lambda k, K: prog.update(task, completed=k),
                                log=lambda s: console.print(s, highlight=False))
         report.invariants.append(same_numbers(result.summary, second.summary))
-    (out / "chaos.json").write_text(json.dumps(report.to_json(), indent=1) + "\n")
-    _print_report(report)
-    console.print(f"wrote {out / 'chaos.json'} (run folder {out / 'run'}; {wall_s:.0f} s)", highlight=False)
-    _write_report(out)
-    if not report.ok:
-        raise typer.Exit(1)
+    _finish(report, out, wall_s)
 
 
 def _compose_campaign(scenario: Path, sets: list[str], sc, episodes, seed: int, faults: int, settle, kinds, out: Path,
@@ -136,6 +131,12 @@ def _compose_campaign(scenario: Path, sets: list[str], sc, episodes, seed: int, 
                        kinds=tuple(kinds) if kinds else None, compose=True)
     report.extra["wall_s"] = round(wall_s, 1)
     report.extra["compose"] = True
+    _finish(report, out, wall_s)
+
+
+def _finish(report, out: Path, wall_s: float) -> None:
+    """A campaign's end, local or compose: chaos.json, the tables, the report page; exit 1
+    if an invariant failed."""
     (out / "chaos.json").write_text(json.dumps(report.to_json(), indent=1) + "\n")
     _print_report(report)
     console.print(f"wrote {out / 'chaos.json'} (run folder {out / 'run'}; {wall_s:.0f} s)", highlight=False)
