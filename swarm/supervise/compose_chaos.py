@@ -28,6 +28,8 @@ import uuid
 from collections.abc import Callable
 from pathlib import Path
 
+import zenoh
+
 from swarm.supervise.faults import send_fault
 from swarm.supervise.launch import free_port
 from swarmrt.bus.messages import Keys
@@ -35,6 +37,9 @@ from swarmrt.bus.session import BusConfig
 from swarmrt.node import Node
 
 __all__ = ["compose_command", "run_compose_campaign", "PACE"]
+
+#: How long the campaign's own session waits for the compose router to listen.
+ROUTER_UP_TIMEOUT_MS = 60_000
 
 #: The pace of a compose campaign's lockstep run unless the scenario sets one: simulated
 #: seconds per wall second at most. Real time: a command through Docker takes a second or
@@ -103,8 +108,17 @@ def run_compose_campaign(root: Path, scenario: Path, sets: list[str], commands: 
         if not world:
             raise RuntimeError("no world container came up")
         cred = keys / "cli.json"
-        node = Node("cli", "chaos", run_id, n, BusConfig(mode="client", connect=[endpoint], credential_file=str(cred)),
-                    announce=False)
+        # `docker compose up -d` returns once the containers are started, not once the router
+        # listens: on CI's loaded machine the default 10 s was once too short ("Unable to
+        # connect ... Timeout!"). The compose tests' own observers wait up to 60 s as well.
+        try:
+            node = Node("cli", "chaos", run_id, n,
+                        BusConfig(mode="client", connect=[endpoint], credential_file=str(cred),
+                                  connect_timeout_ms=ROUTER_UP_TIMEOUT_MS),
+                        announce=False)
+        except zenoh.ZError as exc:
+            raise RuntimeError(f"the compose router on {endpoint} did not accept the campaign's session within "
+                               f"{ROUTER_UP_TIMEOUT_MS / 1e3:.0f} s of docker compose up: {exc}") from None
         node.subscribe(Keys(run_id).clock())
         k = -1
         while True:
