@@ -96,4 +96,3 @@ def test_c13_takes_the_token_back_whichever_the_recorder_heard_first():
     assert not gone and ups == []
     gone, ups = token_gone_and_back([(True, 0), (False, 4 * s + 1)], t_kill_cmd=4 * s, t_started=5 * s)
     assert gone and ups == []
-

@@ -388,11 +388,12 @@ def token_gone_and_back(events: list[tuple[bool, int]], t_kill_cmd: int, t_start
     return True, [t for a, t in events if a and t > went[0]]
 
 
-def _restart_commanded_at(ev, started: int) -> int:
-    """When the restart was commanded (the world's command; else the supervisor's report
-    ``started``): what a restarted agent does is counted from there (see token_gone_and_back)."""
-    cmd = ev.fault_commands("restart-agent")
-    return cmd[0][1] if cmd else started
+def _commanded_at(ev, action: str, done: int) -> int:
+    """When ``action`` was commanded (the world's command; else ``done``, the supervisor's
+    report that it carried it out): what the agent does after a kill or restart is counted
+    from there (see token_gone_and_back)."""
+    cmd = ev.fault_commands(action)
+    return cmd[0][1] if cmd else done
 
 
 @judges("C13", "restart")
@@ -403,9 +404,8 @@ def c13(kit: Kit) -> Judgement:
     if not kill or not back:
         raise Inconclusive(f"the supervisor reported kill {len(kill)}, restart {len(back)}")
     t_kill, t_back = kill[0][1], back[0][1]
-    cmd = ev.fault_commands("kill-agent")
-    t_cmd = cmd[0][1] if cmd else t_kill
-    t_again = _restart_commanded_at(ev, t_back)
+    t_cmd = _commanded_at(ev, "kill-agent", t_kill)
+    t_again = _commanded_at(ev, "restart-agent", t_back)
     gone, ups = token_gone_and_back(ev.token_events(), t_cmd, t_back)
     problems = []
     if not gone:
@@ -582,7 +582,7 @@ def c21(kit: Kit) -> Judgement:
     if not back:
         raise Inconclusive("no restart")
     # The killed process is dead by the restart command, so a prior after it is the new one's.
-    t_from = _restart_commanded_at(ev, back[0][1])
+    t_from = _commanded_at(ev, "restart-agent", back[0][1])
     c0 = ev.clocks.get(kit.restart_at)
     pri = [(k, t) for k, t in ev.priors() if t >= t_from and (c0 is None or t <= c0[0])]
     if not pri:
