@@ -67,12 +67,16 @@ def test_the_kit_fails_an_agent_that_stops_answering(tmp_path):
 
 @pytest.mark.timeout(1200)
 def test_the_kit_fails_an_agent_that_exits_1_on_sigterm(tmp_path):
-    """A wrapper script that traps SIGTERM and exits 1 without passing it on: the agent it
-    started flies on (token still up) after its wrapper is gone. Fails C20."""
+    """A wrapper script that traps SIGTERM and exits 1 without passing it on. Fails C20 on
+    what the clause is about: exit status 1 is not a clean stop.
+
+    What becomes of the agent the wrapper started is not asserted: it depends on a race the
+    test does not control (whether the supervisor's clean-up of the wrapper's process group
+    reaches the child before the run's recording ends: CI saw both outcomes)."""
     agent = f"sh -c 'trap \"exit 1\" TERM; {PY_AGENT} & wait'"
     code, report, _out, _wall = _kit(tmp_path, agent, "--cases", "sigterm")
     v = _verdicts(report)
     assert code == 1
     assert v["C20"]["status"] == "fail", v["C20"]
-    assert "exit 1" in v["C20"]["evidence"] and "its token did not go" in v["C20"]["evidence"], v["C20"]
+    assert v["C20"]["evidence"].startswith("SIGTERM at step ") and "exit 1" in v["C20"]["evidence"], v["C20"]
     assert v["C5"]["status"] == "pass"  # the clean run (always run, the reference) was fine
