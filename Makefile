@@ -1,5 +1,5 @@
 # One command to set up and run the default swarm; one to set up and run the tests.
-.PHONY: setup demo sim test test-fast check bench soak image rust-agent clean
+.PHONY: setup demo sim test test-fast test-loaded check bench soak image rust-agent clean
 
 SWARM ?= .venv/bin/swarm
 DEMO_OUT ?= runs/demo
@@ -29,6 +29,12 @@ sim: setup
 test: setup
 	scripts/check.sh
 	.venv/bin/python -m pytest -q -n 2 --dist loadgroup --no-loadscope-reorder --durations=30 --junitxml=runs/junit.xml
+
+# The same suite with two busy processes beside it (scripts/test-loaded.sh; BUSY=n for more):
+# the periodic check that no test asserts a race or waits on a deadline only a quiet machine meets.
+test-loaded: setup
+	scripts/check.sh
+	scripts/test-loaded.sh
 
 # Skip the slow, rendering and container tests while iterating.
 test-fast: setup
