@@ -52,8 +52,8 @@ bench: setup
 # and restarted, cameras off, dropped messages, the selector killed, router restarts, one of
 # two meshed routers killed and restarted, stalls of every role, dead, slow and lossy links
 # and satellites cut off) over 1800 simulated seconds of the demo swarm at n = 10 with a
-# greedy selector and the radio's link model on, every invariant checked (README "Chaos
-# campaigns"); runs/soak/chaos.json.
+# greedy selector and the radio's link model on, every invariant checked (docs/faults-and-chaos.md,
+# "Chaos campaigns"); runs/soak/chaos.json.
 SOAK_FAULTS ?= 200
 SOAK_DURATION ?= 1800
 SOAK_SATS ?= 10

@@ -250,8 +250,8 @@ def rate_limits(run: str, n_sats: int, links: bool, hz: float) -> list[dict]:
     """Zenoh's ``downsampling`` section that would cap every agent identity's puts at ``hz``
     per key, on the way in (one rule per key: Zenoh keeps one state per rule and transport).
     Not applied to a run unless ``SWARM_ROUTER_RATE_LIMIT_HZ`` is set, and then only to
-    measure why not (``scripts/flood_bench.py --rate-limit-hz``; README, "Size limits on the
-    router"): Zenoh's downsampler passes a message only if 1/hz has gone by since the last it
+    measure why not (``scripts/flood_bench.py --rate-limit-hz``; docs/security.md, "Size limits on
+    the router"): Zenoh's downsampler passes a message only if 1/hz has gone by since the last it
     passed on that rule, with no allowance for a burst, and a role whose bus came back sends
     its last two steps' messages back to back (:class:`swarmrt.protocol.Outbox`), so the
     second, the step's own, is dropped however high ``hz`` is short of the burst's spacing."""

@@ -2,7 +2,6 @@
 
 import json
 import re
-import shlex
 import subprocess
 import sys
 from pathlib import Path
@@ -52,66 +51,17 @@ def _listed_commands(help_text: str) -> set[str]:
     return set(re.findall(r"^  (\S+)", body, flags=re.M))
 
 
-def _readme_commands() -> dict[tuple[str, ...], str]:
-    """Every ``swarm ...`` command line of the README (its shell blocks and inline code),
-    as the list of words after ``swarm``, keyed by the line it came from."""
-    text = (ROOT / "README.md").read_text()
-    lines, fence = [], None
-    for ln in text.splitlines():
-        if ln.startswith("```"):
-            fence = ln[3:].strip() if fence is None else None
-        elif fence in ("sh", "bash", "console", "") and ln.startswith("swarm "):
-            lines.append(ln.split(" #", 1)[0].strip().rstrip("\\").strip())
-    lines += re.findall(r"`(swarm [a-z][^`]*)`", text)
-    return {ln: tuple(shlex.split(ln)[1:]) for ln in lines}  # as the shell splits it: quoted commands are one word
-
-
-def _options(cmd) -> dict:
-    return {o: p for p in cmd.params if p.param_type_name == "option" for o in (*p.opts, *p.secondary_opts)}
-
-
-def _resolve(tree, words: tuple[str, ...], line: str) -> tuple[str, ...]:
-    """The command path a README line names. At a group the next word must be one of its
-    subcommands or one of its own options (an option's value is skipped); ``--help`` ends
-    the walk; at a command every ``--option`` the line uses must be one of the command's.
-    Anything else means the README names a command or option the CLI does not have."""
-    path: tuple[str, ...] = ()
-    it = iter(words)
-    for w in it:
-        if w == "--help":
-            break
-        cmd = tree[path]
-        is_group = hasattr(cmd, "commands")
-        if w.startswith("-"):
-            opts = _options(cmd)
-            name = w.split("=", 1)[0]
-            assert name in opts, f"README `{line}`: `swarm {' '.join(path)}` has no option {name}"
-            if is_group and not opts[name].is_flag and "=" not in w:
-                next(it, None)
-            continue
-        if not is_group:
-            continue  # an argument or an option's value
-        assert (*path, w) in tree, f"README `{line}`: `swarm {' '.join((*path, w))}` is not a command (have {sorted(cmd.commands)})"
-        path += (w,)
-    return path
-
-
-def test_help_names_every_command_and_the_readme_names_only_real_ones():
+def test_help_names_every_command():
     """The root and every group's ``--help`` (real processes) list exactly their
-    subcommands; every command the README shows exists and answers its own ``--help``; and
-    every top-level command appears in the README."""
+    subcommands, and every command answers its own ``--help``. (That every command the
+    README and docs/ quote parses, and that the README names every command, is
+    tests/test_docs.py's.)"""
     tree = _cli_tree()
     groups = [p for p, c in tree.items() if hasattr(c, "commands")]
     assert len(groups) >= 4 and len(tree) >= 20, "the CLI tree looks empty: the walk is broken"
     for path in groups:
         out = run(*path, "--help").stdout
         assert _listed_commands(out) == {p[-1] for p in tree if p[:-1] == path and len(p) == len(path) + 1}, path
-    readme = {ln: _resolve(tree, words, ln) for ln, words in _readme_commands().items()}
-    named = set(readme.values())
-    # The README's `swarm` section and the distributed-emulator section, at least, were read.
-    assert {("sim",), ("mc",), ("run",), ("report",), ("bench", "filter"), ("scenario", "show"), ("fault", "kill-agent")} <= named, named
-    missing = {p[0] for p in tree if len(p) == 1} - {p[0] for p in named if p}
-    assert not missing, f"commands the README never mentions: {sorted(missing)}"
     # Every command, group or leaf, has its own help page under its own name.
     from typer.testing import CliRunner
 
@@ -131,20 +81,6 @@ def test_help_names_every_command_and_the_readme_names_only_real_ones():
     bad = run("no-such-command", check=False)
     assert bad.returncode == 2 and "no-such-command" in bad.stderr
     assert "--set" in run("sim", "--help").stdout
-
-
-def test_readme_walk_refuses_what_the_cli_does_not_have():
-    """The README check can fail: unknown commands and options are named."""
-    tree = _cli_tree()
-    assert _resolve(tree, ("fault", "--run-dir", "runs/x", "kill-agent", "2"), "ok") == ("fault", "kill-agent")
-    for words, what in (
-        (("simulate", "x.yaml"), "swarm simulate"),
-        (("fault", "--run-dir", "runs/x", "explode", "2"), "swarm fault explode"),
-        (("bench", "filter", "--satellites", "3"), "no option --satellites"),
-        (("fault", "--hostname", "h", "kill-agent", "2"), "no option --hostname"),
-    ):
-        with pytest.raises(AssertionError, match=what):
-            _resolve(tree, words, " ".join(words))
 
 
 def test_sim_writes_the_contract_and_matches_in_process_run(tmp_path):

@@ -181,7 +181,7 @@ def test_cluster_mc_gives_the_local_pools_numbers(cluster, tmp_path):
 @pytest.mark.integration
 @pytest.mark.slow
 def test_workers_started_by_hand_from_a_clean_environment_give_the_local_pools_numbers(tmp_path):
-    """Workers started as the README says, from an environment that knows nothing of the
+    """Workers started as docs/deployment.md says, from an environment that knows nothing of the
     project (no OPENBLAS_*): with the project's nanny preload they compute the local pool's
     numbers bit for bit; without it, on a CPU whose OpenBLAS would pick other kernels, every
     task is refused with a message naming the preload (never numbers 1e-7 off)."""

@@ -92,7 +92,7 @@ def test_scratch_folders_of_gone_fuzzers_are_swept(tmp_path):
 @pytest.mark.slow
 def test_a_short_coverage_guided_run_of_every_harness_finds_nothing(tmp_path):
     """The CI's short fuzz run: every atheris harness, 300 executions each, from the
-    committed corpus (long runs: scripts/fuzz.py --runs 1000000; README, "Hostile input")."""
+    committed corpus (long runs: scripts/fuzz.py --runs 1000000; docs/testing.md, "Hostile input")."""
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "fuzz.py"), "--runs", "300", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=900)
     rows = json.loads((tmp_path / "fuzz.json").read_text())

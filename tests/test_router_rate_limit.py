@@ -1,4 +1,4 @@
-"""Why the router has no rate limit (README, "Size limits on the router"): Zenoh's
+"""Why the router has no rate limit (docs/security.md, "Size limits on the router"): Zenoh's
 ``downsampling``, the rate limit a router offers, passes a message on a rule only if 1/freq
 has gone by since the last it passed, with no allowance for a burst; a role whose bus came
 back sends its last two steps' messages back to back on the same key

@@ -41,7 +41,7 @@ A stall is drawn to be survived with the numbers of an unstalled run (lockstep):
 the recorder's and a router's stay under the step timeout and the Zenoh lease (10 s), the
 selector's under the world's wait for a selection (2 s); the world's may outlast the lease
 (its peers hold its token for ``bus_lost_after_s``). A stall past the lease of any other role
-breaks the run by design (README "A stalled process"); ``tests/test_stall.py`` covers those.
+breaks the run by design (docs/faults-and-chaos.md, "A stalled process"); ``tests/test_stall.py`` covers those.
 
 ``failover`` is drawn only for a run with two routers (``swarm chaos --routers 2``); ``link`` and
 ``isolate`` only for a scenario whose radio runs the link model (``links.enabled``); ``netem``

@@ -1,5 +1,5 @@
 """A Dask scheduler and workers on this machine, as real processes started with Dask's own
-commands — for the tests and ``swarm bench cluster``, and what the README's manual steps do
+commands — for the tests and ``swarm bench cluster``, and what docs/deployment.md's manual steps do
 by hand::
 
     python -m dask scheduler --host 127.0.0.1 --port P --no-dashboard

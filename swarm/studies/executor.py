@@ -11,7 +11,7 @@ the local pool and on any Dask worker running the same code.
 * :class:`LocalPool` — ``concurrent.futures.ProcessPoolExecutor`` (spawned processes, each
   killed with its parent), or this process alone for ``workers=1``. No Dask process needed.
 * :class:`DaskCluster` — a ``distributed.Client`` connected to a running scheduler
-  (``dask scheduler`` / ``dask worker``, see README "Studies on a Dask cluster").
+  (``dask scheduler`` / ``dask worker``, see docs/deployment.md, "Studies on a cluster").
 
 :func:`run_study` adds what both share:
 
@@ -65,7 +65,7 @@ __all__ = [
     "noop",
 ]
 
-#: What a Dask scheduler for swarm studies should be started with (compose.yaml, README).
+#: What a Dask scheduler for swarm studies should be started with (compose.yaml, docs/deployment.md).
 ALLOWED_FAILURES = 3
 
 

@@ -1,6 +1,6 @@
 //! swarm-watch: joins a running swarm-coloc swarm as a Zenoh client and prints, for every
 //! agent, its estimate of one satellite, step by step. It is written against the schema
-//! files (proto/swarm/v1) and the key space (README.md, "Keys and messages") only: nothing
+//! files (proto/swarm/v1) and the key space (docs/architecture.md, "Key space") only: nothing
 //! of the Python emulator's code.
 //!
 //!     swarm-watch --connect tcp/127.0.0.1:7447 --run RUN --sat 2 [--json] [--timeout-s 600]
