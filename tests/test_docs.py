@@ -227,6 +227,33 @@ def file_problem(code: str) -> str | None:
     return None
 
 
+def table_problems(prose: str) -> list[tuple[int, str]]:
+    """A table (consecutive lines starting with ``|``) needs its header separator as its
+    second line and as many cells in every row as in its header (GitHub's rule: every
+    unescaped ``|`` splits, in code too)."""
+    out, lines = [], prose.splitlines()
+    i = 0
+    while i < len(lines):
+        if not lines[i].startswith("|"):
+            i += 1
+            continue
+        j = i
+        while j < len(lines) and lines[j].startswith("|"):
+            j += 1
+
+        def cells(row: str) -> int:
+            return len(re.split(r"(?<!\\)\|", row.strip().strip("|")))
+
+        if j - i < 2 or not re.fullmatch(r"\|(\s*:?-{3,}:?\s*\|)+\s*", lines[i + 1]):
+            out.append((i + 1, "a table without its header separator (| --- |) as its second line"))
+        else:
+            for k in range(i + 2, j):
+                if cells(lines[k]) != cells(lines[i]):
+                    out.append((k + 1, f"a table row of {cells(lines[k])} cells under a header of {cells(lines[i])}"))
+        i = j
+    return out
+
+
 def page_problems(page: Path, text: str | None = None) -> list[str]:
     text = page.read_text() if text is None else text
     prose, blocks = split_markdown(text)
@@ -236,6 +263,8 @@ def page_problems(page: Path, text: str | None = None) -> list[str]:
     def say(no: int, what: str) -> None:
         problems.append(f"{rel}:{no}: {what}")
 
+    for no, what in table_problems(prose):
+        say(no, what)
     for no, target in links(prose):
         if (p := link_problem(page, target)) is not None:
             say(no, p)
@@ -334,6 +363,9 @@ def _problems_of(snippet: str, tmp_path: Path) -> list[str]:
         ("`swarmrt/tuning.py` and `swarmcore/tuning.py`", "names swarmcore/tuning.py: no such file"),
         ("`tests/test_chaos.py::test_no_such_test`", "defines no test_no_such_test"),
         ("`runs/demo/report/report.html`, `swarm/v1/*_pb2.py`", None),
+        ("| a | b |\n| --- | --- |\n| 1 | 2 |", None),
+        ("| 1 | 2 |\n| 3 | 4 |", "without its header separator"),
+        ("| a | b |\n| --- | --- |\n| 1 | 2 | 3 |", "a table row of 3 cells under a header of 2"),
     ],
 )
 def test_the_checker_fails_on_what_is_wrong(snippet, says, tmp_path):
