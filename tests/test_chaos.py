@@ -217,6 +217,26 @@ def test_an_estimate_of_an_agent_off_the_bus_network_is_excused():
     assert not any(_partitioned(s, 0, k) for k in range(40))
 
 
+def test_an_agent_killed_as_its_step_began_is_excused_under_compose_and_nothing_else():
+    """The times of the CI campaign that failed (seed 31, compose, 2026-12-06): agent 2's token
+    went 33 ms before the clock of step 47, which listed it live (the world held the token
+    0.3 s); it never published step 47."""
+    from swarm.studies.chaos import _killed_as_its_step_began
+
+    ms = 1_000_000
+    clocks = {46: ({0, 1, 2, 3}, 720_420 * ms), 47: ({0, 1, 2, 3}, 720_563 * ms), 48: ({0, 1, 3}, 721_551 * ms)}
+    gone = [{"key": "swarm/r/alive/agent/2", "alive": False, "log_time_ns": 720_530 * ms}]
+    killed = {"faults": [{"action": "kill-agent", "phase": "command", "target": 2, "k": 43},
+                         {"action": "kill-agent", "phase": "done", "target": 2, "k": 43}]}
+    assert _killed_as_its_step_began(killed, gone, clocks, 0.3, 2, 47)
+    assert _killed_as_its_step_began(killed, gone, clocks, 0.3, 2, 46)  # (had it died before publishing step 46)
+    assert not _killed_as_its_step_began(killed, gone, clocks, 0.3, 2, 48)  # gone more than the hold before this clock
+    assert not _killed_as_its_step_began(killed, gone, clocks, 0.3, 1, 47)  # not the agent whose token went
+    assert not _killed_as_its_step_began({"faults": []}, gone, clocks, 0.3, 2, 47)  # gone with no fault: a real loss
+    assert not _killed_as_its_step_began(killed, gone, clocks, 0.01, 2, 47)  # gone longer than the hold before the clock
+    assert not _killed_as_its_step_began(killed, [{**gone[0], "alive": True}], clocks, 0.3, 2, 47)  # it came up, not went
+
+
 def test_few_pairs_one_miss_is_no_evidence_many_misses_are():
     from swarm.studies.chaos import _below
 
