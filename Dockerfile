@@ -102,7 +102,7 @@ COPY --from=wheel /dist/ /tmp/dist/
 RUN pip install -q --no-deps --no-index /tmp/dist/*.whl \
  && mv /tmp/dist/scenarios /app/scenarios \
  && rm -rf /tmp/dist /root/.cache \
- && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, swarm.cli; from swarmrt.bus import fastcheck; fastcheck.warm_up(); from swarmcore import kernels, orbit; kernels.warm_up(); orbit.warm_up()" \
+ && python -c "import zenoh, numpy, scipy, cv2, open3d, pyrender, distributed, ray, swarm.cli; from swarmrt.bus import fastcheck; fastcheck.warm_up(); from swarmcore import kernels, orbit; kernels.warm_up(); orbit.warm_up()" \
  && { swarm sim scenarios/demo.yaml --out /tmp/warm --no-arrays >/tmp/warm.log 2>&1 \
       || { cat /tmp/warm.log; exit 1; }; } \
  && rm -rf /tmp/warm /tmp/warm.log
