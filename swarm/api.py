@@ -387,7 +387,7 @@ def simulate(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, 
 def run(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, *, out: str | Path | None = None, seed: int | None = None,
         live: str | None = None, timeout: float | None = None, routers: int = 1, agents: Mapping[int, str] | None = None,
         progress: Progress | None = None, log: Callable[[str], None] | None = None,
-        on_start: Callable[[Any], None] | None = None, **overrides: Any) -> Result:
+        on_start: Callable[[Any], None] | None = None, cluster: str | None = None, **overrides: Any) -> Result:
     """Run the swarm distributed (``swarm run``): a Zenoh router, the recorder, the world, the
     selector and one agent process per satellite on this machine, in lockstep; the result is
     read from the recording (``out/run.mcap``; ``out`` defaults to a new temporary folder).
@@ -395,7 +395,9 @@ def run(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, *, ou
     ``live``: ``"HOST:PORT"`` also serves the live 3-D view there (:mod:`swarm.live`).
     ``agents``: satellite → the command line of an agent of another language. SIGINT,
     SIGTERM and SIGHUP stop it cleanly (the result then covers the steps recorded and
-    :attr:`Result.outcome` says why). ``on_start(swarm)``: called once every process is up."""
+    :attr:`Result.outcome` says why). ``on_start(swarm)``: called once every process is up.
+    ``cluster``: ``"ray://HOST:PORT"`` runs it over a Ray cluster, ``"local-ray[:N]"`` over N
+    Ray nodes started here for the run (:mod:`swarm.cluster`, docs/cluster.md)."""
     from swarm.outputs import write_json
     from swarm.supervise.launch import Interrupted, LocalSwarm
     from swarm.supervise.outcome import run_outcome
@@ -406,7 +408,14 @@ def run(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, *, ou
         sc = load_scenario(sc, overrides={"emulator.agent_commands": cmds})
     folder = Path(out) if out is not None else Path(tempfile.mkdtemp(prefix=f"swarm-run-{sc.name}-"))
     say = log or (lambda s: None)
-    swarm = LocalSwarm(sc, folder, log=say, routers=routers, live=live)
+    if cluster is not None:
+        from swarm.cluster.swarm import RaySwarm
+
+        if live is not None or routers != 1:
+            raise ValueError("--cluster runs a router per node (no --routers) and has no live view yet (no --live)")
+        swarm: LocalSwarm = RaySwarm(sc, folder, cluster, log=say)
+    else:
+        swarm = LocalSwarm(sc, folder, log=say, routers=routers, live=live)
     code: int | None = 1
     with swarm.handling_signals():
         try:

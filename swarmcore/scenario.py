@@ -453,6 +453,8 @@ FaultAction = Literal[
     "stall-recorder",
     "stall-router",
     "link",
+    "kill-node",
+    "partition-nodes",
 ]
 FAULT_ACTIONS: tuple[str, ...] = get_args(FaultAction)
 #: Faults on an agent's process, carried out by the supervisor (``swarm run``) or Docker.
@@ -477,10 +479,15 @@ PROCESS_FAULTS = AGENT_PROCESS_FAULTS + SELECTOR_PROCESS_FAULTS + NETWORK_FAULTS
 #: (``state: off``), slower (``delay_s`` added to its fixed latency) or lossier (``rate``, a
 #: Bernoulli loss rate), or given back the scenario's parameters (``state: on``).
 RADIO_FAULTS = ("link",)
+#: Faults on a host of a cluster run (``swarm run --cluster``; target: the node's index, 0 the
+#: head): ``kill-node`` takes the node down (its raylet and everything on it killed; its
+#: agents restarted on the others), ``partition-nodes`` cuts node ``target`` and node ``peer``
+#: apart for ``down_s`` wall seconds (every packet between them dropped), then heals it.
+CLUSTER_FAULTS = ("kill-node", "partition-nodes")
 #: Faults that name a satellite.
 TARGETED_FAULTS = (*AGENT_PROCESS_FAULTS, "camera", "drop", *NETWORK_FAULTS, "stall-agent", *RADIO_FAULTS)
 #: Faults that take ``down_s``: how long the router stays down, or the stall lasts (wall s).
-TIMED_FAULTS = ("restart-router", *STALL_FAULTS)
+TIMED_FAULTS = ("restart-router", *STALL_FAULTS, "partition-nodes")
 
 
 class FaultSpec(_Model):
@@ -488,7 +495,8 @@ class FaultSpec(_Model):
 
     at_step: int = Field(ge=0, description="the step at whose start the fault is applied")
     action: FaultAction
-    target: int | None = Field(None, ge=0, description="satellite id (agent and camera faults)")
+    target: int | None = Field(None, ge=0, description="satellite id (agent and camera faults); a node's index (kill-node, "
+                               "partition-nodes; 0 is the head)")
     camera: int | None = Field(None, ge=0, le=5, description="camera index 0..5 (+z,+x,+y,−x,−y,−z)")
     state: Literal["on", "off"] | None = None
     rate: float | None = Field(None, ge=0.0, le=1.0, description="drop: fraction of outgoing messages lost; link: its "
@@ -498,7 +506,7 @@ class FaultSpec(_Model):
         "starts on the same endpoint (default 0); stall-*: how long (wall s) the process stays stopped (required)"
     )
     peer: int | None = Field(None, ge=0, description="link: the receiving satellite of the link target → peer (absent: "
-                             "every link of target, both ways)")
+                             "every link of target, both ways); partition-nodes: the other node")
     delay_s: float | None = Field(None, ge=0.0, le=3600.0, description="link: latency (s) added to its fixed latency")
 
     @model_validator(mode="after")
@@ -513,8 +521,16 @@ class FaultSpec(_Model):
             raise ValueError("action drop needs rate (0..1)")
         if self.rate is not None and self.action not in ("drop", "link"):
             raise ValueError("rate is for actions drop and link")
-        if (self.peer is not None or self.delay_s is not None) and self.action != "link":
-            raise ValueError("peer and delay_s are for action link")
+        if self.action in CLUSTER_FAULTS:
+            if self.target is None:
+                raise ValueError(f"action {self.action} needs a target node (its index; 0 is the head)")
+            if self.action == "partition-nodes" and (self.peer is None or self.peer == self.target or not self.down_s):
+                raise ValueError("action partition-nodes needs target and peer (two different nodes) and down_s > 0 "
+                                 "(how long they stay cut apart, wall s)")
+        if self.delay_s is not None and self.action != "link":
+            raise ValueError("delay_s is for action link")
+        if self.peer is not None and self.action not in ("link", "partition-nodes"):
+            raise ValueError("peer is for actions link and partition-nodes")
         if self.action == "link":
             if self.state is None and self.delay_s is None and self.rate is None:
                 raise ValueError("action link needs state (off: dead, on: the scenario's parameters back), delay_s or rate")
@@ -529,6 +545,18 @@ class FaultSpec(_Model):
         if self.action in STALL_FAULTS and not self.down_s:
             raise ValueError(f"action {self.action} needs down_s > 0 (how long the process stays stopped, wall s)")
         return self
+
+
+class Placement(_Model):
+    """Where the processes of a cluster run go (``swarm run --cluster``; a local run ignores
+    it). Nodes are numbered 0 (the head) then by address."""
+
+    world: int = Field(0, ge=0, description="the node of the world")
+    selector: int = Field(0, ge=0, description="the node of the selector")
+    recorder: int = Field(0, ge=0, description="the node of the recorder (it writes run.mcap there)")
+    agents: Literal["spread"] | list[int] = Field(
+        "spread", description="spread: satellite i on node i mod N (N nodes); or one node index per satellite"
+    )
 
 
 class Emulator(_Model):
@@ -581,6 +609,8 @@ class Emulator(_Model):
         default_factory=dict, description="satellites flown by another program than the Python sat_agent: {satellite id: "
         "command line} (docs/agent-contract.md: what it is given and what it owes the swarm); `swarm run --agent I=CMD`"
     )
+    placement: Placement = Field(default_factory=lambda: Placement(), description="swarm run --cluster: which node "
+                                 "runs what (docs/cluster.md)")
 
 
 class EstimatorConfig(_Model):
@@ -604,7 +634,7 @@ class EstimatorConfig(_Model):
 class Scenario(_Model):
     name: str = "unnamed"
     seed: int = Field(0, ge=0)
-    n_sats: int = Field(5, ge=2, le=200)
+    n_sats: int = Field(5, ge=2, le=1000)
     duration_s: PosFloat = 100.0
     dt_s: PosFloat = 1.0
     truth_substeps: int = Field(20, ge=1, le=1000, description="RK4 substeps per dt for the truth attitude")
@@ -702,7 +732,12 @@ class Scenario(_Model):
                 raise ValueError(f"emulator.agent_commands.{sat}: not a satellite id (0..{n - 1})")
             if not cmd.strip():
                 raise ValueError(f"emulator.agent_commands.{sat}: an empty command")
+        agents = self.emulator.placement.agents
+        if isinstance(agents, list) and len(agents) != n:
+            raise ValueError(f"emulator.placement.agents: {len(agents)} node indices for {n} satellites (one each, or spread)")
         for idx, f in enumerate(self.faults):
+            if f.action in CLUSTER_FAULTS:
+                continue  # node indices: the cluster's size is known when it runs (swarm run --cluster checks them)
             if f.target is not None and f.target >= n:
                 raise ValueError(f"faults.{idx}.target: {f.target} is not a satellite id (0..{n - 1})")
             if f.peer is not None and f.peer >= n:

@@ -32,7 +32,7 @@ import numpy as np
 from swarmcore.graphs import edges, scenario_graph
 from swarmcore.links import LinkCounters, LinkModel, scenario_link_model
 from swarmcore.measurement import CameraModel
-from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, Scenario
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, CLUSTER_FAULTS, ROUTER_FAULTS, Scenario
 from swarmcore.selection import mask_dead, select_for_scenario
 from swarmcore.world import TruthState, absolute_measurements, initial_estimate, initial_truth, step_truth, world_params
 from swarmrt.bus.convert import (
@@ -404,9 +404,10 @@ class WorldProtocol:
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
                 yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
-            elif spec.action in ROUTER_FAULTS:
+            elif spec.action in ROUTER_FAULTS or spec.action in CLUSTER_FAULTS:
                 # The bus goes down under us (this wait, like every wait, pauses while it is
-                # down); a restart is over once its executor says so.
+                # down); a restart is over once its executor says so (a node killed: once its
+                # agents are started elsewhere; a partition: once it is healed).
                 yield Wait(lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done), em.startup_timeout_s)
             elif spec.action == "drop":
                 yield Wait(lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done)

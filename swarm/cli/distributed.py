@@ -25,6 +25,10 @@ def run(
     live: str | None = typer.Option(
         None, "--live", metavar="[HOST:PORT]", help="serve the live 3-D view (Foxglove WebSocket protocol) at HOST:PORT; "
         "--live alone: 127.0.0.1:8765. Open it in Foxglove with docs/foxglove-layout.json"),
+    cluster: str | None = typer.Option(
+        None, "--cluster", metavar="ray://HOST:PORT|local-ray[:N]", help="run over a Ray cluster: ray://HOST:PORT is the head's "
+        "Ray Client address (ray start --head; port 10001), local-ray[:N] starts N nodes here for the run (each in a network "
+        "namespace of its own as root). A Zenoh router per node; docs/cluster.md"),
 ):
     """Run the swarm as real processes on a local Zenoh bus (router, recorder, world,
     selector, one agent per satellite) and compute summary.json from the recording.
@@ -44,6 +48,16 @@ def run(
     if (why := sc.vision.distributed_refusal()) is not None:
         console.print(f"[red]error:[/red] {why}", highlight=False)
         raise typer.Exit(2)
+    if cluster is not None:
+        from swarm.cluster.swarm import parse_cluster
+
+        try:
+            parse_cluster(cluster)
+            if live is not None or routers != 1:
+                raise ValueError("--cluster runs a router per node (no --routers) and has no live view yet (no --live)")
+        except ValueError as exc:
+            console.print(f"[red]error:[/red] {exc}", highlight=False)
+            raise typer.Exit(2) from None
 
     def started(swarm) -> None:
         console.print(f"run {swarm.run}: {sc.n_sats} agents on {swarm.endpoint}; faults: swarm fault --run-dir {out} ...")
@@ -54,8 +68,13 @@ def run(
     # recording closed, and the summary of the steps recorded so far marked as interrupted.
     with _progress() as prog:
         task = prog.add_task(f"run {sc.name} n={sc.n_sats} ({sc.emulator.time_mode})", total=sc.steps)
-        result = run_swarm(sc, out=out, live=live, timeout=timeout, routers=routers, progress=lambda k, K: prog.update(task, completed=k),
-                           log=lambda s: console.print(s, highlight=False), on_start=started)
+        try:
+            result = run_swarm(sc, out=out, live=live, timeout=timeout, routers=routers,
+                               progress=lambda k, K: prog.update(task, completed=k),
+                               log=lambda s: console.print(s, highlight=False), on_start=started, cluster=cluster)
+        except _cluster_errors() as exc:
+            console.print(f"[red]error:[/red] {exc}", highlight=False)
+            raise typer.Exit(2) from None
     res = result.outcome
     assert res is not None
     summary = res.summary
@@ -90,6 +109,14 @@ def run(
                       "every process stopped, the recording closed; summary.json says \"interrupted\"", highlight=False)
     if res.exit_code != 0:
         raise typer.Exit(res.exit_code)
+
+
+def _cluster_errors() -> tuple[type[BaseException], ...]:
+    """What a cluster run raises when the cluster cannot run it (one line each)."""
+    from swarm.cluster.netns import NetnsError
+    from swarm.cluster.versions import ClusterError
+
+    return (ClusterError, NetnsError)
 
 
 def _check_live_address(text: str) -> str:

@@ -49,7 +49,7 @@ from pathlib import Path
 import yaml
 
 from swarm.supervise.forkserver import AgentForkServer, ForkedAgent
-from swarmcore.scenario import AGENT_PROCESS_FAULTS, ROUTER_FAULTS, STALL_FAULTS, Scenario
+from swarmcore.scenario import AGENT_PROCESS_FAULTS, CLUSTER_FAULTS, ROUTER_FAULTS, STALL_FAULTS, Scenario
 from swarmrt.bus.messages import Fault, Keys, as_dict, opt, replace
 from swarmrt.bus.session import BusConfig
 from swarmrt.node import Node
@@ -385,6 +385,8 @@ class LocalSwarm:
             self.faults.append(as_dict(ev.msg, exclude=("schema_version", "run")))
 
     def execute(self, f: Fault) -> None:
+        if f.action in CLUSTER_FAULTS:
+            return self._cluster_fault(f)
         if f.action in ROUTER_FAULTS:
             return self._router_fault(f)
         if f.action in STALL_FAULTS:
@@ -431,6 +433,18 @@ class LocalSwarm:
             self._write_run_json()
             self._report(f, "done", f"started pid {self.procs[name].pid}")
 
+    def _cluster_fault(self, f: Fault) -> None:
+        """kill-node, partition-nodes: a cluster run's (swarm.cluster.swarm.RaySwarm)."""
+        self._report(f, "failed", f"{f.action} needs a cluster run (swarm run --cluster ...): this run's processes are all local")
+
+    def _stall_net(self, p, down_s: float):
+        """The safety net of a stall: should this supervisor be SIGKILLed meanwhile, nothing
+        here would ever continue the process (its lifeline cannot act while it is stopped,
+        and it leads its own session, so no orphaned-group SIGCONT comes from the kernel): a
+        shell of its own, in a session of its own, continues its group ``down_s`` later."""
+        return subprocess.Popen(["sh", "-c", f"sleep {down_s:.3f}; kill -CONT -- -{p.pid} 2>/dev/null"], start_new_session=True,
+                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
     def _stall(self, f: Fault) -> None:
         """stall-*: SIGSTOP the role's process group now and SIGCONT it ``down_s`` wall
         seconds later (:meth:`continue_stalled`, from the run's loop: the supervisor goes on
@@ -453,12 +467,7 @@ class LocalSwarm:
             self._report(f, "failed", f"{name} is already stopped")
             return
         down_s = float(opt(f, "down_s") or 0.0)
-        # The safety net: should this supervisor be SIGKILLed meanwhile, nothing here would
-        # ever continue the process (its lifeline cannot act while it is stopped, and it
-        # leads its own session, so no orphaned-group SIGCONT comes from the kernel): a shell
-        # of its own, in a session of its own, continues its group down_s later.
-        net = subprocess.Popen(["sh", "-c", f"sleep {down_s:.3f}; kill -CONT -- -{p.pid} 2>/dev/null"], start_new_session=True,
-                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        net = self._stall_net(p, down_s)
         _kill_group(p, signal.SIGSTOP)
         self._stalled.append((time.monotonic() + down_s, p, f, net, time.time()))
         self.say(f"step {self.k}: {name} (pid {p.pid}) stopped for {down_s:g} s")
@@ -742,7 +751,11 @@ def _slug(name: str) -> str:
 
 def _kill_group(p: subprocess.Popen | ForkedAgent, sig: int) -> None:
     """Signal a running child's process group (each child leads its own session, so its
-    group id is its pid). A child already reaped is left alone: its pid is free for reuse."""
+    group id is its pid). A child already reaped is left alone: its pid is free for reuse.
+    A process on another host (swarm.cluster.swarm.RemoteProc) is signalled there."""
+    if hasattr(p, "killpg"):
+        p.killpg(sig)
+        return
     if p.poll() is None:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(p.pid, sig)
