@@ -387,7 +387,7 @@ def simulate(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, 
 def run(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, *, out: str | Path | None = None, seed: int | None = None,
         live: str | None = None, timeout: float | None = None, routers: int = 1, agents: Mapping[int, str] | None = None,
         progress: Progress | None = None, log: Callable[[str], None] | None = None,
-        on_start: Callable[[Any], None] | None = None, cluster: str | None = None, **overrides: Any) -> Result:
+        on_start: Callable[[Any], None] | None = None, cluster: Any = None, **overrides: Any) -> Result:
     """Run the swarm distributed (``swarm run``): a Zenoh router, the recorder, the world, the
     selector and one agent process per satellite on this machine, in lockstep; the result is
     read from the recording (``out/run.mcap``; ``out`` defaults to a new temporary folder).
@@ -413,7 +413,10 @@ def run(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, *, ou
 
         if live is not None or routers != 1:
             raise ValueError("--cluster runs a router per node (no --routers) and has no live view yet (no --live)")
-        swarm: LocalSwarm = RaySwarm(sc, folder, cluster, log=say)
+        if isinstance(cluster, str):
+            swarm: LocalSwarm = RaySwarm(sc, folder, cluster, log=say)
+        else:  # a swarm.cluster.local.LocalRayCluster the caller started and keeps
+            swarm = RaySwarm(sc, folder, "local-ray", log=say, local_cluster=cluster)
     else:
         swarm = LocalSwarm(sc, folder, log=say, routers=routers, live=live)
     code: int | None = 1

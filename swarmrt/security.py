@@ -185,7 +185,7 @@ def acl_config(run: str, n_sats: int, links: bool = False, peer_zids: tuple[str,
 
 
 #: Router indices a run's mesh may use (``swarm run --routers 2``: 0 and 1; compose.routers2.yaml).
-MESH_ROUTERS = 4
+MESH_ROUTERS = 16
 
 
 def router_zid(mesh_secret: str, index: int) -> str:

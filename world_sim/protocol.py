@@ -404,10 +404,24 @@ class WorldProtocol:
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
                 yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
-            elif spec.action in ROUTER_FAULTS or spec.action in CLUSTER_FAULTS:
+            elif spec.action in CLUSTER_FAULTS:
+                # A host of a cluster run killed (its agents started again on the others) or
+                # two cut apart: over once the supervisor says so, and for a killed node once
+                # every agent that was alive is back (as a scheduled restart-agent waits).
+                before = set(self.alive_agents)
+                self._reported_since_restart.difference_update(before)
+                yield Wait(lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done), em.startup_timeout_s)
+                if spec.action == "kill-node":
+                    def all_back() -> bool:
+                        return all(t in self.alive_agents and (t in self.ready or t in self._reported_since_restart) for t in before)
+
+                    if not (yield Wait(all_back, em.startup_timeout_s)):
+                        log.warning("step %d: agents %s not back within %.0f s after kill-node; going on without them", k,
+                                    sorted(t for t in before if t not in self.alive_agents), em.startup_timeout_s)
+                    self.ready.update(t for t in before if t in self.alive_agents)
+            elif spec.action in ROUTER_FAULTS:
                 # The bus goes down under us (this wait, like every wait, pauses while it is
-                # down); a restart is over once its executor says so (a node killed: once its
-                # agents are started elsewhere; a partition: once it is healed).
+                # down); a restart is over once its executor says so.
                 yield Wait(lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done), em.startup_timeout_s)
             elif spec.action == "drop":
                 yield Wait(lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done)

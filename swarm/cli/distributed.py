@@ -307,6 +307,26 @@ def fault_link(
     _send_fault(ctx, action="link", target=sat, peer=peer, state=state, delay_s=delay_s, rate=loss)
 
 
+@fault_app.command("kill-node")
+def fault_kill_node(ctx: typer.Context, node: int = typer.Argument(..., min=0, help="the node's index (0: the head; run.json lists them)")):
+    """Take a node of a cluster run down (swarm run --cluster): its raylet and everything on it
+    killed; its agents are started again on the surviving nodes (warm) and the faults table
+    says where each went. Killing the node of the world or the recorder breaks the run."""
+    _send_fault(ctx, action="kill-node", target=node)
+
+
+@fault_app.command("partition-nodes")
+def fault_partition_nodes(
+    ctx: typer.Context,
+    node: int = typer.Argument(..., min=0, help="a node's index"),
+    peer: int = typer.Argument(..., min=0, help="the other node's index"),
+    down_s: float = typer.Option(..., "--down-s", min=0.001, max=3600.0, help="wall seconds until the cut is healed"),
+):
+    """Cut two nodes of a local cluster run (--cluster local-ray:N as root) apart: every packet
+    between their addresses dropped (iptables in their namespaces), healed --down-s later."""
+    _send_fault(ctx, action="partition-nodes", target=node, peer=peer, down_s=down_s)
+
+
 _sat_fault("partition", "Cut satellite SAT's container off the bus network (compose only).")
 _sat_fault("heal", "Reconnect satellite SAT's container to the bus network (compose only).")
 

@@ -103,7 +103,7 @@ class NodeHost:
         self._exits: list[tuple[str, int, int]] = []  # (name, pid, status) in the order seen
         self._reported: set[int] = set()  # pids whose exit is in _exits
         self._lifeline = os.pipe()  # children hold the read end; the write end only this process
-        self._forkserver = None
+        self._forkserver: Any = None  # swarm.supervise.forkserver.AgentForkServer, on the first forked agent
         self._closed = False
         self._nets: list[subprocess.Popen] = []
         threading.Thread(target=self._reap, name="reap", daemon=True).start()
@@ -145,7 +145,7 @@ class NodeHost:
                 f.write(text)
         return sorted(keys)
 
-    def make_keys(self, n_sats: int, shares: list[list[str]], tls_hosts: list[str] | None = None) -> tuple:
+    def make_keys(self, n_sats: int, shares: list[list[str]], tls_hosts: list[str] | None = None) -> Any:
         """(On the head.) The run's credentials, made here; returns one dict of files per
         entry of ``shares`` (each a list of the file names that node gets), as separate Ray
         objects (``num_returns``), and keeps the whole set for :meth:`key_share`."""
@@ -218,7 +218,9 @@ class NodeHost:
             p = self._popen(name, ["swarm.supervise.router", *listens, "--index", str(index), *mesh, *secure],
                             stdout=subprocess.PIPE, stderr=logf)
         line: list[bytes] = []
-        t = threading.Thread(target=lambda: line.append(p.stdout.readline()), daemon=True)
+        out = p.stdout
+        assert out is not None
+        t = threading.Thread(target=lambda: line.append(out.readline()), daemon=True)
         t.start()
         t.join(timeout)
         if not line or b"READY" not in line[0]:

@@ -174,10 +174,9 @@ class LocalRayCluster:
             if self.hosts is not None and i > 0:
                 self.hosts.kill(i)
             tail = log.read_bytes()[-600:].decode(errors="replace") if log.exists() else ""
-            self.say(f"Ray node {i} did not start (attempt {attempt + 1} of {attempts}): {tail.strip().splitlines()[-1:] or '?'}")
-            if i == 0:
-                break
-        raise ClusterError(f"Ray node {i} did not start ({attempts if i else 1} attempt(s)); see {self.tmp / f'node-{i}.log'}")
+            last = (tail.strip().splitlines() or ["?"])[-1]
+            self.say(f"Ray node {i} did not start (attempt {attempt + 1} of {attempts}): {last}")
+        raise ClusterError(f"Ray node {i} did not start in {attempts} attempts (the last said: {last})")
 
     # -- faults -------------------------------------------------------------------------
     def kill(self, i: int) -> list[int]:

@@ -48,7 +48,6 @@ import sys
 import threading
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 
 __all__ = ["Host", "Hosts", "NetnsError", "can_make_hosts", "leftovers"]
 
@@ -95,7 +94,7 @@ def _free_subnet() -> ipaddress.IPv4Network:
             if word not in ("default", "broadcast", "local") and "/" in word:
                 used.append(ipaddress.ip_network(word, strict=False))
     for _ in range(200):
-        net = ipaddress.ip_network(f"10.{200 + secrets.randbelow(55)}.{secrets.randbelow(256)}.0/24")
+        net = ipaddress.IPv4Network(f"10.{200 + secrets.randbelow(55)}.{secrets.randbelow(256)}.0/24")
         if not any(net.overlaps(u) for u in used):
             return net
     raise NetnsError("no free 10.200-254.x.0/24 subnet for the namespaces")

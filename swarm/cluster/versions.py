@@ -69,13 +69,13 @@ def make_probe() -> Callable[[], dict[str, Any]]:
 
             facts["ray"] = ray.__version__
             facts["ip"] = ray.util.get_node_ip_address()
-        except Exception as exc:  # noqa: BLE001 - reported, not raised
+        except Exception as exc:  # reported, not raised
             facts["ray"] = f"error: {exc}"
         try:
             from swarm.cluster.host import node_facts
 
             facts.update(node_facts())
-        except Exception as exc:  # noqa: BLE001 - a node without the project says so
+        except Exception as exc:  # a node without the project says so
             facts["project"] = None
             facts["project_error"] = f"{type(exc).__name__}: {exc}"
         return facts

@@ -45,6 +45,7 @@ import threading
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import yaml
 
@@ -133,7 +134,8 @@ class LocalSwarm:
         self.say = log
         self.scenario_file = self.out / "scenario.yaml"
         self.scenario_file.write_text(yaml.safe_dump(sc.model_dump(mode="json"), sort_keys=False))
-        self.procs: dict[str, subprocess.Popen | ForkedAgent] = {}
+        # Popen-like: subprocess.Popen, ForkedAgent, or a process on another host (swarm.cluster.swarm.RemoteProc)
+        self.procs: dict[str, Any] = {}
         self.endpoint: str | None = None  # router 0's endpoint, once started
         self.n_routers = routers
         self.endpoints: list[str] = []  # router i listens on endpoints[i]

@@ -1,0 +1,159 @@
+"""`swarm run --cluster`: one swarm over a real 3-node Ray cluster on this machine.
+
+Each node is a real `ray start` in a network namespace of its own (its own address on a
+bridge the test makes, in a namespace of its own too; swarm/cluster/netns.py): nothing it
+sends can leave the machine. On it, for real: 12 satellites whose numbers equal `swarm sim`'s
+bit for bit while two nodes are cut apart for 10 s (iptables) and healed; a node killed
+mid-run (every process of its namespace SIGKILLed, the raylet among them) whose agents are
+started on the surviving nodes and rejoin, the run completing and its faults table saying
+where each went; and Ctrl-C to `swarm run --cluster local-ray:2`, after which no process,
+namespace or Ray session of it is left. Needs root (namespaces); slow (a cluster starts in
+30-90 s on a loaded 2-core machine).
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+from test_run_signals import _gone, _read_json, _wait_for_step, wait_until
+
+from swarm.api import load_scenario, run, simulate
+from swarm.cluster.netns import can_make_hosts, leftovers
+
+pytestmark = [pytest.mark.slow, pytest.mark.integration,
+              pytest.mark.skipif(can_make_hosts() is not None, reason=str(can_make_hosts()))]
+
+NUMBERS = ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean", "steps")
+
+
+def twelve(**extra):
+    """12 satellites, the full-swarm filter on the complete graph (every pair tracked, so
+    every number of the summary is defined), paced so that a 10 s partition spans steps."""
+    doc = {"name": "cluster12", "seed": 12, "n_sats": 12, "duration_s": 30, "graph": {"kind": "complete"},
+           "initial": {"layout": "lattice", "spacing_m": 20.0, "position_max_m": 2.0, "drift_free": True},
+           "emulator": {"lockstep_max_realtime_factor": 1.5}}
+    doc.update(extra)
+    return load_scenario(doc)
+
+
+def _ray_processes(since: float) -> list[psutil.Process]:
+    """Ray's and the run's processes started since ``since`` that are still there."""
+    out = []
+    for p in psutil.process_iter(["name", "cmdline", "create_time"]):
+        try:
+            cmd = " ".join(p.info["cmdline"] or [])
+            if p.info["create_time"] >= since and not _gone(p) and (
+                    p.info["name"] in ("raylet", "gcs_server") or "/tmp/swr-" in cmd or "swarm-node-" in cmd or "swarm.cluster" in cmd):
+                out.append(p)
+        except psutil.Error:
+            continue
+    return out
+
+
+def test_ctrl_c_to_a_cluster_run_leaves_nothing_behind(tmp_path):
+    """SIGINT to `swarm run --cluster local-ray:2` mid-run: exit 130, summary marked
+    interrupted, and no process, namespace or Ray folder of it left."""
+    scen = tmp_path / "s.yaml"
+    scen.write_text(json.dumps({"name": "ctrlc", "seed": 2, "n_sats": 3, "duration_s": 600, "graph": {"kind": "complete"},
+                                "emulator": {"lockstep_max_realtime_factor": 5.0}}))
+    out = tmp_path / "run"
+    t0 = time.time()
+    before = set(leftovers())
+    log = open(tmp_path / "swarm-run.log", "wb")  # noqa: SIM115 - the child writes to it; closed below
+    proc = subprocess.Popen([sys.executable, "-m", "swarm.cli", "run", str(scen), "--cluster", "local-ray:2", "--out", str(out)],
+                            stdout=log, stderr=subprocess.STDOUT)
+    try:
+        info = wait_until(lambda: (j := _read_json(out / "run.json")) and "world" in j["pids"] and j, 400, "the run started")
+        keys = info["keys"]
+        _wait_for_step(info["endpoint"], info["run"], 5, 120, keys=keys)
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=180)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        log.close()
+    text = (tmp_path / "swarm-run.log").read_text(errors="replace")
+    print(text[-2000:])
+    assert proc.returncode == 130, text[-2000:]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["interrupted"]["reason"] == "SIGINT"
+    assert set(leftovers()) <= before, leftovers()
+    assert wait_until(lambda: not _ray_processes(t0), 30, "every process of the cluster run gone")
+    assert not Path(keys).exists()
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    from swarm.cluster.local import LocalRayCluster
+
+    t0 = time.time()
+    c = LocalRayCluster(3, log=print)
+    try:
+        c.start()
+        print(f"3-node cluster up in {time.time() - t0:.1f} s: {c.node_ips}")
+        yield c
+    finally:
+        c.close()
+    assert leftovers() == [], leftovers()
+    assert not Path(c.tmp).exists()
+    assert wait_until(lambda: not _ray_processes(t0), 30, "every Ray process of the cluster gone")
+
+
+def _faults(summary: dict, action: str) -> list[dict]:
+    return [f for f in summary.get("faults", []) if f["action"] == action and f["phase"] == "done"]
+
+
+def test_twelve_satellites_over_three_nodes_equal_swarm_sim_through_a_partition(cluster, tmp_path):
+    sc = twelve(faults=[{"at_step": 4, "action": "partition-nodes", "target": 1, "peer": 2, "down_s": 10.0}])
+    t0 = time.monotonic()
+    res = run(sc, out=tmp_path / "run", cluster=cluster, log=print)
+    wall = time.monotonic() - t0
+    assert res.outcome.exit_code == 0, res.outcome
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    print(f"12 satellites over 3 nodes: {wall:.1f} s wall; start-up {info['startup_s']}")
+    # Every node took part, each with the address of its own namespace, agents spread over all.
+    assert [n["ip"] for n in info["nodes"]] == cluster.node_ips
+    assert {info["placement"][f"agent-{i}"] for i in range(12)} == {0, 1, 2}
+    assert info["placement"]["world"] == info["placement"]["recorder"] == 0
+    # The partition was made and healed after its 10 s.
+    done = _faults(res.summary, "partition-nodes")
+    assert len(done) == 2 and "cut apart" in done[0]["detail"] and "healed after" in done[1]["detail"], done
+    healed_s = float(done[1]["detail"].split("healed after ")[1].split(" s")[0])
+    assert 10.0 <= healed_s < 20.0, healed_s
+    # Bit for bit the in-process simulator's numbers.
+    ref = simulate(sc).summary
+    for key in NUMBERS:
+        assert res.summary[key] == ref[key], key
+    assert res.recording.alive.all()
+    # Nothing of the run left: its nodes' folders (credentials) and its keys are gone.
+    assert not list(Path("/tmp").glob(f"swarm-node-{info['run']}-*"))
+    assert info["keys"] and not Path(info["keys"]).exists()
+
+
+def test_a_node_killed_mid_run_its_agents_restart_elsewhere_and_the_run_completes(cluster, tmp_path):
+    sc = twelve(duration_s=20, faults=[{"at_step": 6, "action": "kill-node", "target": 2}])
+    res = run(sc, out=tmp_path / "run", cluster=cluster, log=print)
+    assert res.outcome.exit_code == 0 and not res.summary.get("interrupted"), res.outcome
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert [n["alive"] for n in info["nodes"]] == [True, True, False]
+    lost = [i for i in range(12) if i % 3 == 2]  # spread: satellite i on node i mod 3
+    moves = _faults(res.summary, "kill-node")
+    print("\n".join(f["detail"] for f in moves))
+    assert moves[-1]["detail"].startswith(f"node 2 ({cluster.node_ips[2]}) killed") and f"{len(lost)} agent(s)" in moves[-1]["detail"]
+    for i in lost:  # the table names each agent's new place
+        line = next(f["detail"] for f in moves if f["detail"].startswith(f"node 2: agent {i} → node "))
+        j = int(line.split("→ node ")[1].split()[0])
+        assert j in (0, 1) and info["placement"][f"agent-{i}"] == j and cluster.node_ips[j] in line
+    # Each moved agent flew again: every satellite has its estimate at the last step.
+    alive = res.recording.alive
+    assert alive[-1].all(), alive.sum(axis=1)
+    # The world waited for them at the fault's step; a scheduled kill is reproducible in count.
+    assert res.summary["steps"] == sc.steps
