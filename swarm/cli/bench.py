@@ -176,6 +176,38 @@ def bench_cluster_cmd(
     console.print(f"wrote {out}")
 
 
+@bench_app.command("cluster-run")
+def bench_cluster_run_cmd(
+    nodes: str = typer.Option("1,2,3", "--nodes", help="comma-separated node counts (a local Ray cluster each, namespaced nodes)"),
+    sats: str = typer.Option("12,40", "--sats", help="comma-separated swarm sizes"),
+    duration: float = typer.Option(30.0, help="simulated seconds per run"),
+    estimator: str = typer.Option("ci", "--estimator", help="every agent's estimator"),
+    graph: str = typer.Option("nearest", "--graph", help="nearest (a lattice, 3 nearest each) or complete"),
+    rust_agent: str | None = typer.Option(None, "--agent-command", help="fly every satellite with this program instead of the "
+                                          "Python sat_agent (e.g. participants/target/release/swarm-rust-agent)"),
+    out: Path = typer.Option(Path("bench-cluster-run.json"), "--out", "-o", help="JSON file to write"),
+):
+    """A swarm over 1, 2, 3 ... Ray nodes on this machine (same cores in all): real-time
+    factor, start-up, CPU and PSS by role, bytes per step between nodes (root: namespaces)."""
+    from swarm.bench.cluster_run import bench_cluster_run
+    from swarm.bench.filter import machine_info
+    from swarm.outputs import write_json
+
+    rows = bench_cluster_run([int(x) for x in nodes.split(",") if x.strip()], [int(x) for x in sats.split(",") if x.strip()],
+                             duration, estimator, graph, log=lambda s: console.print(s, highlight=False),
+                             workdir=out.parent / (out.stem + "-runs"), agent_commands=rust_agent)
+    write_json(out, {"machine": machine_info(), "rows": rows})
+    t = Table(title="swarm over a Ray cluster on this machine")
+    for col in ("nodes", "n", "real-time ×", "start-up s", "PSS GiB", "CPU ms/step", "Zenoh B/step between nodes"):
+        t.add_column(col)
+    for r in rows:
+        t.add_row(str(r["nodes"]), str(r["n"]), f"{r['realtime_factor'] or 0:.2f}", f"{r['startup_s'] or 0:.1f}",
+                  f"{r['pss_peak_gib']:.2f}", f"{r.get('cpu_ms_per_step_total') or 0:.0f}",
+                  f"{r.get('zenoh_bytes_per_step_between_nodes') or 0:.0f}")
+    console.print(t)
+    console.print(f"wrote {out}")
+
+
 @bench_app.command("selection")
 def bench_selection_cmd(
     sats: str = typer.Option("10,50", help="comma-separated swarm sizes"),

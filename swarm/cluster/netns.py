@@ -201,6 +201,37 @@ class Hosts:
                 _run_in(hx.ns, "iptables", "-w", "-D", chain, flag, hy.ip, "-j", "DROP", check=False)
         self._partitions.discard((min(a, b), max(a, b)))
 
+    def count_links(self, ports: list[int]) -> None:
+        """Byte counters (iptables, chain SWARM_ACCT in each host's namespace) of what each
+        host sends to each other host: over the Zenoh routers' links (TCP to or from router
+        port ``ports[j]`` of host j, or from its own) and everything else (Ray's own)."""
+        for h in self.hosts:
+            _run_in(h.ns, "iptables", "-w", "-N", "SWARM_ACCT")
+            _run_in(h.ns, "iptables", "-w", "-I", "OUTPUT", "-j", "SWARM_ACCT")
+            for o in self.hosts:
+                if o.index == h.index:
+                    continue
+                for flag, port in (("--dport", ports[o.index]), ("--sport", ports[h.index])):
+                    _run_in(h.ns, "iptables", "-w", "-A", "SWARM_ACCT", "-d", o.ip, "-p", "tcp", flag, str(port),
+                            "-m", "comment", "--comment", f"zenoh {o.index}", "-j", "RETURN")
+                _run_in(h.ns, "iptables", "-w", "-A", "SWARM_ACCT", "-d", o.ip, "-m", "comment", "--comment", f"other {o.index}",
+                        "-j", "RETURN")
+
+    def link_bytes(self) -> dict[str, int]:
+        """``"i->j zenoh"`` / ``"i->j other"`` → bytes host i has sent host j so far (see
+        :meth:`count_links`; IP packets, headers included)."""
+        out: dict[str, int] = {}
+        for h in self.hosts:
+            p = _run_in(h.ns, "iptables", "-w", "-L", "SWARM_ACCT", "-v", "-x", "-n", check=False)
+            for line in p.stdout.splitlines():
+                if "/* " not in line:
+                    continue
+                f = line.split()
+                kind, j = line.split("/* ")[1].split(" */")[0].split()
+                key = f"{h.index}->{j} {kind}"
+                out[key] = out.get(key, 0) + int(f[1])
+        return out
+
     def pids(self, i: int) -> list[int]:
         """Every process in host i's namespace."""
         return _ns_pids(self.hosts[i].ns)
