@@ -14,17 +14,19 @@ namespace or Ray session of it is left. Needs root (namespaces); slow (a cluster
 from __future__ import annotations
 
 import json
+import os
 import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
-import psutil
 import pytest
-from test_run_signals import _gone, _read_json, _wait_for_step, wait_until
+from test_run_signals import _read_json, _wait_for_step, wait_until
 
 from swarm.api import load_scenario, run, simulate
+from swarm.cluster.local import tagged_processes
 from swarm.cluster.netns import can_make_hosts, leftovers
 
 pytestmark = [pytest.mark.slow, pytest.mark.integration,
@@ -43,20 +45,6 @@ def twelve(**extra):
     return load_scenario(doc)
 
 
-def _ray_processes(since: float) -> list[psutil.Process]:
-    """Ray's and the run's processes started since ``since`` that are still there."""
-    out = []
-    for p in psutil.process_iter(["name", "cmdline", "create_time"]):
-        try:
-            cmd = " ".join(p.info["cmdline"] or [])
-            if p.info["create_time"] >= since and not _gone(p) and (
-                    p.info["name"] in ("raylet", "gcs_server") or "/tmp/swr-" in cmd or "swarm-node-" in cmd or "swarm.cluster" in cmd):
-                out.append(p)
-        except psutil.Error:
-            continue
-    return out
-
-
 def test_ctrl_c_to_a_cluster_run_leaves_nothing_behind(tmp_path):
     """SIGINT to `swarm run --cluster local-ray:2` mid-run: exit 130, summary marked
     interrupted, and no process, namespace or Ray folder of it left."""
@@ -64,11 +52,11 @@ def test_ctrl_c_to_a_cluster_run_leaves_nothing_behind(tmp_path):
     scen.write_text(json.dumps({"name": "ctrlc", "seed": 2, "n_sats": 3, "duration_s": 600, "graph": {"kind": "complete"},
                                 "emulator": {"lockstep_max_realtime_factor": 5.0}}))
     out = tmp_path / "run"
-    t0 = time.time()
     before = set(leftovers())
     log = open(tmp_path / "swarm-run.log", "wb")  # noqa: SIM115 - the child writes to it; closed below
+    tag = uuid.uuid4().hex  # in the environment of every process of the run (inherited): what to look for afterwards
     proc = subprocess.Popen([sys.executable, "-m", "swarm.cli", "run", str(scen), "--cluster", "local-ray:2", "--out", str(out)],
-                            stdout=log, stderr=subprocess.STDOUT)
+                            stdout=log, stderr=subprocess.STDOUT, env=dict(os.environ, SWARM_TEST_RUN=tag))
     try:
         info = wait_until(lambda: (j := _read_json(out / "run.json")) and "world" in j["pids"] and j, 400, "the run started")
         keys = info["keys"]
@@ -86,7 +74,7 @@ def test_ctrl_c_to_a_cluster_run_leaves_nothing_behind(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["interrupted"]["reason"] == "SIGINT"
     assert set(leftovers()) <= before, leftovers()
-    assert wait_until(lambda: not _ray_processes(t0), 30, "every process of the cluster run gone")
+    assert wait_until(lambda: not tagged_processes("SWARM_TEST_RUN", tag), 30, "every process of the cluster run gone")
     assert not Path(keys).exists()
 
 
@@ -102,9 +90,9 @@ def cluster():
         yield c
     finally:
         c.close()
-    assert leftovers() == [], leftovers()
+    assert c.hosts is not None and leftovers(c.hosts.tag) == [], leftovers(c.hosts.tag)
     assert not Path(c.tmp).exists()
-    assert wait_until(lambda: not _ray_processes(t0), 30, "every Ray process of the cluster gone")
+    assert wait_until(lambda: not c.processes(), 30, "every process of the cluster gone")
 
 
 def _faults(summary: dict, action: str) -> list[dict]:

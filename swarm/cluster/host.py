@@ -51,7 +51,6 @@ ROLE_MODULES = {"world": "world_sim", "selector": "selector", "recorder": "swarm
 
 _ORPHAN_GRACE_S = 5.0
 _ORPHAN_RECORDER_GRACE_S = 15.0
-_WARM = "from swarmcore import kernels; kernels.warm_up(); from swarmrt.bus import fastcheck; fastcheck.warm_up()"
 
 
 def node_facts() -> dict[str, Any]:
@@ -128,8 +127,8 @@ class NodeHost:
         self.out.mkdir(parents=True, exist_ok=True)
         if keys:
             self.add_keys(keys)
-        # Warm the kernels' cache on this node while the rest starts (as LocalSwarm does).
-        subprocess.Popen([self.python, "-c", _WARM], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL).wait()
+        # (No separate warm-up of the compiled kernels as LocalSwarm runs: the node's fork
+        # server compiles them, or loads them from numba's cache, once before its first agent.)
         return {"out": str(self.out), "shared": self.shared_out, "dir": str(self.dir)}
 
     def add_keys(self, keys: dict[str, str]) -> list[str]:

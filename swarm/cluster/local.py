@@ -148,7 +148,9 @@ class LocalRayCluster:
         for attempt in range(attempts):
             log = self.tmp / f"node-{i}.log"
             cmd = self._cmd(i)
-            env = dict(os.environ, **RAY_ENV)
+            # The tag goes to every process of the node (Ray's workers and what they start
+            # inherit it): :meth:`processes` finds them by it.
+            env = dict(os.environ, **RAY_ENV, SWARM_LOCAL_CLUSTER=self.tmp.name)
             p = subprocess.Popen([sys.executable, "-m", "swarm.supervise.lifeline", "--fd", str(self._lifeline[0]), "--grace-s", "10",
                                   "--exec", *cmd], env=env, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
                                  stderr=subprocess.STDOUT, pass_fds=(self._lifeline[0],), start_new_session=True)
@@ -177,6 +179,11 @@ class LocalRayCluster:
             last = (tail.strip().splitlines() or ["?"])[-1]
             self.say(f"Ray node {i} did not start (attempt {attempt + 1} of {attempts}): {last}")
         raise ClusterError(f"Ray node {i} did not start in {attempts} attempts (the last said: {last})")
+
+    def processes(self) -> list:
+        """Every process still running that belongs to this cluster (its environment carries
+        the cluster's tag): none after :meth:`close`."""
+        return tagged_processes("SWARM_LOCAL_CLUSTER", self.tmp.name)
 
     # -- faults -------------------------------------------------------------------------
     def kill(self, i: int) -> list[int]:
@@ -235,3 +242,15 @@ def _kill_group(p: subprocess.Popen) -> None:
                     q.send_signal(signal.SIGKILL)
         with contextlib.suppress(subprocess.TimeoutExpired):
             p.wait(timeout=10)
+
+
+def tagged_processes(key: str, value: str) -> list:
+    """Running processes whose environment has ``key=value`` (zombies left out)."""
+    import psutil
+
+    out = []
+    for p in psutil.process_iter():
+        with contextlib.suppress(psutil.Error):
+            if p.status() != psutil.STATUS_ZOMBIE and p.environ().get(key) == value:
+                out.append(p)
+    return out

@@ -306,13 +306,13 @@ def _list_namespaces() -> list[str]:
     return [line.split()[0] for line in p.stdout.splitlines() if line.strip()]
 
 
-def leftovers() -> list[str]:
-    """Namespaces and root interfaces of this module that still exist (tests: none after
-    a run)."""
-    out = [ns for ns in _list_namespaces() if ns.startswith(PREFIX)]
+def leftovers(tag: str = "") -> list[str]:
+    """Namespaces and root interfaces of this module (of the :class:`Hosts` with ``tag``)
+    that still exist (tests: none after a run)."""
+    out = [ns for ns in _list_namespaces() if ns.startswith(PREFIX + tag)]
     p = subprocess.run(["ip", "-o", "link", "show"], capture_output=True, text=True)
     out += [line.split(":")[1].strip().split("@")[0] for line in p.stdout.splitlines()
-            if line.split(":")[1].strip().startswith(PREFIX)] if p.returncode == 0 else []
+            if line.split(":")[1].strip().startswith(PREFIX + tag)] if p.returncode == 0 else []
     return out
 
 
