@@ -377,7 +377,7 @@ fn delivery(m: &Delivery, top: u32) -> R {
     Ok(())
 }
 
-const FAULT_ACTIONS: [&str; 18] = [
+const FAULT_ACTIONS: [&str; 20] = [
     "kill-agent",
     "restart-agent",
     "stop-agent",
@@ -396,6 +396,8 @@ const FAULT_ACTIONS: [&str; 18] = [
     "stall-recorder",
     "stall-router",
     "link",
+    "kill-node",
+    "partition-nodes",
 ];
 const TARGETED: [&str; 10] =
     ["kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal", "netem", "stall-agent", "link"];
