@@ -128,8 +128,10 @@ def test_a_link_fault_names_what_it_does_and_needs_the_link_model():
         FaultSpec(at_step=2, action="link", target=1, peer=1, state="off")
     with pytest.raises(ValueError, match="state on gives the link back"):
         FaultSpec(at_step=2, action="link", target=1, state="on", rate=0.3)
-    with pytest.raises(ValueError, match="peer and delay_s are for action link"):
+    with pytest.raises(ValueError, match="peer is for actions link and partition-nodes"):
         FaultSpec(at_step=2, action="kill-agent", target=1, peer=2)
+    with pytest.raises(ValueError, match="delay_s is for action link"):
+        FaultSpec(at_step=2, action="kill-agent", target=1, delay_s=2.0)
     with pytest.raises(ValueError, match="rate is for actions drop and link"):
         FaultSpec(at_step=2, action="kill-agent", target=1, rate=0.5)
     fault = {"at_step": 2, "action": "link", "target": 1, "state": "off"}
@@ -138,3 +140,22 @@ def test_a_link_fault_names_what_it_does_and_needs_the_link_model():
     with pytest.raises(ValueError, match=r"faults.0.peer: 5 is not a satellite id"):
         Scenario(n_sats=3, links={"enabled": True}, faults=[{**fault, "peer": 5}])
     assert Scenario(n_sats=3, links={"enabled": True}, faults=[fault]).faults[0].action == "link"
+
+
+def test_cluster_faults_and_placement_name_what_they_need():
+    from swarmcore.scenario import FaultSpec, Scenario
+
+    assert FaultSpec(at_step=3, action="kill-node", target=2).target == 2
+    with pytest.raises(ValueError, match="kill-node needs a target node"):
+        FaultSpec(at_step=3, action="kill-node")
+    ok = FaultSpec(at_step=3, action="partition-nodes", target=1, peer=2, down_s=10.0)
+    assert (ok.target, ok.peer, ok.down_s) == (1, 2, 10.0)
+    for bad in ({"peer": 1}, {"peer": 2, "down_s": None}, {}):
+        with pytest.raises(ValueError, match="partition-nodes needs target and peer"):
+            FaultSpec(at_step=3, action="partition-nodes", target=1, **{"down_s": 10.0, **bad})
+    # A node index is not a satellite id: checked against the cluster when it runs.
+    assert Scenario(n_sats=3, faults=[{"at_step": 1, "action": "kill-node", "target": 7}]).faults[0].target == 7
+    sc = Scenario(n_sats=3, emulator={"placement": {"agents": [0, 1, 1], "recorder": 1}})
+    assert sc.emulator.placement.agents == [0, 1, 1] and sc.emulator.placement.world == 0
+    with pytest.raises(ValueError, match="2 node indices for 3 satellites"):
+        Scenario(n_sats=3, emulator={"placement": {"agents": [0, 1]}})
