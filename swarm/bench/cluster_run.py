@@ -68,10 +68,11 @@ def roles_now(sw, hosts) -> dict[str, dict[str, float]]:
                     q = q.parent()
                 if role is None:
                     name, cmd = p.name(), " ".join(p.cmdline())
-                    if name in ("raylet", "gcs_server") or "ray::" in cmd or "ray/" in cmd or name.startswith("ray::"):
-                        role = "ray"
-                    elif "forkserver" in cmd:
-                        role = "forkserver"
+                    if "forkserver" in cmd:
+                        role = "forkserver"  # the node's agents' fork server (their shared pages are counted in it too)
+                    elif (name in ("raylet", "gcs_server") or name.startswith("ray::") or "ray::" in cmd
+                          or "site-packages/ray/" in cmd or "/bin/ray " in cmd):
+                        role = "ray"  # raylet, GCS, the host actors, Ray Client's server, Ray's agents
                     else:
                         role = "other"
             except psutil.Error:
