@@ -87,7 +87,8 @@ def _uptime() -> str:
 
 
 def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.0, estimator: str = "ci", graph: str = "nearest",
-                      log=print, workdir: Path | None = None, agent_commands: str | None = None) -> list[dict]:
+                      log=print, workdir: Path | None = None, agent_commands: str | None = None,
+                      scenario: Path | None = None) -> list[dict]:
     from swarm.bench.bus import bench_scenario
     from swarm.cluster.local import LocalRayCluster
     from swarm.cluster.swarm import RaySwarm
@@ -103,7 +104,12 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
             cluster.start()
             cluster_s = time.monotonic() - t0
             for n in sats:
-                sc = bench_scenario(n, duration_s, True, estimator, graph, "fork")
+                if scenario is not None:  # a scenario file, n_sats and duration_s set here
+                    from swarmrt.scenario_files import load_scenario
+
+                    sc = load_scenario(str(scenario), [f"n_sats={n}", f"duration_s={duration_s}"], None)
+                else:
+                    sc = bench_scenario(n, duration_s, True, estimator, graph, "fork")
                 if agent_commands:
                     doc = sc.model_dump(mode="json")
                     doc["emulator"]["agent_commands"] = dict.fromkeys(range(n), agent_commands)
@@ -148,7 +154,8 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
                 total = time.perf_counter() - t_start
                 clocks = [lt for topic, _s, _d, lt, _p in iter_messages(out / "run.mcap") if topic.endswith("/clock")]
                 wall = (max(clocks) - min(clocks)) / 1e9 if clocks else None
-                row: dict[str, Any] = {"nodes": N, "n": n, "estimator": estimator, "graph": graph,
+                row: dict[str, Any] = {"nodes": N, "n": n, "estimator": sc.estimator.kind, "graph": sc.graph.kind,
+                                       "scenario": str(scenario) if scenario else sc.name,
                                        "agents": "rust" if agent_commands else "python", "world_exit_code": code,
                                        "cluster_start_s": cluster_s, "startup_s": (min(clocks) - t_start_ns) / 1e9 if clocks else None,
                                        "run_startup_s": dict(sw.startup_s), "sim_seconds": duration_s, "stepping_wall_s": wall,
@@ -168,7 +175,7 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
                     row["zenoh_bytes_per_step_between_nodes"] = sum(v for k, v in link.items() if k.endswith("zenoh"))
                     row["other_bytes_per_step_between_nodes"] = sum(v for k, v in link.items() if k.endswith("other"))
                 rtf = row["realtime_factor"]
-                log(f"nodes={N} n={n:4d} {estimator}/{graph} ({row['agents']} agents): real-time factor "
+                log(f"nodes={N} n={n:4d} {sc.name} {row['estimator']}/{row['graph']} ({row['agents']} agents): real-time factor "
                     f"{rtf:.2f}× " if rtf else f"nodes={N} n={n}: no clock recorded ")
                 log(f"  start-up: cluster {cluster_s:.1f} s, run {row['startup_s']:.1f} s; PSS peak {row['pss_peak_gib']:.2f} GiB "
                     f"({', '.join(f'{k} {v:.2f}' for k, v in sorted(row['pss_peak_gib_by_role'].items(), key=lambda kv: -kv[1]))})")

@@ -185,6 +185,8 @@ def bench_cluster_run_cmd(
     graph: str = typer.Option("nearest", "--graph", help="nearest (a lattice, 3 nearest each) or complete"),
     rust_agent: str | None = typer.Option(None, "--agent-command", help="fly every satellite with this program instead of the "
                                           "Python sat_agent (e.g. participants/target/release/swarm-rust-agent)"),
+    scenario: Path | None = typer.Option(None, "--scenario", help="fly this scenario file (its n_sats and duration_s set by "
+                                         "--sats and --duration) instead of the benchmark's lattice"),
     out: Path = typer.Option(Path("bench-cluster-run.json"), "--out", "-o", help="JSON file to write"),
 ):
     """A swarm over 1, 2, 3 ... Ray nodes on this machine (same cores in all): real-time
@@ -195,7 +197,7 @@ def bench_cluster_run_cmd(
 
     rows = bench_cluster_run([int(x) for x in nodes.split(",") if x.strip()], [int(x) for x in sats.split(",") if x.strip()],
                              duration, estimator, graph, log=lambda s: console.print(s, highlight=False),
-                             workdir=out.parent / (out.stem + "-runs"), agent_commands=rust_agent)
+                             workdir=out.parent / (out.stem + "-runs"), agent_commands=rust_agent, scenario=scenario)
     write_json(out, {"machine": machine_info(), "rows": rows})
     t = Table(title="swarm over a Ray cluster on this machine")
     for col in ("nodes", "n", "real-time ×", "start-up s", "PSS GiB", "CPU ms/step", "Zenoh B/step between nodes"):
