@@ -373,3 +373,29 @@ def test_free_running_radio_passes_each_batch_on_as_it_comes():
     d.take()
     d.feed(batch(1, 0))  # the same batch again: passed on once
     assert not d.sent_on(K.batches())
+
+
+def _fault_done(action: str, k: int, target: int) -> Event:
+    f = Fault(run=RUN, sender="supervisor", k=k, t_s=float(k), phase="done", action=action, target=target, detail="done")
+    return Event(K.fault_report("supervisor"), "fault", None, msg=f)
+
+
+def test_a_scheduled_kill_node_holds_its_step_until_every_agent_it_took_is_back():
+    """kill-node (a cluster run): the supervisor kills the node and starts its agents on the
+    others; the world starts the step only once that is reported and every agent alive before
+    is back (token and its own report), as for a scheduled restart-agent: how fast a node
+    starts a process does not change the count of steps an agent missed."""
+    sc = scenario(faults=[{"at_step": 1, "action": "kill-node", "target": 1}])
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(*finish(0))
+    assert [f.action for f in d.sent_on(K.fault())] == ["kill-node"]
+    d.feed(alive("agent", 1, up=False))  # the node's agent went with it
+    assert not d.sent_on(K.clock()), "step 1 waits for the supervisor's report"
+    d.feed(_fault_done("kill-node", 1, 1))
+    assert not d.sent_on(K.clock()), "and for agent 1 started elsewhere"
+    d.feed(alive("agent", 1))
+    assert not d.sent_on(K.clock()), "its token alone is not ready: the new process has not reported"
+    d.feed(_health(1))
+    clocks = d.sent_on(K.clock())
+    assert [c.k for c in clocks] == [1] and clocks[0].live_agents == [0, 1, 2]
