@@ -145,3 +145,20 @@ def test_a_node_killed_mid_run_its_agents_restart_elsewhere_and_the_run_complete
     assert alive[-1].all(), alive.sum(axis=1)
     # The world waited for them at the fault's step; a scheduled kill is reproducible in count.
     assert res.summary["steps"] == sc.steps
+
+
+def test_a_foreign_agent_is_owned_by_its_nodes_host(cluster, tmp_path):
+    """`--agent I=COMMAND` over the cluster: satellite 1 flown by the Rust agent, started by
+    node 1's host actor under the lifeline (it owns it), its credential only there; it flies
+    every step and is gone with the run."""
+    from rust_build import build
+
+    agent = build("rust-agent", "swarm-rust-agent")
+    sc = load_scenario("scenarios/demo.yaml", overrides=["estimator.kind=ci", "duration_s=15"])
+    res = run(sc, out=tmp_path / "run", cluster=cluster, agents={1: str(agent)}, log=print)
+    assert res.outcome.exit_code == 0, res.outcome
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert info["placement"]["agent-1"] == 1
+    assert res.recording.alive[:, 1].all()
+    log = (tmp_path / "run" / "logs" / "agent-1.log").read_text(errors="replace")
+    assert log.strip(), "the Rust agent's log came back from node 1"

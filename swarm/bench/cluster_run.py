@@ -88,7 +88,7 @@ def _uptime() -> str:
 
 def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.0, estimator: str = "ci", graph: str = "nearest",
                       log=print, workdir: Path | None = None, agent_commands: str | None = None,
-                      scenario: Path | None = None) -> list[dict]:
+                      scenario: Path | None = None, out_json: Path | None = None) -> list[dict]:
     from swarm.bench.bus import bench_scenario
     from swarm.cluster.local import LocalRayCluster
     from swarm.cluster.swarm import RaySwarm
@@ -99,7 +99,8 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
     rows: list[dict] = []
     for N in nodes:
         t0 = time.monotonic()
-        cluster = LocalRayCluster(N, cpus_per_node=max(0.5, (os.cpu_count() or 2) / N), namespaces=True, log=log)
+        # Ray counts whole CPUs per node: the machine's cores split between the nodes, at least one each.
+        cluster = LocalRayCluster(N, cpus_per_node=max(1, round((os.cpu_count() or 2) / N)), namespaces=True, log=log)
         try:
             cluster.start()
             cluster_s = time.monotonic() - t0
@@ -119,7 +120,9 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
                 marks: dict[int, tuple[dict, dict[str, int]]] = {}
                 peak: dict[str, Any] = {"pss": 0.0, "by_role": {}}
                 stop = threading.Event()
-                last = sc.steps - 1
+                # The marks: the clocks of step 2 and of the step before the last (at the last
+                # clock the agents may already be leaving, and their CPU with them).
+                last = sc.steps - 2
                 load_at_start = _uptime()
 
                 def sample(sw=sw, peak=peak, stop=stop, cluster=cluster) -> None:
@@ -141,10 +144,10 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
                 sampler = threading.Thread(target=sample, daemon=True)
                 code = None
                 try:
-                    sw.start()
-                    ports = [int(e.rsplit(":", 1)[1]) for e in sw.endpoints]
                     assert cluster.hosts is not None  # namespaced nodes (root): the counters need them
-                    cluster.hosts.count_links(ports)
+                    # The byte counters go in once the routers listen, before any role starts.
+                    sw.on_routers = lambda eps, hosts=cluster.hosts: hosts.count_links([int(e.rsplit(":", 1)[1]) for e in eps])
+                    sw.start()
                     sampler.start()
                     code = sw.run_to_end(progress=progress)
                 finally:
@@ -175,6 +178,10 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
                     row["zenoh_bytes_per_step_between_nodes"] = sum(v for k, v in link.items() if k.endswith("zenoh"))
                     row["other_bytes_per_step_between_nodes"] = sum(v for k, v in link.items() if k.endswith("other"))
                 rtf = row["realtime_factor"]
+                if out_json is not None:  # every row as soon as it is measured
+                    from swarm.outputs import write_json
+
+                    write_json(out_json, {"rows": [*rows, row]})
                 log(f"nodes={N} n={n:4d} {sc.name} {row['estimator']}/{row['graph']} ({row['agents']} agents): real-time factor "
                     f"{rtf:.2f}× " if rtf else f"nodes={N} n={n}: no clock recorded ")
                 log(f"  start-up: cluster {cluster_s:.1f} s, run {row['startup_s']:.1f} s; PSS peak {row['pss_peak_gib']:.2f} GiB "

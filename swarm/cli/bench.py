@@ -197,7 +197,8 @@ def bench_cluster_run_cmd(
 
     rows = bench_cluster_run([int(x) for x in nodes.split(",") if x.strip()], [int(x) for x in sats.split(",") if x.strip()],
                              duration, estimator, graph, log=lambda s: console.print(s, highlight=False),
-                             workdir=out.parent / (out.stem + "-runs"), agent_commands=rust_agent, scenario=scenario)
+                             workdir=out.parent / (out.stem + "-runs"), agent_commands=rust_agent, scenario=scenario,
+                             out_json=out.with_suffix(".partial.json"))
     write_json(out, {"machine": machine_info(), "rows": rows})
     t = Table(title="swarm over a Ray cluster on this machine")
     for col in ("nodes", "n", "real-time ×", "start-up s", "PSS GiB", "CPU ms/step", "Zenoh B/step between nodes"):

@@ -63,12 +63,13 @@ class LocalRayCluster:
     """``n`` Ray nodes on this machine; :attr:`address` is the Ray Client address
     (``ray://IP:PORT``) a driver connects to."""
 
-    def __init__(self, n: int = 3, cpus_per_node: float | None = None, namespaces: bool | None = None,
+    def __init__(self, n: int = 3, cpus_per_node: int | None = None, namespaces: bool | None = None,
                  object_store_mb: int = 128, log=lambda s: None, start_timeout_s: float = 180.0):
         if n < 1:
             raise ValueError(f"a cluster of {n} nodes")
         self.n = n
-        self.cpus = cpus_per_node if cpus_per_node is not None else max(1.0, (os.cpu_count() or 2) / n)
+        # Ray takes whole CPUs (ray start --num-cpus is an integer).
+        self.cpus = int(cpus_per_node) if cpus_per_node is not None else max(1, round((os.cpu_count() or 2) / n))
         why = can_make_hosts()
         if namespaces is None:
             namespaces = why is None
@@ -122,7 +123,7 @@ class LocalRayCluster:
 
     def _cmd(self, i: int) -> list[str]:
         ray = _ray_bin()
-        common = ["--block", f"--num-cpus={self.cpus:g}", f"--object-store-memory={self.object_store_mb * 1024 * 1024}",
+        common = ["--block", f"--num-cpus={self.cpus}", f"--object-store-memory={self.object_store_mb * 1024 * 1024}",
                   "--disable-usage-stats", "--include-log-monitor=false"]
         if i == 0:
             if self.namespaces:

@@ -211,6 +211,7 @@ class RaySwarm(LocalSwarm):
         self._partitions: list[tuple[float, int, int, Fault, float]] = []  # (heal at, a, b, command, cut at)
         self._head_keys = None  # the head host actor (it keeps the run's keys)
         self.startup_s: dict[str, float] = {}
+        self.on_routers: Any = None  # called with the routers' endpoints once they are up (benchmarks: byte counters)
 
     # -- the cluster ---------------------------------------------------------------------
     def _connect(self) -> None:
@@ -366,6 +367,8 @@ class RaySwarm(LocalSwarm):
             h.call("set_endpoints", [self.endpoints[h.index]])
             self._track(self.router_names[h.index], h.track(self.router_names[h.index], pid))
         self.startup_s["routers"] = time.monotonic() - t0
+        if self.on_routers is not None:
+            self.on_routers(list(self.endpoints))
         for h in self.hosts:
             h.watch()
         self.bus = BusConfig(mode="client", connect=[self.endpoints[0]],
