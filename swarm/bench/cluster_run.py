@@ -34,9 +34,10 @@ def _role(name: str) -> str:
     return base[0] if len(base) == 2 and base[1].isdigit() else name
 
 
-def roles_now(sw, hosts) -> dict[str, dict[str, float]]:
-    """CPU seconds and PSS bytes of every process of the cluster's namespaces (and of this
-    driver), summed by role (see the module docstring)."""
+def roles_now(sw, hosts, memory: bool = True) -> dict[str, dict[str, float]]:
+    """CPU seconds and (``memory``) PSS bytes of every process of the cluster's namespaces
+    (and of this driver), summed by role (see the module docstring). Without memory it is
+    quick (no /proc/PID/smaps): what the step marks take, on the supervisor's thread."""
     import psutil
 
     from swarm.cluster.netns import _ns_pids
@@ -47,7 +48,7 @@ def roles_now(sw, hosts) -> dict[str, dict[str, float]]:
     def add(role: str, p) -> None:
         try:
             t = p.cpu_times()
-            pss = p.memory_full_info().pss
+            pss = p.memory_full_info().pss if memory else 0
         except psutil.Error:
             return
         r = out.setdefault(role, {"cpu_s": 0.0, "pss_bytes": 0.0, "processes": 0})
@@ -138,7 +139,8 @@ def bench_cluster_run(nodes: list[int], sats: list[int], duration_s: float = 30.
                 def progress(k1: int, _K: int, marks=marks, sw=sw, last=last, cluster=cluster) -> None:
                     k = k1 - 1
                     if (k == 2 or k == last) and k not in marks:
-                        marks[k] = (roles_now(sw, cluster.hosts), cluster.hosts.link_bytes())
+                        link = cluster.hosts.link_bytes()  # first: the quicker, and the one a late read skews most
+                        marks[k] = (roles_now(sw, cluster.hosts, memory=False), link)
 
                 t_start, t_start_ns = time.perf_counter(), time.time_ns()
                 sampler = threading.Thread(target=sample, daemon=True)
