@@ -154,7 +154,7 @@ def test_a_foreign_agent_is_owned_by_its_nodes_host(cluster, tmp_path):
     from rust_build import build
 
     agent = build("rust-agent", "swarm-rust-agent")
-    sc = load_scenario("scenarios/demo.yaml", overrides=["estimator.kind=ci", "duration_s=15"])
+    sc = load_scenario(Path(__file__).resolve().parents[1] / "scenarios" / "demo.yaml", overrides=["estimator.kind=ci", "duration_s=15"])
     res = run(sc, out=tmp_path / "run", cluster=cluster, agents={1: str(agent)}, log=print)
     assert res.outcome.exit_code == 0, res.outcome
     info = json.loads((tmp_path / "run" / "run.json").read_text())
