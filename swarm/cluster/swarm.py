@@ -387,7 +387,7 @@ class RaySwarm(LocalSwarm):
             by_node.setdefault(self.place[f"agent-{i}"], []).append(i)
         spawned = ray.get([self.hosts[j].actor.spawn_agents.remote([(i, False, self.sc.emulator.agent_commands.get(i))
                                                                     for i in sats], self.sc.emulator.agent_start)
-                           for j, sats in by_node.items()], timeout=600.0)
+                           for j, sats in by_node.items()], timeout=max(600.0, self.sc.emulator.startup_timeout_s))
         for (j, sats), pids in zip(by_node.items(), spawned, strict=True):
             for i, pid in zip(sats, pids, strict=True):
                 self._track(f"agent-{i}", self.hosts[j].track(f"agent-{i}", pid))
