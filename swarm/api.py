@@ -42,15 +42,12 @@ if TYPE_CHECKING:
     import pandas as pd
     from matplotlib.figure import Figure
 
-    from swarm.record.recording import Recording
     from swarm.supervise.outcome import RunOutcome
-    from swarmcore.sim import SimResult
+    from swarmcore.result import RunResult
 
 __all__ = ["Scenario", "Result", "MonteCarlo", "Comparison", "load_scenario", "simulate", "run", "monte_carlo", "compare"]
 
 Progress = Callable[[int, int], None]
-#: The pose rows [a, Δr] of a satellite's 12 error states (the diagonal's layout).
-_POSE = np.r_[0:3, 6:9]
 _AXES = ("x", "y", "z")
 
 
@@ -99,17 +96,16 @@ class Result:
     (:func:`run`, :meth:`load`). Arrays are (K steps, F filters, n satellites, ...); NaN where
     a filter has no estimate of a satellite (it does not track it, or was dead)."""
 
-    def __init__(self, scenario: Scenario, summary: dict, source: str, path: Path | None = None, *, sim: SimResult | None = None,
+    def __init__(self, scenario: Scenario, summary: dict, source: str, path: Path | None = None, *, sim: RunResult | None = None,
                  recording: str | Path | None = None, outcome: RunOutcome | None = None):
         self.scenario = scenario
         self.summary = summary
         self.source = source  # "simulate" | "run" | "folder"
         self.path = path
-        self.sim = sim  # the simulator's own result (simulate only)
+        self.sim = sim  # the simulator's result (simulate only)
         self.outcome = outcome  # a distributed run's end (run only): exit_code, signal, broken
         self._recording_path = Path(recording) if recording is not None else None
-        self._recording: Recording | None = None
-        self._arrays: dict[str, Any] | None = None
+        self._data: RunResult | None = sim
         self._frames: dict[str, pd.DataFrame] = {}
 
     def __repr__(self) -> str:
@@ -122,7 +118,7 @@ class Result:
     def load(cls, folder: str | Path) -> Result:
         """A run folder: ``swarm sim``'s (``summary.json``, ``estimates.npz``, ``truth.npz``) or
         ``swarm run``'s (``run.mcap``)."""
-        from swarm.outputs import read_json
+        from swarm.outputs import read_json, read_run
 
         folder = Path(folder)
         sc = load_scenario(folder / "scenario.yaml")
@@ -132,18 +128,29 @@ class Result:
         if not (folder / "estimates.npz").exists():
             raise FileNotFoundError(f"{folder}: neither run.mcap nor estimates.npz (swarm sim --no-arrays keeps no arrays)")
         res = cls(sc, summary, "folder", folder)
-        res._arrays = _arrays_from_npz(folder)
+        res._data = read_run(folder, sc)
         return res
 
     @property
-    def recording(self) -> Recording | None:
-        """The recording of a distributed run (:class:`swarm.record.recording.Recording`)."""
-        if self._recording is None and self._recording_path is not None:
+    def recording(self) -> RunResult | None:
+        """The recording of a distributed run, read (:func:`swarm.record.recording.load_recording`)."""
+        if self._recording_path is None:
+            return None
+        if self._data is None:
             from swarm.record.recording import load_recording
 
             steps = None if self.summary.get("interrupted") else self.scenario.steps
-            self._recording = load_recording(self._recording_path, self.scenario.n_sats, steps)
-        return self._recording
+            self._data = load_recording(self._recording_path, self.scenario.n_sats, steps, scenario=self.scenario)
+        return self._data
+
+    @property
+    def data(self) -> RunResult:
+        """The run's :class:`~swarmcore.result.RunResult` (one schema, whatever ran it): the
+        simulator's, the recording's or a run folder's."""
+        data = self._data if self._data is not None else self.recording
+        if data is None:
+            raise ValueError("this result has no arrays")
+        return data
 
     def arrays(self) -> dict[str, Any]:
         """The run's arrays: ``t`` (K,), ``truth_q`` (K, n, 4), ``truth_r`` (K, n, 3),
@@ -151,14 +158,10 @@ class Result:
         of each [a, Δr] covariance), ``nees`` (K, F, n), ``link_totals`` (K, 6, cumulative:
         sent, delivered, delivered late, lost, dropped at the queue, unreachable; None without
         links) and ``link_latencies`` (sender, receiver, sent step, latency s)."""
-        if self._arrays is None:
-            if self.sim is not None:
-                self._arrays = _arrays_from_sim(self.sim)
-            elif self.recording is not None:
-                self._arrays = _arrays_from_recording(self.recording)
-            else:
-                raise ValueError("this result has no arrays")
-        return self._arrays
+        r = self.data
+        return {"t": r.t_s, "truth_q": r.truth.q_BI, "truth_r": r.truth.r_H_m, "est_q": r.est.q_BI, "est_r": r.est.r_H_m,
+                "pose_var": r.est.pose_var, "nees": r.nees, "link_totals": r.links.totals if r.links is not None else None,
+                "link_latencies": list(r.links.latencies) if r.links is not None else []}
 
     # -- tables ------------------------------------------------------------------------------------
     def _frame(self, name: str, build: Callable[[], pd.DataFrame]) -> pd.DataFrame:
@@ -188,11 +191,8 @@ class Result:
         r̂, Hill frame); and the 1σ of each component, ``att_sigma_*_rad``, ``pos_sigma_*_m``."""
 
         def build() -> pd.DataFrame:
-            from swarmcore.metrics import pose_errors
-
-            a = self.arrays()
-            att, dr = pose_errors(a["est_q"], a["est_r"], a["truth_q"][:, None], a["truth_r"][:, None])
-            sig = np.sqrt(np.clip(a["pose_var"], 0, None))
+            att, dr = self.data.pose_errors()
+            sig = np.sqrt(np.clip(self.data.est.pose_var, 0, None))
             cols = {"att_err_rad": np.linalg.norm(att, axis=-1), "pos_err_m": np.linalg.norm(dr, axis=-1)}
             for i, x in enumerate(_AXES):
                 cols[f"att_err_{x}_rad"] = att[..., i]
@@ -315,38 +315,6 @@ class Result:
         who = "its own satellite" if sat == filter else f"satellite {sat}"
         fig.suptitle(f"{self.scenario.name}: filter {filter} ({self.summary.get('estimator', 'full')}) estimating {who}", fontsize=10)
         return fig
-
-
-def _arrays_from_sim(r: SimResult) -> dict[str, Any]:
-    K, F = r.est["P_diag"].shape[:2]
-    n = r.truth["r_H"].shape[1]
-    pose_var = r.est["P_diag"].reshape(K, F, n, 12)[..., _POSE]
-    return {"t": r.t, "truth_q": r.truth["q_BI"], "truth_r": r.truth["r_H"], "est_q": r.est["q_BI"], "est_r": r.est["r_H"],
-            "pose_var": pose_var, "nees": r.nees,
-            "link_totals": r.link_series if r.scenario.links.enabled and r.link_series is not None else None,
-            "link_latencies": list(r.link_latencies or [])}
-
-
-def _arrays_from_npz(folder: Path) -> dict[str, Any]:
-    tr, es = np.load(folder / "truth.npz"), np.load(folder / "estimates.npz")
-    K, F = es["P_diag"].shape[:2]
-    n = tr["r_H"].shape[1]
-    return {"t": tr["t"], "truth_q": tr["q_BI"], "truth_r": tr["r_H"], "est_q": es["q_BI"], "est_r": es["r_H"],
-            "pose_var": es["P_diag"].reshape(K, F, n, 12)[..., _POSE], "nees": es["nees"],
-            "link_totals": es["link_series"] if "link_series" in es.files else None,
-            "link_latencies": es["link_latencies"].tolist() if "link_latencies" in es.files else []}
-
-
-def _arrays_from_recording(rec: Recording) -> dict[str, Any]:
-    _a, _dr, _att, _pos, nees = rec.errors()
-    totals = None
-    if rec.link_series:
-        totals = np.zeros((rec.K, 6), dtype=np.int64)
-        for k, tot, _q in sorted(rec.link_series, key=lambda x: x[0]):
-            if 0 <= k < rec.K:
-                totals[k:] = tot  # cumulative: a step with no message keeps the last totals
-    return {"t": rec.t, "truth_q": rec.truth_q, "truth_r": rec.truth_r, "est_q": rec.est_q, "est_r": rec.est_r,
-            "pose_var": rec.pose_var, "nees": nees, "link_totals": totals, "link_latencies": list(rec.link_latencies)}
 
 
 # -- running --------------------------------------------------------------------------------------

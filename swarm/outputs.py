@@ -9,9 +9,11 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from swarmcore.sim import SimResult
+from swarmcore.links import LinkCounters
+from swarmcore.result import LinkArrays, RunBuilder, RunResult
+from swarmcore.scenario import Scenario
 
-__all__ = ["write_run", "write_json", "read_json", "number", "NO_DATA", "no_data_reason"]
+__all__ = ["write_run", "read_run", "write_json", "read_json", "number", "NO_DATA", "no_data_reason"]
 
 NO_DATA = "no data"
 
@@ -52,45 +54,68 @@ def read_json(path: Path):
     return json.loads(Path(path).read_text())
 
 
-def _link_arrays(result: SimResult) -> dict:
-    """With links: the per-step cumulative link totals (K, 6: sent, delivered, delivered
-    late, lost, dropped at the queue, unreachable) and each filter's late-measurement counts
-    (K, F), for ``swarm report``."""
-    if not result.scenario.links.enabled or result.link_series is None:
-        return {}
-    out = {"link_series": result.link_series, "late_used": result.late_used, "late_dropped": result.late_dropped,
-           "replayed": result.replayed}
-    if result.queue_bytes is not None:
-        out["queue_bytes"] = result.queue_bytes
-    if result.link_latencies is not None:
-        out["link_latencies"] = np.array(result.link_latencies, dtype=float).reshape(-1, 4)
-    return out
+#: truth.npz's arrays: file key → the :class:`~swarmcore.result.TruthArrays` field.
+_TRUTH_NPZ = {"q_BI": "q_BI", "omega_BI_B": "omega_BI_B_rad_s", "r_H": "r_H_m", "v_H": "v_H_m_s", "bias_B": "bias_B_rad_s"}
+#: estimates.npz's arrays of every run: file key → the :class:`~swarmcore.result.RunResult`
+#: field (``est.``: of its :class:`~swarmcore.result.EstimateArrays`).
+_EST_NPZ = {"q_BI": "est.q_BI", "omega_BI_B": "est.omega_BI_B_rad_s", "r_H": "est.r_H_m", "v_H": "est.v_H_m_s",
+            "bias_B": "est.bias_B_rad_s", "P_diag": "est.P_diag", "att_err": "att_err_rad", "pos_err": "pos_err_m", "nees": "nees",
+            "gate_accepted": "gate_accepted", "gate_rejected": "gate_rejected", "nis": "nis", "nis_dof": "nis_dof",
+            "step_ms": "step_ms", "schedule": "schedule", "taken": "taken"}
+#: ... and of runs with links (the filters' late-measurement counts with them).
+_LINK_NPZ = {"late_used": "late_used", "late_dropped": "late_dropped", "replayed": "replayed_steps"}
 
 
-def write_run(result: SimResult, out: Path, *, arrays: bool = True, extra_summary: dict | None = None) -> dict:
+def _get(result: RunResult | RunBuilder, name: str):
+    obj, _, attr = name.rpartition(".")
+    return getattr(result.est if obj else result, attr)
+
+
+def write_run(result: RunResult, out: Path, *, arrays: bool = True, extra_summary: dict | None = None) -> dict:
     """Write a run folder and return the summary."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     summary = result.summary()
     if extra_summary:
         summary.update(extra_summary)
+    assert result.scenario is not None  # summary() needs it
     (out / "scenario.yaml").write_text(yaml.safe_dump(result.scenario.model_dump(mode="json"), sort_keys=False))
     if arrays:
-        np.savez_compressed(out / "truth.npz", t=result.t, **result.truth)
-        np.savez_compressed(
-            out / "estimates.npz",
-            t=result.t,
-            **result.est,
-            att_err=result.att_err,
-            pos_err=result.pos_err,
-            nees=result.nees,
-            gate_accepted=result.gate_accepted,
-            gate_rejected=result.gate_rejected,
-            nis=result.nis,
-            nis_dof=result.nis_dof,
-            step_ms=result.step_ms,
-            schedule=result.schedule,
-            **_link_arrays(result),
-        )
+        np.savez_compressed(out / "truth.npz", t=result.t_s, **{key: getattr(result.truth, f) for key, f in _TRUTH_NPZ.items()})
+        links = {}
+        if result.links is not None:
+            links = {"link_series": result.links.totals, **{key: _get(result, f) for key, f in _LINK_NPZ.items()},
+                     "queue_bytes": result.links.queue_bytes,
+                     "link_latencies": np.array(result.links.latencies, dtype=float).reshape(-1, 4)}
+        np.savez_compressed(out / "estimates.npz", t=result.t_s, **{key: _get(result, f) for key, f in _EST_NPZ.items()}, **links)
     write_json(out / "summary.json", summary)
     return summary
+
+
+def read_run(folder: Path, scenario: Scenario | None = None) -> RunResult:
+    """The :class:`~swarmcore.result.RunResult` of a ``swarm sim`` folder written with its
+    arrays (:func:`write_run`): what its npz files keep (arrays they do not keep, NaN; the
+    radio's per-link counters from summary.json)."""
+    folder = Path(folder)
+    with np.load(folder / "truth.npz") as tr, np.load(folder / "estimates.npz") as es:
+        K, n = tr["r_H"].shape[:2]
+        b = RunBuilder(K, n)
+        b.t_s[:] = tr["t"]
+        for key, f in _TRUTH_NPZ.items():
+            getattr(b.truth, f)[:] = tr[key]
+        for key, f in _EST_NPZ.items():
+            if key in es.files:  # (taken: written since one result schema; before, the pairs selected stand for it)
+                _get(b, f)[:] = es[key]
+            elif key == "taken":
+                b.taken[:] = es["schedule"]
+        summary = read_json(folder / "summary.json") if (folder / "summary.json").exists() else {}
+        b.estimator = summary.get("estimator", "full")
+        links = None
+        if "link_series" in es.files and summary.get("links"):
+            for key, f in _LINK_NPZ.items():
+                _get(b, f)[:] = es[key]
+            links = LinkArrays(es["link_series"], es["queue_bytes"], [tuple(x) for x in es["link_latencies"].tolist()],
+                               LinkCounters(**{k: np.asarray(v) for k, v in summary["links"]["per_link"].items()}))
+    res = b.result(scenario)
+    res.links = links
+    return res

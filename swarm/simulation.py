@@ -5,8 +5,9 @@ the size of each batch on the bus."""
 from __future__ import annotations
 
 from swarmcore.measurement import MeasurementModel
+from swarmcore.result import RunResult
 from swarmcore.scenario import Scenario
-from swarmcore.sim import SimResult, simulate
+from swarmcore.sim import simulate
 from swarmrt.bus.convert import batch_wire_size
 from swarmrt.estimators import codec_for, estimator_factory
 from swarmrt.flight import pose_estimator
@@ -26,7 +27,7 @@ def measurement_model(sc: Scenario) -> MeasurementModel:
 
 
 def simulate_scenario(sc: Scenario, progress=None, run: str = SIM_RUN_ID, measurements: list | None = None,
-                      on_step=None) -> SimResult:
+                      on_step=None) -> RunResult:
     """:func:`swarmcore.sim.simulate` of a scenario. ``measurements`` (a list; rendered
     scenarios): receives one record per vision measurement
     (:attr:`swarmvision.pose_estimator.VisionPoseEstimator.record`). ``on_step``: called with

@@ -3,17 +3,20 @@
 from __future__ import annotations
 
 import warnings
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from . import quat
 from .mekf import observed_indices
 
-__all__ = [
-    "estimator_summary",
-    "relative_pose_errors",
-    "relative_errors_of",
-    "run_summary","pose_errors", "pose_nees", "pose_cov_blocks", "summarize"]
+if TYPE_CHECKING:
+    from .links import LinkCounters
+    from .result import BusRecord, RunResult
+    from .scenario import Scenario
+
+__all__ = ["estimator_summary", "relative_errors_of", "run_summary", "link_summary", "bus_summary", "security_summary",
+           "pose_errors", "pose_nees", "pose_cov_blocks", "summarize"]
 
 
 def pose_errors(q_hat, r_hat, q_true, r_true):
@@ -44,16 +47,6 @@ def relative_errors_of(q_hat, r_hat, own: int, q_true, r_true):
     return a_rel, dr_rel
 
 
-def relative_pose_errors(q_hat, r_hat, q_true, r_true):
-    """:func:`relative_errors_of` of every filter f (axis −3, whose own satellite is f):
-    estimates (…, F, n, 4 | 3), truth (…, n, 4 | 3) → (…, F, n, 3) each."""
-    a = np.full(np.shape(r_hat), np.nan)
-    dr = np.full(np.shape(r_hat), np.nan)
-    for f in range(np.shape(q_hat)[-3]):
-        a[..., f, :, :], dr[..., f, :, :] = relative_errors_of(q_hat[..., f, :, :], r_hat[..., f, :, :], f, q_true, r_true)
-    return a, dr
-
-
 def pose_nees(a, dr, P_pose):
     """6-dof NEES ``eᵀ P⁻¹ e`` with ``e = [a, Δr]`` and ``P_pose`` (..., 6, 6)."""
     e = np.concatenate([a, dr], axis=-1)
@@ -81,13 +74,12 @@ def summarize(
     step_ms: np.ndarray,
     nis: np.ndarray,
     nis_dof: np.ndarray,
-    alive: np.ndarray | None = None,
     extra: dict | None = None,
 ) -> dict:
     """The ``summary.json`` contract shared by ``swarm sim`` and ``swarm run``.
 
-    ``alive`` (K, F) masks filter steps that did not run (dead agents); NaN entries in the
-    error arrays are ignored the same way. ``nis`` / ``nis_dof`` (K, F): each update's
+    NaN entries in the error arrays (steps a filter did not run, satellites it does not
+    track) are left out. ``nis`` / ``nis_dof`` (K, F): each update's
     joint NIS and its degrees of freedom; the summary gives their sums and ratio (≈ 1 for
     a consistent filter).
     """
@@ -96,16 +88,11 @@ def summarize(
     extra = {"nis": nis_block, **(extra or {})}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: steps nobody estimated
-        return _summarize(n_sats, dt, seed, att_err, pos_err, nees, gate_accepted, gate_rejected, step_ms, alive, extra)
+        return _summarize(n_sats, dt, seed, att_err, pos_err, nees, gate_accepted, gate_rejected, step_ms, extra)
 
 
-def _summarize(n_sats, dt, seed, att_err, pos_err, nees, gate_accepted, gate_rejected, step_ms, alive, extra):
+def _summarize(n_sats, dt, seed, att_err, pos_err, nees, gate_accepted, gate_rejected, step_ms, extra):
     K, F, n = att_err.shape
-    if alive is not None:
-        m = ~alive[:, :, None]
-        att_err = np.where(m, np.nan, att_err)
-        pos_err = np.where(m, np.nan, pos_err)
-        nees = np.where(m, np.nan, nees)
 
     def block(start):
         a = att_err[start:]
@@ -144,7 +131,7 @@ def _summarize(n_sats, dt, seed, att_err, pos_err, nees, gate_accepted, gate_rej
     return out
 
 
-def estimator_summary(kind: str, dt: float, rel_att_err, rel_pos_err, rel_nees, bytes_sent, cpu_ms, alive=None) -> dict:
+def estimator_summary(kind: str, dt: float, rel_att_err, rel_pos_err, rel_nees, bytes_sent, cpu_ms) -> dict:
     """The blocks of ``summary.json`` every estimator shares, whatever it keeps.
 
     ``relative``: time-RMS of each filter's estimate of its peers relative to itself
@@ -152,17 +139,14 @@ def estimator_summary(kind: str, dt: float, rel_att_err, rel_pos_err, rel_nees, 
     second half) and the mean NEES of those estimates against the relative covariance the
     estimator claims (6 dof). ``traffic``: bytes each satellite put on its radio (its
     batch and its estimator's message) per second, mean and max over satellites.
-    ``cpu``: CPU time of a filter step (predict and update, the thread's), median and p95. Arrays (K, F, n) / (K, n); NaN where nothing was
-    estimated or sent; ``alive`` (K, F) masks steps a filter did not run.
+    ``cpu``: CPU time of a filter step (predict and update, the thread's), median and p95.
+    Arrays (K, F, n) / (K, n); NaN where nothing was estimated or sent.
     """
     out: dict = {"estimator": kind}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         if rel_att_err is not None and rel_pos_err is not None and rel_nees is not None:
             ra, rp, rn = rel_att_err, rel_pos_err, rel_nees
-            if alive is not None:
-                m = ~np.asarray(alive)[:, :, None]
-                ra, rp, rn = (np.where(m, np.nan, x) for x in (ra, rp, rn))
             K = ra.shape[0]
 
             def rms(x, start):
@@ -182,25 +166,66 @@ def estimator_summary(kind: str, dt: float, rel_att_err, rel_pos_err, rel_nees, 
     return out
 
 
-def run_summary(sc, *, att_err, pos_err, nees, gate_accepted, gate_rejected, step_ms, nis, nis_dof, taken, estimator: str,
-                rel_att_err=None, rel_pos_err=None, rel_nees=None, bytes_sent=None, cpu_ms=None, late=None, alive=None,
-                extra=None) -> dict:
-    """``summary.json`` of a run, the one assembly ``swarm sim`` (:class:`swarmcore.sim.SimResult`)
-    and ``swarm run`` (the recording, :mod:`swarm.record.recording`) share: :func:`summarize`
-    plus the scenario, ``measurements_per_step_mean`` (relative measurements in the batches
-    the agents put on the radio, per step: ``taken`` (K, n, n)), the estimator's blocks
-    (:func:`estimator_summary`), the late deliveries (``late`` = (used, dropped, replayed),
-    (K, F) each, with links) and ``extra`` (what only one of the two knows)."""
+def run_summary(result: RunResult, sc: Scenario) -> dict:
+    """``summary.json`` of a run, built from its :class:`~swarmcore.result.RunResult` alone
+    (the in-process simulator's and a recording's alike): :func:`summarize`, the scenario,
+    ``measurements_per_step_mean`` (relative measurements in the batches the agents put on
+    the radio, per step), the estimator's blocks (:func:`estimator_summary`), the late
+    deliveries (with links), the radio's counters (:func:`link_summary`) and, for a
+    recording, what only the bus shows (:func:`bus_summary`). A new metric's block goes here."""
+    r = result
     blocks = {
         "scenario": sc.name,
         "mode": sc.filter.mode,
-        "measurements_per_step_mean": float(np.asarray(taken).sum(axis=(1, 2)).mean()),
-        **estimator_summary(estimator, sc.dt_s, rel_att_err, rel_pos_err, rel_nees, bytes_sent, cpu_ms, alive),
+        "measurements_per_step_mean": float(r.taken.sum(axis=(1, 2)).mean()),
+        **estimator_summary(r.estimator, sc.dt_s, r.rel_att_err_rad, r.rel_pos_err_m, r.rel_nees, r.bytes_sent, r.cpu_ms),
     }
-    if late is not None and sc.links.enabled:
-        used, dropped, replayed = late
-        blocks["late"] = {"used": int(np.sum(used)), "dropped": int(np.sum(dropped)), "replayed_steps": int(np.sum(replayed))}
-    blocks.update(extra or {})
-    return summarize(n_sats=sc.n_sats, dt=sc.dt_s, seed=sc.seed, att_err=att_err, pos_err=pos_err, nees=nees,
-                     gate_accepted=gate_accepted, gate_rejected=gate_rejected, step_ms=step_ms, nis=nis, nis_dof=nis_dof,
-                     alive=alive, extra=blocks)
+    if sc.links.enabled:
+        blocks["late"] = {"used": int(np.sum(r.late_used)), "dropped": int(np.sum(r.late_dropped)),
+                          "replayed_steps": int(np.sum(r.replayed_steps))}
+    if r.links is not None:
+        blocks["links"] = link_summary(r.links.counters, r.links.latencies)
+    if r.bus is not None:
+        blocks.update(bus_summary(r.bus, sc))
+    return summarize(n_sats=sc.n_sats, dt=sc.dt_s, seed=sc.seed, att_err=r.att_err_rad, pos_err=r.pos_err_m, nees=r.nees,
+                     gate_accepted=r.gate_accepted, gate_rejected=r.gate_rejected, step_ms=r.step_ms, nis=r.nis, nis_dof=r.nis_dof,
+                     extra=blocks)
+
+
+def link_summary(counters: LinkCounters, latencies) -> dict:
+    """The ``links`` block of summary.json: totals, per directed link, delivered latency."""
+    lat = np.array([x[3] for x in latencies], dtype=float)
+    tot = {k: int(np.sum(v)) for k, v in counters.as_dict().items()}
+    stats = None
+    if lat.size:
+        stats = {"count": int(lat.size), "mean": float(lat.mean()), "p50": float(np.percentile(lat, 50)),
+                 "p95": float(np.percentile(lat, 95)), "max": float(lat.max())}
+    return {"totals": tot, "per_link": counters.as_dict(), "latency_s": stats}
+
+
+def bus_summary(bus: BusRecord, sc: Scenario) -> dict:
+    """The blocks of a distributed run's summary.json that only its recording knows: bus
+    latency per sender, faults, the selector's fallbacks, message counts, security and the
+    recorder's bus gaps."""
+    return {
+        **({"bus_latency_ms": lat} if (lat := bus.latency_ms()) else {}),
+        "faults": bus.faults,
+        "selector_fallback_steps": bus.fallback_steps,
+        "messages": {**bus.counts, **({"not_recorded_over_the_flood_cap": bus.not_recorded} if bus.not_recorded else {})},
+        "security": security_summary(sc.emulator.security, bus.dropped),
+        **({"bus_gaps": bus.gaps} if bus.gaps else {}),
+    }
+
+
+def security_summary(on: bool, dropped: dict) -> dict:
+    """``summary.json``'s ``security``: on or off (off says so in words), and what the world
+    and each agent dropped: malformed messages, and of those the ones on a key their sender
+    field may not use (someone speaking for another, whatever the router let through)."""
+    out: dict = {"state": "on" if on else "off"}
+    if not on:
+        out["warning"] = ("emulator.security was off: no authentication and no access rules on the bus; "
+                          "any process that reached the router could publish anything")
+    names = sorted(dropped, key=lambda a: (a != "world", int(a.split("-")[1]) if a.startswith("agent-") else -1))
+    out["malformed_dropped"] = {a: int(dropped[a][0]) for a in names}
+    out["key_mismatch_dropped"] = {a: int(dropped[a][1]) for a in names}
+    return out

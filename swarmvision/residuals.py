@@ -21,9 +21,10 @@ __all__ = ["residuals", "summarize_residuals", "normalised_series", "write_resid
 Z_CLIP = 5.0
 
 
-def residuals(records: list[dict], truth: dict, t: np.ndarray, mean_motion: float) -> dict:
+def residuals(records: list[dict], truth, t: np.ndarray, mean_motion: float) -> dict:
     """Arrays over the recorded measurements: step, observer, target (N,), err (N, 6)
-    camera frame, var (N, 6) attached, and the quantities (list of dicts)."""
+    camera frame, var (N, 6) attached, and the quantities (list of dicts). ``truth``: the
+    run's :class:`~swarmcore.result.TruthArrays`."""
     from .error_model import camera_error
     from .mono import camera_pose_from_truth
 
@@ -31,7 +32,7 @@ def residuals(records: list[dict], truth: dict, t: np.ndarray, mean_motion: floa
     err = np.full((n, 6), np.nan)
     for m, rc in enumerate(records):
         k, i, j = rc["step"], rc["observer"], rc["target"]
-        q, r = relative_pose(mean_motion, float(t[k]), truth["q_BI"][k], truth["r_H"][k], np.array([i]), np.array([j]))
+        q, r = relative_pose(mean_motion, float(t[k]), truth.q_BI[k], truth.r_H_m[k], np.array([i]), np.array([j]))
         R_true, p_true = camera_pose_from_truth(q[0], r[0], rc["T_CB"], rc["r_C_B"])
         err[m] = camera_error(rc["R_CBj"], rc["p_C"], R_true, p_true)
     return {

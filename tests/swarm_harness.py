@@ -55,6 +55,6 @@ def within_3sigma_fraction(rec, observers, target, k_from=0, k_to=None):
     a, dr, *_ = rec.errors()
     steps = slice(k_from, k_to)
     e = np.concatenate([a, dr], axis=-1)[steps, observers, target]  # (K', F', 6)
-    sd = np.sqrt(rec.pose_var[steps, observers, target])
+    sd = np.sqrt(rec.est.pose_var[steps, observers, target])
     ok = np.isfinite(e) & np.isfinite(sd)
     return float(np.mean(np.abs(e[ok]) <= 3 * sd[ok])), int(ok.sum())

@@ -56,11 +56,11 @@ def test_simulate_gives_the_simulators_numbers_as_dataframes(tmp_path):
     res = swarm.simulate(sc, out=tmp_path / "sim")
     r = res.sim
     assert r is not None
-    K, F, n = r.att_err.shape
+    K, F, n = r.att_err_rad.shape
     e = res.errors.set_index(["k", "filter", "sat"]).sort_index()
     assert len(e) == K * F * n  # the full estimator tracks everyone
-    np.testing.assert_array_equal(e["pos_err_m"].to_numpy().reshape(K, F, n), r.pos_err)
-    np.testing.assert_array_equal(e["att_err_rad"].to_numpy().reshape(K, F, n), r.att_err)
+    np.testing.assert_array_equal(e["pos_err_m"].to_numpy().reshape(K, F, n), r.pos_err_m)
+    np.testing.assert_array_equal(e["att_err_rad"].to_numpy().reshape(K, F, n), r.att_err_rad)
     nees = res.nees.set_index(["k", "filter", "sat"]).sort_index()["nees"].to_numpy().reshape(K, F, n)
     np.testing.assert_array_equal(nees, r.nees)
     # The 1σ columns are the square roots of the covariance frame's variances.

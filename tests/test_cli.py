@@ -104,8 +104,8 @@ def test_sim_writes_the_contract_and_matches_in_process_run(tmp_path):
     # Same scenario and seed in this process: the same numbers, bit for bit.
     sc = load_scenario(ROOT / "scenarios/demo.yaml", ["duration_s=12"], seed=5)
     res = simulate(sc)
-    np.testing.assert_array_equal(res.est["r_H"], est["r_H"])
-    np.testing.assert_array_equal(res.truth["q_BI"], truth["q_BI"])
+    np.testing.assert_array_equal(res.est.r_H_m, est["r_H"])
+    np.testing.assert_array_equal(res.truth.q_BI, truth["q_BI"])
     assert res.summary()["rms"] == s["rms"]
 
 

@@ -133,12 +133,12 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
     from swarm.record.recording import load_recording
 
     rec = load_recording(c.out / "run.mcap", 4, 21)
-    assert np.isfinite(rec.t).all() and rec.alive.all()
-    assert rec.counts["truth"] == 21 and rec.counts["meas"] == 4 * 21 and rec.counts["sensors"] == 4 * 21, rec.counts
+    assert np.isfinite(rec.t_s).all() and rec.alive.all()
+    assert rec.bus.counts["truth"] == 21 and rec.bus.counts["meas"] == 4 * 21 and rec.bus.counts["sensors"] == 4 * 21, rec.bus.counts
     # The test's own two batches on meas/3 (the control and the one naming agent 2) are at a
     # step no run reaches: the recorder kept them as malformed (the flood cap's rule), not as
     # measurements.
-    assert rec.counts.get("_malformed", 0) >= 2, rec.counts
+    assert rec.bus.counts.get("_malformed", 0) >= 2, rec.bus.counts
     ref = _sim(4, sets.split())
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: containers and in-process differ"
@@ -308,7 +308,7 @@ def test_container_faults_kill_restart_camera_partition(image, tmp_path):
     _back_and_stays(rec, 3, kh, within=40, what="the heal")
     # The recording is complete for the processes that were up: every live survivor, every step.
     assert rec.alive[:, [0, 1]].all()
-    assert np.isfinite(rec.t).all()
+    assert np.isfinite(rec.t_s).all()
 
 
 @pytest.fixture(scope="module")
@@ -427,7 +427,7 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
     sc = Scenario(n_sats=n, duration_s=dur)
     rec = load_recording(c.out / "run.mcap", n, sc.steps)
     s = _summary(c.out)
-    netem = [f for f in rec.faults if f["action"] == "netem"]
+    netem = [f for f in rec.bus.faults if f["action"] == "netem"]
     done = [f for f in netem if f["phase"] == "done"]
     cmds = [f for f in netem if f["phase"] == "command"]
     assert [f["netem"] for f in done] == [f"delay {delay_ms:g}ms {jitter_ms:g}ms loss 10%", "clear"], (netem, log)
@@ -436,14 +436,14 @@ def test_netem_delay_and_loss_on_one_satellite(image, tmp_path):
     assert "netem" in states["applied"] or "NFQUEUE" in states["applied"], states
     assert not any(w in states["cleared"] for w in ("netem", "tbf", "iptables")), states
     # Survivors (here: everyone, no one died) keep every satellite within 3σ, and no agent missed a step.
-    assert rec.alive.all() and np.isfinite(rec.t).all()
+    assert rec.alive.all() and np.isfinite(rec.t_s).all()
     fracs = {j: within_3sigma_fraction(rec, list(range(n)), j) for j in range(n)}
     print("within 3σ (fraction, count) per target:", fracs, flush=True)
     assert all(cnt > 0 and frac >= 0.97 for frac, cnt in fracs.values()), fracs
     # The delay shows in the recorded one-way latencies (publisher's Zenoh timestamp → recorder).
     t_on, t_off, t_clear = done[0]["log_time_ns"], cmds[1]["log_time_ns"], done[1]["log_time_ns"]
-    during = rec.bus_latency_ms(t_on, t_off)
-    after = rec.bus_latency_ms(t_clear)
+    during = rec.bus.latency_ms(t_on, t_off)
+    after = rec.bus.latency_ms(t_clear)
     print("bus latency ms while impaired:", during, "\nafter clear:", after, "\nwhole run:", s["bus_latency_ms"], flush=True)
     sat3 = during["agent-3"]
     assert sat3["n"] >= 50 and sat3["min"] >= delay_ms - jitter_ms and sat3["p50"] >= delay_ms - jitter_ms, sat3
@@ -498,7 +498,7 @@ def test_two_meshed_routers_one_killed_the_run_completes(image, tmp_path):
     s = _summary(c.out)
     assert "interrupted" not in s and s["steps"] == dur + 1, s.get("interrupted")
     rec = load_recording(c.out / "run.mcap", n, dur + 1)
-    assert rec.alive.all() and np.isfinite(rec.t).all()
+    assert rec.alive.all() and np.isfinite(rec.t_s).all()
     ref = _sim(n, sets.split())
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: the run with a router killed differs from the in-process run"

@@ -127,7 +127,7 @@ def test_links_channel_shows_each_directed_link_in_the_state_of_its_step(tmp_pat
             meta = {tuple(int(x) for x in kv.key.split("->")): kv.value for kv in ent.metadata}
             assert meta == {(i, j): names[exp[i, j]] for i in range(3) for j in range(3) if exp[i, j] >= 0}, k
             seen_states |= set(meta.values())
-            r_H = rec.truth_r[k]
+            r_H = rec.truth.r_H_m[k]
             drawn = {}
             for line in ent.lines:
                 state = next(n for n, rgb in colours.items() if np.allclose(rgb, (line.color.r, line.color.g, line.color.b)))

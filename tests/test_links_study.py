@@ -76,16 +76,16 @@ def test_tiny_sweep_through_the_command_equals_direct_runs(tmp_path):
         if (q["latency_s"], q["loss"], q["late"], q["rate_Bps"]) == (0.0, 0.0, "replay", None) and q["arm"] == "complete":
             # Latency 0 without range / c is the ideal network: bit-equal to no links at all.
             ideal = simulate_scenario(load_scenario(SCEN, [*BASE, "links.enabled=false"], seed=seed))
-            np.testing.assert_array_equal(res.est["q_BI"], ideal.est["q_BI"])
-            np.testing.assert_array_equal(res.est["P_diag"], ideal.est["P_diag"])
+            np.testing.assert_array_equal(res.est.q_BI, ideal.est.q_BI)
+            np.testing.assert_array_equal(res.est.P_diag, ideal.est.P_diag)
             # What the complete graph needs (the probe): n − 1 copies of each batch per step.
-            K = res.t.size
+            K = res.K
             sent_per_tx = np.asarray(s["links"]["per_link"]["bytes_delivered"]).sum(axis=1) / K / res.scenario.dt_s
             np.testing.assert_allclose(doc["probe"]["need_Bps"], sent_per_tx.max(), rtol=0.02)
         if q["arm"] == "greedy" and q["rate_Bps"] is None:
             # The budget's swarm-average load per transmitter fits the cap it was chosen for.
             cap = next(x["rate_Bps"] for x in caps if x["rate_Bps"] is not None)
-            tot = s["links"]["totals"]["bytes_delivered"] / res.scenario.n_sats / res.t.size / res.scenario.dt_s
+            tot = s["links"]["totals"]["bytes_delivered"] / res.scenario.n_sats / res.K / res.scenario.dt_s
             assert tot <= cap, (tot, cap)
     # Replay beats drop at 2 s (every peer batch is late; drop throws all of them away).
     r = next(c for c in cells.values() if c["params"]["group"] == "latency" and c["params"]["latency_s"] == 2 and c["params"]["late"] == "replay")

@@ -26,10 +26,10 @@ def _sim_3sigma(res) -> np.ndarray:
     """(F, n): for each (filter, satellite) pair, the fraction of its (step, component)
     errors within 3σ after step 5, in-process. A pair is held on its own, not in an
     aggregate that one bad pair could hide in."""
-    a = quat.local(res.truth["q_BI"][:, None], res.est["q_BI"])  # (K, F, n, 3)
-    dr = res.truth["r_H"][:, None] - res.est["r_H"]
+    a = quat.local(res.truth.q_BI[:, None], res.est.q_BI)  # (K, F, n, 3)
+    dr = res.truth.r_H_m[:, None] - res.est.r_H_m
     K, F, n = a.shape[:3]
-    P = res.est["P_diag"].reshape(K, F, n, BLOCK)
+    P = res.est.P_diag.reshape(K, F, n, BLOCK)
     sd = np.sqrt(np.concatenate([P[..., 0:3], P[..., 6:9]], axis=-1))
     e = np.concatenate([a, dr], axis=-1)
     return np.mean(np.abs(e[5:]) <= 3 * sd[5:], axis=(0, 3))
@@ -88,7 +88,7 @@ def test_link_faults_at_run_time_act_on_the_radio(tmp_path):
     lost = np.array(per["lost"])
     assert lost[3, 0] >= 1 and lost.sum() == lost[3, 0], lost  # seeded draws at 50 % over 4 steps
     done = [f for f in summary.get("faults", []) if f["action"] == "link" and f["phase"] == "done"] or \
-        [f for f in rec.faults if f.get("action") == "link" and f.get("phase") == "done"]
+        [f for f in rec.bus.faults if f.get("action") == "link" and f.get("phase") == "done"]
     assert len(done) == 6 and {f["sender"] for f in done} == {"world"}, done
     # Listed with what they did (a chaos campaign matches each fired command by these).
     assert [(f["target"], f["peer"], f["state"], f["delay_s"], f["rate"]) for f in done] == \
@@ -104,7 +104,7 @@ def test_free_running_links_delay_in_wall_time_and_late_batches_are_replayed(tmp
     rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
     assert rec.alive.mean() > 0.8
-    lat = np.array([x[3] for x in rec.link_latencies])
+    lat = np.array([x[3] for x in rec.links.latencies])
     assert lat.size > 0 and np.all(lat >= 1.5) and np.median(lat) < 1.5 + 0.5 * sc.dt_s * 5
     assert summary["late"]["used"] > 0
     assert summary["rms_second_half"]["others"]["pos_m"] < 0.1
@@ -120,7 +120,7 @@ def test_a_restarted_agent_gets_its_state_through_the_radio(tmp_path):
                   links={"enabled": True, "latency": {"fixed_s": 0.5}, "rate_Bps": 20000.0, "queue_bytes": 10**6})
     rec, _summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
-    fates = [f for f in rec.rejoins if f["sat"] == 2]
+    fates = [f for f in rec.bus.rejoins if f["sat"] == 2]
     assert fates and fates[0]["fate"] == "delivered"
     size, t_arr = fates[0]["bytes"], fates[0]["arrival_t_s"]
     assert size > 12 * 4 * 12 * 4 * 8  # the full 48×48 covariance at least

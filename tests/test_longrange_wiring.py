@@ -216,8 +216,8 @@ def test_world_protocol_matches_the_simulator_bit_for_bit():
     for k in range(sc.steps):
         (truth,) = d.sent_on(keys.truth())
         assert truth.k == k
-        np.testing.assert_array_equal(np.asarray(truth.r_H_m).reshape(-1, 3), res.truth["r_H"][k])
-        np.testing.assert_array_equal(np.asarray(truth.v_H_m_s).reshape(-1, 3), res.truth["v_H"][k])
+        np.testing.assert_array_equal(np.asarray(truth.r_H_m).reshape(-1, 3), res.truth.r_H_m[k])
+        np.testing.assert_array_equal(np.asarray(truth.v_H_m_s).reshape(-1, 3), res.truth.v_H_m_s[k])
         if k:
             tr, _ = step_truth(wp, tr)
         obs, tgt = np.nonzero(~np.eye(sc.n_sats, dtype=bool))
@@ -275,5 +275,5 @@ def test_starfox_scenario_flies_on_bearings_alone_with_one_gps():
     res = simulate_scenario(sc)
     assert res.gate_accepted.sum() > 50 and res.late_used.sum() > 0
     P = res.est["P_diag"][-1, 0].reshape(sc.n_sats, 12)[:, 6:9]
-    err = res.est["r_H"][-1, 0] - res.truth["r_H"][-1]
+    err = res.est.r_H_m[-1, 0] - res.truth.r_H_m[-1]
     assert np.all(np.abs(err) < 5 * np.sqrt(P) + 1.0)

@@ -123,7 +123,8 @@ def test_report_of_a_recording_with_links_shows_latencies_and_queues(tmp_path):
     names = {p.name for p in (tmp_path / "rep").glob("*.png")}
     assert {"links_latency.png", "links_events.png", "links_queue.png", "links_late.png"} <= names
     rows = _link_rows((tmp_path / "rep" / "report.html").read_text())
-    lat = np.array(rec.link_latencies)
+    assert rec.links is not None
+    lat = np.array(rec.links.latencies)
     for i, j in ((0, 1), (2, 0)):
         v = lat[(lat[:, 0] == i) & (lat[:, 1] == j), 3]
         assert float(rows[f"{i} → {j}"][7]) == pytest.approx(v.mean(), rel=1e-3)

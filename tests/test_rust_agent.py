@@ -145,10 +145,10 @@ def _step_gaps(a, b) -> dict:
         "attitude error": np.nanmax(np.abs(att_a[:, SAT, SAT] - att_b[:, SAT, SAT]) / att_a[:, SAT, SAT]),
         "position error": np.nanmax(np.abs(pos_a[:, SAT, SAT] - pos_b[:, SAT, SAT]) / pos_a[:, SAT, SAT]),
         "NEES": np.nanmax(np.abs(nees_a[:, SAT, SAT] - nees_b[:, SAT, SAT]) / nees_a[:, SAT, SAT]),
-        "pose variances": np.nanmax(np.abs(a.pose_var[:, SAT, SAT] - b.pose_var[:, SAT, SAT]) / a.pose_var[:, SAT, SAT]),
+        "pose variances": np.nanmax(np.abs(a.est.pose_var[:, SAT, SAT] - b.est.pose_var[:, SAT, SAT]) / a.est.pose_var[:, SAT, SAT]),
         "NIS": np.nanmax(np.abs(a.nis[:, SAT] - b.nis[:, SAT]) / a.nis[:, SAT]),
-        "q_BI (absolute)": np.nanmax(np.abs(a.est_q[:, SAT, SAT] - b.est_q[:, SAT, SAT])),
-        "r_H (absolute, m)": np.nanmax(np.abs(a.est_r[:, SAT, SAT] - b.est_r[:, SAT, SAT])),
+        "q_BI (absolute)": np.nanmax(np.abs(a.est.q_BI[:, SAT, SAT] - b.est.q_BI[:, SAT, SAT])),
+        "r_H (absolute, m)": np.nanmax(np.abs(a.est.r_H_m[:, SAT, SAT] - b.est.r_H_m[:, SAT, SAT])),
     }
 
 
@@ -231,7 +231,7 @@ def test_rust_agent_flies_like_the_python_agent(agent, tmp_path, case):
     # What was forged, agent 1 refused and counted (its last health report): the four
     # messages, one of them on a key its sender may not use.
     assert forged.get("sent") == 4
-    assert b.dropped[f"agent-{SAT}"] == (4, 1), b.dropped
+    assert b.bus is not None and b.bus.dropped[f"agent-{SAT}"] == (4, 1), b.bus.dropped
     log = (tmp_path / "mixed" / "logs" / f"agent-{SAT}.log").read_text()
     assert "dropped malformed message #4" in log and "done at step 60" in log, log[-3000:]
 

@@ -94,10 +94,10 @@ def test_rust_participant_prints_every_agents_estimate_as_recorded(watcher, tmp_
     for r in rows:
         k, i = r["k"], r["agent"]
         assert r["sat"] == sat
-        assert r["q_BI"] == rec.est_q[k, i, sat].tolist()
-        assert r["r_H_m"] == rec.est_r[k, i, sat].tolist()
-        assert r["P_pose_diag"] == rec.pose_var[k, i, sat].tolist()
-        assert r["t_s"] == rec.t[k]
+        assert r["q_BI"] == rec.est.q_BI[k, i, sat].tolist()
+        assert r["r_H_m"] == rec.est.r_H_m[k, i, sat].tolist()
+        assert r["P_pose_diag"] == rec.est.pose_var[k, i, sat].tolist()
+        assert r["t_s"] == rec.t_s[k]
     # Both forgeries were dropped and named, and the count says every message dropped (a
     # retried forgery may have arrived twice).
     assert state.get("forged") == 2, state["err"]

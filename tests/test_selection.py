@@ -458,7 +458,7 @@ def test_simulator_runs_every_strategy_within_budget(strategy):
         assert per_step.max() <= 12 and per_step.min() >= 1
     else:
         assert per_step.max() <= 2 and per_step.min() >= 1
-    assert np.all(np.isfinite(res.att_err)) and np.all(np.isfinite(res.pos_err))
+    assert np.all(np.isfinite(res.att_err_rad)) and np.all(np.isfinite(res.pos_err_m))
 
 
 def test_scenario_rejects_bad_selection_fields():

@@ -113,5 +113,5 @@ def test_simulation_is_identical_for_every_update_form():
     base = dict(n_sats=3, duration_s=15, seed=11)
     res = {m: simulate(Scenario(**base, filter={"update": m})) for m in ("information", "sequential", "stacked")}
     for m in ("information", "sequential"):
-        np.testing.assert_allclose(res[m].pos_err, res["stacked"].pos_err, rtol=1e-9, atol=1e-12)
-        np.testing.assert_allclose(res[m].att_err, res["stacked"].att_err, rtol=1e-9, atol=1e-13)
+        np.testing.assert_allclose(res[m].pos_err_m, res["stacked"].pos_err_m, rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(res[m].att_err_rad, res["stacked"].att_err_rad, rtol=1e-9, atol=1e-13)

@@ -31,8 +31,8 @@ def _same_as_in_process(sc, rec, summary):
     ref = res.summary()
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis"):
         assert summary[key] == ref[key], key
-    np.testing.assert_array_equal(rec.est_r, res.est["r_H"])
-    np.testing.assert_array_equal(rec.est_q, res.est["q_BI"])
+    np.testing.assert_array_equal(rec.est.r_H_m, res.est.r_H_m)
+    np.testing.assert_array_equal(rec.est.q_BI, res.est.q_BI)
     return ref
 
 

@@ -44,5 +44,5 @@ def test_short_rendered_mono_run_stays_converged():
     assert res.gate_accepted[:, 0].sum() >= 0.75 * measured
     off = ~np.eye(3, dtype=bool)
     # Stays converged: every step, not only the last.
-    assert np.nanmax(res.pos_err[:, off]) < 0.05, np.nanmax(res.pos_err[:, off], axis=1)
-    assert np.nanmax(res.att_err[:, off]) < 0.01, np.nanmax(res.att_err[:, off], axis=1)
+    assert np.nanmax(res.pos_err_m[:, off]) < 0.05, np.nanmax(res.pos_err_m[:, off], axis=1)
+    assert np.nanmax(res.att_err_rad[:, off]) < 0.01, np.nanmax(res.att_err_rad[:, off], axis=1)

@@ -57,7 +57,7 @@ def sim(
         from swarmvision.residuals import residuals, summarize_residuals, write_residuals
 
         assert res.sim is not None
-        rr = residuals(records, res.sim.truth, res.sim.t, sc.orbit.mean_motion_rad_s)
+        rr = residuals(records, res.sim.truth, res.sim.t_s, sc.orbit.mean_motion_rad_s)
         out.mkdir(parents=True, exist_ok=True)
         write_residuals(rr, out / "measurements.npz")
         extra = {"measurement_residuals": summarize_residuals(rr)}

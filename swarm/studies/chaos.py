@@ -550,7 +550,7 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
     except Exception as exc:  # any reason it cannot be read is the finding
         why_unreadable = f"{type(exc).__name__}: {exc}"
     clocks = _clocks(run_dir / "run.mcap", n) if rec is not None else {}
-    truth_steps = np.flatnonzero(np.isfinite(rec.t)) if rec is not None else np.array([], dtype=int)
+    truth_steps = np.flatnonzero(np.isfinite(rec.t_s)) if rec is not None else np.array([], dtype=int)
     last_truth = int(truth_steps.max()) if truth_steps.size else -1
 
     # The drop faults in force, as their agents reported them (rate from step first).
@@ -771,15 +771,12 @@ def _same_target(s: Command, f: dict) -> bool:
 
 def _valid_pairs(rec) -> np.ndarray:
     """(K, F, n): filter f has an estimate (with covariance) of satellite j at step k."""
-    valid = np.zeros((rec.K, rec.n, rec.n), dtype=bool)
-    for k, f, ids, _P, _rel in rec.cov_rows:
-        valid[k, f, ids] = True
-    return valid & np.isfinite(rec.truth_q[:, None, :, 0])
+    return rec.tracked & np.isfinite(rec.truth.q_BI[:, None, :, 0])
 
 
 def _within_3sigma(rec) -> np.ndarray:
     """(K, F, n): the pose error is within 3σ (NEES ≤ :data:`NEES_3SIGMA_6DOF`)."""
-    *_rest, nees = rec.errors()
+    nees = rec.nees
     with np.errstate(invalid="ignore"):
         return np.isfinite(nees) & (nees <= NEES_3SIGMA_6DOF)
 

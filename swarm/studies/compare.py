@@ -101,7 +101,7 @@ def run_one(data: dict, strategy: str, seed: int) -> dict:
     finally:
         _timing.ms = None
     s = res.summary()
-    K = res.att_err.shape[0]
+    K = res.att_err_rad.shape[0]
     t_ms = np.asarray(times_ms)
     return {
         "strategy": strategy,
@@ -112,10 +112,10 @@ def run_one(data: dict, strategy: str, seed: int) -> dict:
         "pos_half": s["rms_second_half"]["others"]["pos_m"],
         "self": {"rms": s["rms"]["self"], "rms_second_half": s["rms_second_half"]["self"]},
         "ref": {
-            "att_full": _ref_rms(res.att_err, 0),
-            "att_half": _ref_rms(res.att_err, K // 2),
-            "pos_full": _ref_rms(res.pos_err, 0),
-            "pos_half": _ref_rms(res.pos_err, K // 2),
+            "att_full": _ref_rms(res.att_err_rad, 0),
+            "att_half": _ref_rms(res.att_err_rad, K // 2),
+            "pos_full": _ref_rms(res.pos_err_m, 0),
+            "pos_half": _ref_rms(res.pos_err_m, K // 2),
         },
         "nees_mean": s["nees"]["mean"],
         "gate": s["gate"],

@@ -165,8 +165,9 @@ def probe(data: dict) -> dict:
     d["links"]["line_of_sight"] = False
     sc = Scenario.model_validate(d)
     res = simulate_scenario(sc)
-    c = res.extra["links"]["per_link"]
-    bytes_, copies = np.asarray(c["bytes_delivered"]).sum(axis=1), np.asarray(c["delivered"]).sum(axis=1)
+    assert res.links is not None  # links.enabled
+    c = res.links.counters
+    bytes_, copies = c.bytes_delivered.sum(axis=1), c.delivered.sum(axis=1)
     n, dt, K = sc.n_sats, sc.dt_s, res.schedule.shape[0]
     batch = bytes_ / np.maximum(copies, 1)  # (n,) mean batch of each observer (bytes)
     meas = res.schedule.sum(axis=(0, 2)) / K  # (n,) measurements per batch

@@ -27,7 +27,7 @@ RESULTS = "results.jsonl"
 
 def run_one(data: dict, seed: int, arrays: bool = False):
     """One run (a task: plain values in, plain values out): the scenario ``data`` with
-    ``seed``. Returns the summary, or the whole :class:`SimResult` when ``arrays``."""
+    ``seed``. Returns the summary, or the whole :class:`~swarmcore.result.RunResult` when ``arrays``."""
     from swarm.simulation import simulate_scenario
     from swarmrt.scenario_files import scenario_from_dict
 

@@ -9,10 +9,11 @@ A run with ``links:`` also gets a *Links* section: a table per directed link (se
 delivered, delivered late, lost, dropped at the queue, unreachable, bytes, mean and p95
 latency), the latency histogram of delivered batches, what happened on the links per step
 (the differences of the cumulative counters), each transmitter's queue over time and what
-the filters did with late measurements (used, dropped, steps replayed). A recording carries
-all of it (the world's ``LinkStats`` of every step); a ``swarm sim`` folder carries the
-counters and per-step totals but not each delivery's latency nor the queues, which the
-in-process simulator does not keep (the section says so).
+the filters did with late measurements (used, dropped, steps replayed). A recording (the
+world's ``LinkStats`` of every step) and a ``swarm sim`` folder carry the same.
+
+Every run is read into its :class:`~swarmcore.result.RunResult` (one schema for the
+simulator's folder and the recording), and the figures are drawn from that.
 """
 
 from __future__ import annotations
@@ -33,12 +34,12 @@ from scipy.stats import chi2
 
 from swarm.outputs import NO_DATA, no_data_reason, number
 from swarm.studies.chaos import FIRED_COLUMNS, fired_rows
-from swarmcore import quat
+from swarmcore.result import LINK_TOTALS, RunResult
 
 __all__ = ["RunData", "LinkData", "load_run", "make_report"]
 
-#: The columns of the per-step link totals (``SimResult.link_series``, ``Recording.link_series``).
-SERIES = ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")
+#: The columns of the per-step link totals (:attr:`swarmcore.result.LinkArrays.totals`).
+SERIES = LINK_TOTALS
 
 
 @dataclass
@@ -48,11 +49,11 @@ class LinkData:
     per_link: dict  # LinkCounters fields → (n, n) cumulative over the run, row = sender
     k: np.ndarray  # (S,) steps of the series
     totals: np.ndarray  # (S, 6) cumulative totals after each step, columns SERIES
-    latencies: np.ndarray | None = None  # (m, 4): sender, receiver, sent step, latency (s); None: not kept
-    queue_bytes: np.ndarray | None = None  # (S, n) bytes each transmitter still had to send; None: not kept
-    late_used: np.ndarray | None = None  # (K, F) late measurements inserted (replay)
-    late_dropped: np.ndarray | None = None  # (K, F) late measurements dropped
-    replayed: np.ndarray | None = None  # (K, F) filter steps re-run
+    latencies: np.ndarray  # (m, 4): sender, receiver, sent step, latency (s)
+    queue_bytes: np.ndarray  # (S, n) bytes each transmitter still had to send
+    late_used: np.ndarray  # (K, F) late measurements inserted (replay)
+    late_dropped: np.ndarray  # (K, F) late measurements dropped
+    replayed: np.ndarray  # (K, F) filter steps re-run
 
 
 @dataclass
@@ -72,106 +73,50 @@ class RunData:
     r_true_H: np.ndarray | None = None  # (K, n, 3) true positions in H (m): ranges
 
 
-def _sim_links(es, summary: dict) -> LinkData | None:
-    """Links of a ``swarm sim`` folder: counters from summary.json, series from estimates.npz."""
-    block = summary.get("links")
-    if not block:
+def _links(r: RunResult) -> LinkData | None:
+    if r.links is None:
         return None
-    per_link = {k: np.asarray(v) for k, v in block["per_link"].items()}
-    if "link_series" in es.files:
-        totals = es["link_series"]
-        late = {k: es[k] for k in ("late_used", "late_dropped", "replayed")}
-    else:  # written before the series were: the final totals only
-        totals = np.array([[int(per_link[c].sum()) for c in SERIES]])
-        late = {}
-    k = np.arange(len(totals)) if "link_series" in es.files else np.array([len(es["t"]) - 1])
-    kept = {name: es[key] for name, key in (("latencies", "link_latencies"), ("queue_bytes", "queue_bytes")) if key in es.files}
-    return LinkData(per_link=per_link, k=k, totals=totals, **late, **kept)
-
-
-def _recording_links(rec) -> LinkData | None:
-    if rec.links is None:
-        return None
-    series = sorted(rec.link_series, key=lambda x: x[0])
-    lat = np.array(rec.link_latencies, dtype=float).reshape(-1, 4)
-    return LinkData(
-        per_link={k: np.asarray(v) for k, v in rec.link_counters().as_dict().items()},
-        k=np.array([x[0] for x in series], dtype=int),
-        totals=np.array([x[1] for x in series], dtype=int).reshape(-1, len(SERIES)),
-        latencies=lat,
-        queue_bytes=np.array([x[2] for x in series], dtype=float).reshape(len(series), -1),
-        late_used=rec.late_used,
-        late_dropped=rec.late_dropped,
-        replayed=rec.replayed,
-    )
-
-
-def _sim_folder(d: Path) -> RunData:
-    tr = np.load(d / "truth.npz")
-    es = np.load(d / "estimates.npz")
-    q, r = es["q_BI"], es["r_H"]
-    a = quat.local(tr["q_BI"][:, None], q)
-    dr = tr["r_H"][:, None] - r
-    K, F, n = q.shape[:3]
-    Pd = es["P_diag"].reshape(K, F, n, 12)
-    sigma = np.sqrt(np.concatenate([Pd[..., 0:3], Pd[..., 6:9]], axis=-1))
-    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else {}
-    return RunData(
-        name=summary.get("scenario", d.name),
-        t=es["t"],
-        n=n,
-        err=np.concatenate([a, dr], axis=-1),
-        sigma=sigma,
-        nees=es["nees"],
-        rejected=es["gate_rejected"],
-        schedule=es["schedule"],
-        alive=np.isfinite(q[..., 0, 0]),
-        faults=summary.get("faults", []),
-        summary=summary,
-        links=_sim_links(es, summary),
-        r_true_H=tr["r_H"],
-    )
-
-
-def _recording(mcap: Path) -> RunData:
-    from swarm.record.recording import load_recording
-
-    d = mcap.parent
-    sc = None
-    if (d / "scenario.yaml").exists():
-        from swarmrt.scenario_files import load_scenario
-
-        sc = load_scenario(d / "scenario.yaml")
-    rec = load_recording(mcap, sc.n_sats if sc else None, sc.steps if sc else None)
-    a, dr, _att, _pos, nees = rec.errors()
-    sigma = np.sqrt(rec.pose_var)
-    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else {}
-    return RunData(
-        name=summary.get("scenario", sc.name if sc else mcap.stem),
-        t=np.where(np.isfinite(rec.t), rec.t, np.arange(rec.K, dtype=float)),
-        n=rec.n,
-        err=np.concatenate([a, dr], axis=-1),
-        sigma=sigma,
-        nees=nees,
-        rejected=rec.gate_rejected,
-        schedule=rec.taken,
-        alive=rec.alive,
-        faults=rec.faults,
-        summary=summary,
-        links=_recording_links(rec),
-        r_true_H=rec.truth_r,
-    )
+    L = r.links
+    return LinkData(per_link={k: np.asarray(v) for k, v in L.counters.as_dict().items()}, k=np.arange(len(L.totals)),
+                    totals=L.totals, latencies=np.array(L.latencies, dtype=float).reshape(-1, 4), queue_bytes=L.queue_bytes,
+                    late_used=r.late_used, late_dropped=r.late_dropped, replayed=r.replayed_steps)
 
 
 def load_run(path: str | Path) -> RunData:
+    """The figures' data of a run folder (``swarm sim``'s arrays or ``swarm run``'s
+    recording) or of a bare MCAP file: its :class:`~swarmcore.result.RunResult`, whatever ran it."""
+    from swarm.outputs import read_run
+    from swarm.record.recording import load_recording
+    from swarmrt.scenario_files import load_scenario
+
     p = Path(path)
-    if p.is_file() and p.suffix == ".mcap":
-        return _recording(p)
-    if (p / "estimates.npz").exists():
-        return _sim_folder(p)
-    if (p / "run.mcap").exists():
-        return _recording(p / "run.mcap")
-    raise FileNotFoundError(f"{p}: neither a run folder (estimates.npz or run.mcap) nor an MCAP file")
+    d = p.parent if p.is_file() else p
+    if not (p.is_file() and p.suffix == ".mcap") and not (p / "estimates.npz").exists() and not (p / "run.mcap").exists():
+        raise FileNotFoundError(f"{p}: neither a run folder (estimates.npz or run.mcap) nor an MCAP file")
+    sc = load_scenario(d / "scenario.yaml") if (d / "scenario.yaml").exists() else None
+    summary = json.loads((d / "summary.json").read_text()) if (d / "summary.json").exists() else {}
+    if p.is_dir() and (p / "estimates.npz").exists():
+        r, name = read_run(p, sc), p.name
+    else:
+        mcap = p if p.is_file() else p / "run.mcap"
+        r = load_recording(mcap, sc.n_sats if sc else None, sc.steps if sc else None, scenario=sc)
+        name = sc.name if sc else mcap.stem
+    a, dr = r.pose_errors()
+    return RunData(
+        name=summary.get("scenario", name),
+        t=np.where(np.isfinite(r.t_s), r.t_s, np.arange(r.K, dtype=float)),
+        n=r.n,
+        err=np.concatenate([a, dr], axis=-1),
+        sigma=np.sqrt(r.est.pose_var),
+        nees=r.nees,
+        rejected=r.gate_rejected,
+        schedule=r.taken,
+        alive=r.alive,
+        faults=summary.get("faults", r.bus.faults if r.bus is not None else []),
+        summary=summary,
+        links=_links(r),
+        r_true_H=r.truth.r_H_m,
+    )
 
 
 # --------------------------------------------------------------------------- figures
@@ -362,7 +307,7 @@ def _link_t(data: RunData, k: np.ndarray) -> np.ndarray:
 
 def fig_link_latency(data: RunData, out: Path) -> Path | None:
     L = data.links
-    if L is None or L.latencies is None or not len(L.latencies):
+    if L is None or not len(L.latencies):
         return None
     lat = L.latencies[:, 3]
     fig, ax = plt.subplots(figsize=(8, 3.5))
@@ -404,7 +349,7 @@ def fig_link_events(data: RunData, out: Path) -> Path | None:
 
 def fig_link_queue(data: RunData, out: Path) -> Path | None:
     L = data.links
-    if L is None or L.queue_bytes is None or not L.queue_bytes.size:
+    if L is None or not L.queue_bytes.size:
         return None
     t = _link_t(data, L.k)
     fig, ax = plt.subplots(figsize=(11, 3.5))
@@ -421,7 +366,7 @@ def fig_link_queue(data: RunData, out: Path) -> Path | None:
 
 def fig_late(data: RunData, out: Path) -> Path | None:
     L = data.links
-    if L is None or L.late_used is None or L.late_dropped is None or L.replayed is None:  # kept together or not at all
+    if L is None:
         return None
     fig, ax = plt.subplots(figsize=(11, 3.2))
     for arr, label, c in ((L.late_used, "late measurements used (replay)", "tab:green"),
@@ -447,8 +392,6 @@ def _links_table(L: LinkData) -> str:
     rows = []
 
     def lat_cells(sel) -> str:
-        if L.latencies is None:
-            return "<td>—</td><td>—</td>"
         v = L.latencies[sel, 3]
         return (f"<td>{v.mean():.4g}</td><td>{np.percentile(v, 95):.4g}</td>" if v.size else "<td></td><td></td>")
 
@@ -456,17 +399,14 @@ def _links_table(L: LinkData) -> str:
         for j in range(n):
             if i == j:
                 continue
-            sel = (L.latencies[:, 0] == i) & (L.latencies[:, 1] == j) if L.latencies is not None else None
+            sel = (L.latencies[:, 0] == i) & (L.latencies[:, 1] == j)
             rows.append(f"<tr><td>{i} → {j}</td>" + "".join(f"<td>{int(pl[c][i, j])}</td>" for c in cols) + lat_cells(sel) + "</tr>")
-    allsel = np.ones(len(L.latencies), dtype=bool) if L.latencies is not None else None
+    allsel = np.ones(len(L.latencies), dtype=bool)
     rows.append("<tr><th>all</th>" + "".join(f"<th>{int(pl[c].sum())}</th>" for c in cols)
                 + lat_cells(allsel).replace("td>", "th>") + "</tr>")
-    note = "" if L.latencies is not None else "<p>Latencies of single deliveries and the queues are kept in recordings (swarm run); a swarm sim folder has the counters only.</p>"
-    late = ""
-    if L.late_used is not None and L.late_dropped is not None and L.replayed is not None:
-        late = (f"<p>Late measurements: {int(np.nansum(L.late_used))} used (inserted at their own step), "
-                f"{int(np.nansum(L.late_dropped))} dropped, {int(np.nansum(L.replayed))} filter steps replayed (all filters).</p>")
-    return ("<table><tr>" + "".join(f"<th>{h}</th>" for h in heads) + "</tr>" + "".join(rows) + "</table>" + late + note)
+    late = (f"<p>Late measurements: {int(np.nansum(L.late_used))} used (inserted at their own step), "
+            f"{int(np.nansum(L.late_dropped))} dropped, {int(np.nansum(L.replayed))} filter steps replayed (all filters).</p>")
+    return "<table><tr>" + "".join(f"<th>{h}</th>" for h in heads) + "</tr>" + "".join(rows) + "</table>" + late
 
 
 def links_section(data: RunData, out: Path) -> str:

@@ -72,7 +72,7 @@ def run_outcome(sc: Scenario, recording: Path, *, run: str, world_exit_code: int
     if sig is None and why is None:
         rec = load_recording(recording, sc.n_sats, sc.steps)
         summary = rec.summary(sc)
-        if (gaps := np.flatnonzero(~np.isfinite(rec.t))).size:
+        if (gaps := np.flatnonzero(~np.isfinite(rec.t_s))).size:
             # The world ran every step, the recording does not hold them all: the recorder
             # lost them (stalled past the lease, cut off). Its summary is not the run's.
             why = (f"the recording misses {gaps.size} of the {sc.steps} steps the world ran (from step {gaps[0]}): the "
