@@ -52,7 +52,7 @@ def within_3sigma_per_observer(rec, observers, target, k_from=0, k_to=None) -> d
 def within_3sigma_fraction(rec, observers, target, k_from=0, k_to=None):
     """Fraction of (step, observer, component) with |error| ≤ 3σ for one target, over
     steps ``k_from ≤ k < k_to``."""
-    a, dr, *_ = rec.errors()
+    a, dr = rec.pose_errors()
     steps = slice(k_from, k_to)
     e = np.concatenate([a, dr], axis=-1)[steps, observers, target]  # (K', F', 6)
     sd = np.sqrt(rec.est.pose_var[steps, observers, target])

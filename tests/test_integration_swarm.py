@@ -215,7 +215,7 @@ def test_restarted_agent_reconverges(tmp_path):
     # 3σ bounds and are of the survivors' size.
     frac = [within_3sigma_fraction(rec, [2], j, k_from=sc.steps - 15)[0] for j in range(4)]
     assert min(frac) >= 0.95, frac
-    _a, _dr, att, pos, _n = rec.errors()
+    att, pos = rec.att_err_rad, rec.pos_err_m
     late = slice(sc.steps - 15, None)
     assert np.nanmean(pos[late, 2]) < 3 * np.nanmean(pos[late][:, [0, 1, 3]])
     assert np.nanmean(att[late, 2, 2]) < 1e-3  # its own attitude: star tracker level again

@@ -139,8 +139,8 @@ def _rel(a: float, b: float) -> float:
 
 def _step_gaps(a, b) -> dict:
     """Satellite 1's largest gaps between two recordings, over its steps."""
-    _, _, att_a, pos_a, nees_a = a.errors()
-    _, _, att_b, pos_b, nees_b = b.errors()
+    att_a, pos_a, nees_a = a.att_err_rad, a.pos_err_m, a.nees
+    att_b, pos_b, nees_b = b.att_err_rad, b.pos_err_m, b.nees
     return {  # over the steps whose estimate was recorded (NaN elsewhere, in both)
         "attitude error": np.nanmax(np.abs(att_a[:, SAT, SAT] - att_b[:, SAT, SAT]) / att_a[:, SAT, SAT]),
         "position error": np.nanmax(np.abs(pos_a[:, SAT, SAT] - pos_b[:, SAT, SAT]) / pos_a[:, SAT, SAT]),
