@@ -173,7 +173,7 @@ class RunResult:
     step_ms: np.ndarray  # wall time of the filter step (predict + update, ms)
     cpu_ms: np.ndarray  # CPU time of the filter step (the thread's, ms)
     bytes_sent: np.ndarray  # bytes the satellite put on its radio (its batch and estimator message)
-    schedule: np.ndarray  # (K, n, n) bool: [observer, target] pairs selected for the step
+    schedule: np.ndarray  # (K, n, n) bool: [observer, target] pairs selected for the step (a recording: the selector's; none without one)
     taken: np.ndarray  # (K, n, n) bool: relative measurements in the batches put on the radio
     links: LinkArrays | None = None  # runs with links
     bus: BusRecord | None = None  # distributed runs (the recording's)

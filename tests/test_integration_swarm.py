@@ -31,10 +31,17 @@ def test_distributed_run_equals_in_process_run(tmp_path):
     sc = scenario(duration_s=15)
     rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
-    ref = simulate(sc).summary()
+    res = simulate(sc)
+    ref = res.summary()
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean"):
         assert summary[key] == ref[key], key
     assert summary["steps"] == sc.steps and rec.alive.all()
+    # One result schema: the recording's RunResult is the simulator's, array for array (but
+    # the wall-clock times, and the schedule: without a selector no `select` is recorded).
+    for name, a in _arrays(rec):
+        b = dict(_arrays(res))[name]
+        if name not in ("step_ms", "cpu_ms", "schedule"):
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
     _check_complete_recording(tmp_path / "run" / "run.mcap", sc)
     # Every message's one-way bus latency (publisher's Zenoh timestamp → recorder) is
     # recorded: on loopback, small and positive for every sender.
@@ -44,6 +51,18 @@ def test_distributed_run_equals_in_process_run(tmp_path):
     for sender, s in lat.items():
         assert s["n"] >= sc.steps and "unstamped" not in s, (sender, s)
         assert 0 < s["min"] <= s["p50"] <= s["p95"] <= s["max"] and s["p50"] < 100.0, (sender, s)
+
+
+def _arrays(r, prefix=""):
+    """Every array of a RunResult (and of its truth and estimates), by name."""
+    import dataclasses
+
+    for f in dataclasses.fields(r):
+        v = getattr(r, f.name)
+        if isinstance(v, np.ndarray):
+            yield prefix + f.name, v
+        elif dataclasses.is_dataclass(v) and f.name in ("truth", "est"):
+            yield from _arrays(v, f"{f.name}.")
 
 
 def _check_complete_recording(path, sc):

@@ -274,6 +274,6 @@ def test_starfox_scenario_flies_on_bearings_alone_with_one_gps():
     assert all(a.q_BI is not None for a in absm)
     res = simulate_scenario(sc)
     assert res.gate_accepted.sum() > 50 and res.late_used.sum() > 0
-    P = res.est["P_diag"][-1, 0].reshape(sc.n_sats, 12)[:, 6:9]
+    P = res.est.P_diag[-1, 0].reshape(sc.n_sats, 12)[:, 6:9]
     err = res.est.r_H_m[-1, 0] - res.truth.r_H_m[-1]
     assert np.all(np.abs(err) < 5 * np.sqrt(P) + 1.0)
