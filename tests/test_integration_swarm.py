@@ -15,6 +15,7 @@ import pytest
 import zenoh
 from swarm_harness import run_swarm, scenario, within_3sigma_fraction, within_3sigma_per_observer
 
+from swarm.simulation import simulate_scenario
 from swarmcore.cameras import best_camera
 from swarmcore.mekf import RelativeMeasurements
 from swarmcore.sensors import relative_pose
@@ -31,7 +32,7 @@ def test_distributed_run_equals_in_process_run(tmp_path):
     sc = scenario(duration_s=15)
     rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
     assert codes["world"] == 0
-    res = simulate(sc)
+    res = simulate_scenario(sc)  # with each batch's size on the bus, as the agents count it
     ref = res.summary()
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean"):
         assert summary[key] == ref[key], key

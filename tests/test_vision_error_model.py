@@ -241,7 +241,7 @@ def test_rendered_stereo_run_attaches_the_model_and_its_errors_fit_it():
     want = np.array([np.diag(floor_cov(np.diag(m.var_C(rc["q"])), sc.vision.covariance)) for rc in records])
     np.testing.assert_allclose([rc["var_C"] for rc in records], want)
     assert cam["fitness"] > 0 and cam["n_points"] >= sc.vision.stereo.min_points
-    rr = residuals(records, res.truth, res.t, sc.orbit.mean_motion_rad_s)
+    rr = residuals(records, res.truth, res.t_s, sc.orbit.mean_motion_rad_s)
     assert np.nanmax(np.abs(rr["err"][:, 3:])) < 1.0  # metres: the truth residuals are in the right frame
     st = summarize_residuals(rr, m.var_C_single(rr["q"]))
     for x in st["mean_z2_clipped"]:
