@@ -576,7 +576,7 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
     # Under compose, where fault commands land at wall time, an agent killed as its step
     # began never had that step's estimate to publish (_killed_as_its_step_began): the
     # real-time form of invariant d, listed as excused too.
-    liveliness = rec.liveliness if rec is not None else []
+    liveliness = rec.bus.liveliness if rec is not None and rec.bus is not None else []
 
     def killed_in_step(i: int, k: int) -> bool:
         return compose and _killed_as_its_step_began(summary, liveliness, clocks, sc.emulator.liveliness_hold_s, i, k)
