@@ -21,7 +21,7 @@ import zenoh
 from swarm.supervise.launch import free_port
 from swarmrt.bus import messages as M
 from swarmrt.bus.session import BusConfig
-from swarmrt.security import acl_config, make_keys, router_zid
+from swarmrt.security import MESH_ROUTERS, acl_config, make_keys, router_zid
 
 pytestmark = [pytest.mark.integration]
 
@@ -88,7 +88,7 @@ def test_router_ids_are_fixed_secret_derived_and_let_through_as_the_mesh():
     assert a != b and a == router_zid("s3cret", 0) and a != router_zid("other", 0)
     assert len(a) == 32 and int(a, 16) > 0
     with pytest.raises(ValueError):
-        router_zid("s3cret", 9)
+        router_zid("s3cret", MESH_ROUTERS)
     acl = acl_config(RUN, 4, peer_zids=[b])
     (mesh,) = [p for p in acl["policies"] if p["id"] == "mesh"]
     assert mesh["subjects"] == ["mesh", "mesh-routers"]

@@ -89,6 +89,7 @@ class LocalRayCluster:
         self._closed = False
         self._client_port = _CLIENT_PORT
         self._gcs = ""
+        self.down: set[int] = set()  # nodes killed by :meth:`kill` and not started again
 
     # -- start --------------------------------------------------------------------------
     def start(self) -> LocalRayCluster:
@@ -191,7 +192,26 @@ class LocalRayCluster:
         """SIGKILL every process of node i (its raylet and everything on it)."""
         if self.hosts is None:
             raise NetnsError("kill-node on a one-node local cluster without namespaces")
+        self.down.add(i)
         return self.hosts.kill(i)
+
+    def restart(self, i: int) -> None:
+        """Start node i again after :meth:`kill` (the host came back): a new raylet at the
+        same address joins the head as a new Ray node."""
+        if i == 0:
+            raise ClusterError("the head node cannot be started again: its cluster is gone with it")
+        if i not in self.down:
+            raise ClusterError(f"node {i} is not down")
+        old = self.procs[i]
+        if old is not None:
+            _kill_group(old)
+        self._start_node(i)
+        self.down.discard(i)
+
+    @property
+    def live_ips(self) -> list[str]:
+        """The addresses of the nodes not killed."""
+        return [ip for i, ip in enumerate(self.node_ips) if i not in self.down]
 
     def partition(self, a: int, b: int) -> None:
         if self.hosts is None:

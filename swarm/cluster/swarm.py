@@ -247,7 +247,7 @@ class RaySwarm(LocalSwarm):
         import ray
         from ray.util.scheduling_strategies import NodeAffinitySchedulingStrategy
 
-        want = len(self.local.node_ips) if self.local is not None else 1
+        want = len(self.local.live_ips) if self.local is not None else 1
         deadline = time.monotonic() + 120.0
         while True:
             nodes = [n for n in ray.nodes() if n["Alive"]]
@@ -268,8 +268,8 @@ class RaySwarm(LocalSwarm):
         nodes.sort(key=key)
         if self.local is not None and self.local.namespaces:
             got = sorted(n["NodeManagerAddress"] for n in nodes)
-            if got != sorted(self.local.node_ips):
-                raise ClusterError(f"the local nodes advertise {got}, not their namespaces' addresses {sorted(self.local.node_ips)}: "
+            if got != sorted(self.local.live_ips):
+                raise ClusterError(f"the local nodes advertise {got}, not their namespaces' addresses {sorted(self.local.live_ips)}: "
                                    "refusing to run (traffic would leave the namespaces)")
         probe = ray.remote(make_probe())
         refs = [probe.options(num_cpus=0, scheduling_strategy=NodeAffinitySchedulingStrategy(n["NodeID"], soft=False)).remote()
