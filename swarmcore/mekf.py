@@ -76,6 +76,8 @@ __all__ = [
     "bearing_residuals_padded",
     "reframe",
     "apply_correction",
+    "information_posterior",
+    "propagate_blockdiag",
 ]
 
 BLOCK = 12
@@ -728,6 +730,15 @@ def _solve_information(P: np.ndarray, n: int, lin: Linearized, blocks=None):
         Lam[oo, oo] += lin.Ha.T @ (lin.Ha * w[:, None])
         b[oo] += lin.Ha.T @ (w * lin.ya)
         yRy += float(np.sum(w * lin.ya * lin.ya))
+    return information_posterior(P, n, Lam, b, yRy, blocks)
+
+
+def information_posterior(P: np.ndarray, n: int, Lam: np.ndarray, b: np.ndarray, yRy: float, blocks=None):
+    """The second half of :func:`_solve_information`: given the information ``Λ`` (6n × 6n,
+    in the observed subspace O, :func:`observed_indices`' order), ``b = Σ Hᵀ R⁻¹ y`` and
+    ``yᵀ R⁻¹ y``, the correction, ``P⁺ = (P⁻¹ + Λ)⁻¹`` (on O, the rest by regression) and the
+    joint NIS. Also the update step of the Cramér–Rao recursion (:mod:`swarmcore.crlb`, with
+    ``b = 0``)."""
     P_OO, P_OU, P_UU = kernels.split_observed(P, n) if blocks is None else blocks
     # (Symmetric matrices in C order are their own transposes in Fortran order: .T hands
     # them to LAPACK and BLAS without a copy. Only lower triangles are read and written.)

@@ -160,6 +160,8 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
             else:
                 assert wire_size is not None  # checked with the link model
                 received = _through_links(lm, k, truth, own, sent, wire_size, rec, up)
+            if sc.bound.enabled:
+                _count_for_bound(sc, rec, k, up, own, received, G)
             views = []
             for i in up:
                 e = ests[i]
@@ -195,6 +197,22 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
     if lm is not None:
         rec.link_latencies = lm.latencies
     return rec.result(sc)
+
+
+def _count_for_bound(sc: Scenario, rec: RunBuilder, k: int, up: list[int], own: dict, received: dict, G: np.ndarray) -> None:
+    """What the Cramér–Rao bound (``sc.bound``) counts of step k: centralized, every live
+    satellite's relative measurements and absolute reading; of filter f, its own and what
+    reached it (a late delivery counted at the step it was taken)."""
+    f = sc.bound.filter
+    if f is None:
+        for i in up:
+            rec.measured_at(k, own[i][0])
+        rec.absolute_at(k, [i for i in up if G[i, i]])
+    elif f in up:
+        rec.measured_at(k, own[f][0])
+        for r in received[f]:
+            rec.measured_at(r.step, r.measurements)
+        rec.absolute_at(k, [f] if G[f, f] else [])
 
 
 def _through_links(lm: LinkModel, k: int, truth, own: dict, sent: dict, wire_size: WireSize, rec: RunBuilder,
