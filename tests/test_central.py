@@ -74,12 +74,22 @@ def test_central_without_peer_readings_is_full_to_the_bit():
     assert np.all(central.est.P_diag[2:, 3, 6:9] < full.est.P_diag[2:, 3, 6:9])
 
 
-def test_distributed_run_refuses_central(tmp_path):
+@pytest.mark.parametrize("est", [{"kind": "full", "central": True}, {"kind": "central"}])
+def test_distributed_run_refuses_central(tmp_path, est):
     from swarm.supervise.launch import LocalSwarm
 
-    sc = Scenario(n_sats=3, duration_s=5, estimator={"kind": "full", "central": True})
+    sc = Scenario(n_sats=3, duration_s=5, estimator=est)
     with pytest.raises(ValueError, match=r"estimator\.central: .*do not travel on the radio"):
         LocalSwarm(sc, tmp_path / "run")
+
+
+def test_kind_central_is_full_with_central_true():
+    base = {"n_sats": 4, "seed": 12, "duration_s": 8, "graph": {"kind": "complete", "absolute": [1, 2]}}
+    a = simulate(Scenario(**base, estimator={"kind": "central"}))
+    b = simulate(Scenario(**base, estimator={"kind": "full", "central": True}))
+    assert a.estimator == "central"
+    for name, x in _arrays(a):
+        assert np.array_equal(x, dict(_arrays(b))[name], equal_nan=x.dtype.kind == "f"), name
 
 
 @pytest.mark.slow

@@ -127,6 +127,12 @@ def _num(x) -> float:
     return float("nan") if x is None else float(x)
 
 
+def _reference(estimators: Sequence[str]) -> str:
+    """The estimator the others' paired ratios are taken to: the centralized reference
+    (``central``) when it runs, else ``full``, else the first."""
+    return next((e for e in ("central", "full") if e in estimators), estimators[0])
+
+
 def _stats(rows: list[dict], key: str) -> dict:
     a = np.array([r[key] for r in rows], dtype=float)
     a = a[np.isfinite(a)]
@@ -141,7 +147,7 @@ def _fmt(v: float, spec: str = ".3g") -> str:
 
 def _markdown(doc: dict) -> str:
     ests, conds = doc["estimators"], doc["conditions"]
-    ref = "full" if "full" in ests else ests[0]
+    ref = _reference(ests)
     lines = [f"# Estimators compared: {doc['scenario']} (n = {doc['n_sats']}, {doc['duration_s']:g} s, "
              f"{len(doc['seeds'])} paired seeds)", "",
              f"Conditions: ideal radio; {LATENCY_S:g} s latency; {LATENCY_S:g} s + {LOSS_RATE:.0%} bursty loss (mean burst "
@@ -228,7 +234,7 @@ def run_compare_estimators(sc: Scenario, runs: int, out: Path, *, estimators: Se
     failed = [{"condition": c, "estimator": e, "seed": s, "error": st.errors[f"{c}/{e}@{s}"]}
               for c in conditions for e in estimators for s in seeds if f"{c}/{e}@{s}" in st.errors]
     summary: dict[str, dict] = {}
-    ref = "full" if "full" in estimators else estimators[0]
+    ref = _reference(estimators)
     for c in conditions:
         ok = [s for s in seeds if all(f"{c}/{e}@{s}" in st.results for e in estimators)]
         summary[c] = {}

@@ -25,14 +25,14 @@ from ..mekf import Absolute, RelativeMeasurements, SwarmEstimate, reframe
 from .base import EstimateView, Estimator, EstimatorParams, IncompatibleScenario, StepInputs, StepReport
 from .views import full_view
 
-__all__ = ["FullEstimator", "FullParams", "central_refusal"]
+__all__ = ["FullEstimator", "FullParams", "CentralEstimator", "central_refusal"]
 
 
 def central_refusal(sc) -> str | None:
     """Why a distributed run (``swarm run``) cannot fly the scenario's estimator, or None:
     the centralized reference (``estimator: {kind: full, central: true}``) applies every
     anchor's absolute reading, which the agents do not put on the radio."""
-    if sc.estimator.kind == "full" and sc.estimator.params().get("central"):
+    if sc.estimator.kind == "central" or (sc.estimator.kind == "full" and sc.estimator.params().get("central")):
         return ("estimator.central: the centralized reference applies every anchor's absolute readings (star tracker, "
                 "GPS), which do not travel on the radio of a distributed run; fly it in-process (swarm sim, swarm mc, "
                 "swarm compare-estimators) or set estimator.central: false")
@@ -146,3 +146,17 @@ class FullEstimator(Estimator):
 
     def view(self) -> EstimateView:
         return full_view(self.flt.est, self.own)
+
+
+class CentralEstimator(FullEstimator):
+    """``central``: the centralized reference, ``full`` with ``central: true``. Every
+    agent's full-swarm filter applies, besides its own gyro, star tracker and GPS and every
+    relative measurement, every other live anchor's absolute reading of the step: one
+    filter of everything the swarm measures but the peers' gyros (which no estimator here
+    hears). In-process only: a distributed run refuses it (:func:`central_refusal`)."""
+
+    kind = "central"
+
+    def __init__(self, sc, own: int, params: FullParams | None = None):
+        super().__init__(sc, own, params)
+        self.central = True
