@@ -45,7 +45,7 @@ from .mekf import (
     FilterParams,
     RelativeMeasurements,
     SwarmEstimate,
-    absolute_residual,
+    absolute_residual_of,
     attitude_phi_q,
     information_posterior,
     observed_indices,
@@ -120,32 +120,35 @@ def crlb_step(P: np.ndarray, n: int, phi: np.ndarray | None, Q: np.ndarray | Non
 
 def measurement_information(est: SwarmEstimate, params: FilterParams, relative: RelativeMeasurements | None,
                             absolute_of: Sequence[int] | np.ndarray, star_sigma_rad: float | None,
-                            gps_sigma_m: Sequence[float | None], params_of: dict | None = None) -> np.ndarray | None:
+                            gps_sigma_m: Sequence[float | None], absolute_info: dict | None = None) -> np.ndarray | None:
     """``Λ = Σ Hᵀ R⁻¹ H`` (6n × 6n) of a step's relative batch and the absolute readings of
     the satellites ``absolute_of`` (star tracker of σ ``star_sigma_rad``, GPS of σ
     ``gps_sigma_m[i]``; None: no such sensor), with the filter's Jacobians at ``est`` (the
-    truth); None when nothing was measured. ``params_of``: a cache of ``params.with_own(i)``."""
+    truth); None when nothing was measured. ``absolute_info``: a cache of each satellite's
+    absolute information block ``Haᵀ Ra⁻¹ Ha`` (its Jacobian is constant: rows of the identity
+    on its ``[a, Δr]``, whatever the state)."""
     n = est.n
-    params_of = {} if params_of is None else params_of
+    absolute_info = {} if absolute_info is None else absolute_info
     Lam = None
     if relative is not None and len(relative):
         _y, Hi, Hj = relative_residuals(est, params, relative)
         Lam = kernels.information(n, relative.observer, relative.target, np.zeros((len(relative), 6)), Hi, Hj,
                                   relative.R_Bi)[0]
     for i in absolute_of:
-        g = gps_sigma_m[i]
-        meas = AbsoluteMeasurement(q_BI=None if star_sigma_rad is None else est.q_BI[i], r_H=None if g is None else est.r_H[i],
-                                   sigma_att_rad=star_sigma_rad or 0.0, sigma_pos_m=g or 0.0)
-        if i not in params_of:
-            params_of[i] = params.with_own(int(i))
-        res = absolute_residual(est, params_of[i], meas)
-        if res is None:
+        if i not in absolute_info:
+            g = gps_sigma_m[i]
+            meas = AbsoluteMeasurement(q_BI=None if star_sigma_rad is None else est.q_BI[i],
+                                       r_H=None if g is None else est.r_H[i], sigma_att_rad=star_sigma_rad or 0.0,
+                                       sigma_pos_m=g or 0.0)
+            res = absolute_residual_of(est, int(i), meas)
+            absolute_info[i] = None if res is None else res[1].T @ np.linalg.solve(res[2], res[1])
+        info = absolute_info[i]
+        if info is None:
             continue
-        _ya, Ha, Ra = res
         if Lam is None:
             Lam = np.zeros((6 * n, 6 * n))
         oo = slice(6 * i, 6 * i + 6)
-        Lam[oo, oo] += Ha.T @ np.linalg.solve(Ra, Ha)
+        Lam[oo, oo] += info
     return Lam
 
 
@@ -166,7 +169,7 @@ def posterior_crlb(sc, truth, relative: Sequence[RelativeMeasurements | None], a
     gps = [wp.gps_sigma if wp.gps_enabled and (wp.gps_sats is None or i in wp.gps_sats) else None for i in range(n)]
     gyro_mask = np.ones(n, dtype=bool) if gyros is None else np.isin(np.arange(n), list(gyros))
     P = prior_covariance(sc, gyro_mask)
-    params_of: dict[int, FilterParams] = {}
+    absolute_info: dict[int, np.ndarray | None] = {}
     att, pos, rel = np.full((K, n), np.nan), np.full((K, n), np.nan), np.full((K, n, n), np.nan)
     for k in range(K):
         phi = Q = None
@@ -181,7 +184,7 @@ def posterior_crlb(sc, truth, relative: Sequence[RelativeMeasurements | None], a
             Q[:, 6:12, 6:12] = params.q_trans
         now = _truth_estimate(truth, k, sc.dt_s)
         Lam = measurement_information(now, params, relative[k] if k < len(relative) else None,
-                                      np.flatnonzero(absolute[k]), star, gps, params_of)
+                                      np.flatnonzero(absolute[k]), star, gps, absolute_info)
         P = crlb_step(P, n, phi, Q, Lam)
         att[k], pos[k], rel[k] = bound_of_covariance(P, n)
     return BoundArrays(att_rad2=att, pos_m2=pos, rel_pos_m2=rel, kind=kind)
