@@ -94,30 +94,33 @@ def test_kind_central_is_full_with_central_true():
 
 @pytest.mark.slow
 def test_central_meets_its_bound_over_monte_carlo():
-    """The estimator study's swarm (10 on a lattice, 3 nearest, anchors on 0, 2, 5, 7),
-    40 s, 8 seeds: filter 1 (not anchored) of the centralized reference against the bound of
-    what it hears (``bound.filter: 1``: its own gyro, every anchor, every relative
-    measurement). Its own position and the others' positions within 15 % of √bound over
-    seeds and the second half. (Its attitude estimates of the others are not compared: the
-    others' gyros never reach it, and the bound's model of them is the torque disturbance.)"""
+    """The dissertation's baseline (scenarios/baseline.yaml: 10 satellites, complete graph,
+    every one anchored), 60 s, 8 seeds: filter 0 of the centralized reference against the
+    bound of what it hears (``bound.filter: 0``: its own gyro, every anchor, every relative
+    measurement), second half. Measured 2026-12-06: own position 0.973× √bound, own
+    attitude 1.078×, every satellite's position 1.028× (per seed 0.60–1.56: the band is
+    wider than the issue's 10 %; 14 s CPU). (The others' attitudes are not compared: their
+    gyros never reach filter 0, and the bound's model of them is the torque disturbance.)"""
+    from pathlib import Path
+
+    from swarm.api import load_scenario
+
+    path = Path(__file__).resolve().parents[1] / "scenarios" / "baseline.yaml"
     err: dict[str, list] = {"pos": [], "opos": [], "att": []}
     bnd: dict[str, list] = {"pos": [], "opos": [], "att": []}
     for s in range(8):
-        sc = Scenario(name="estimators", seed=500 + s, n_sats=10, duration_s=40,
-                      initial={"layout": "lattice", "spacing_m": 15.0, "position_max_m": 2.0, "drift_free": True},
-                      graph={"kind": "nearest", "neighbors": 3, "absolute": [0, 2, 5, 7]},
-                      estimator={"kind": "full", "central": True}, bound={"filter": 1})
+        sc = load_scenario(path, seed=700 + s, duration_s=60, overrides={"estimator.kind": "central", "bound.filter": 0})
         r = simulate(sc)
         b = r.bound
-        assert b is not None and b.kind == "filter 1"
+        assert b is not None and b.kind == "filter 0" and r.estimator == "central"
         h = sc.steps // 2
-        err["pos"].append(r.pos_err_m[h:, 1, 1] ** 2)
-        bnd["pos"].append(b.pos_m2[h:, 1])
-        err["att"].append(r.att_err_rad[h:, 1, 1] ** 2)
-        bnd["att"].append(b.att_rad2[h:, 1])
-        err["opos"].append(r.pos_err_m[h:, 1, :] ** 2)
+        err["pos"].append(r.pos_err_m[h:, 0, 0] ** 2)
+        bnd["pos"].append(b.pos_m2[h:, 0])
+        err["att"].append(r.att_err_rad[h:, 0, 0] ** 2)
+        bnd["att"].append(b.att_rad2[h:, 0])
+        err["opos"].append(r.pos_err_m[h:, 0, :] ** 2)
         bnd["opos"].append(b.pos_m2[h:, :])
     ratios = {k: float(np.sqrt(np.mean(err[k]) / np.mean(bnd[k]))) for k in err}
-    print("central filter 1, RMS / sqrt(bound), 8 seeds x 40 s, 2nd half:", ratios)
+    print("central filter 0, baseline, RMS / sqrt(bound), 8 seeds x 60 s, 2nd half:", ratios)
     for k in ("pos", "opos", "att"):
         assert 0.85 < ratios[k] < 1.15, (k, ratios[k])
