@@ -66,6 +66,8 @@ class BoundArrays:
     pos_m2: np.ndarray  # (K, n) trace of each satellite's 3×3 position block (m², H)
     rel_pos_m2: np.ndarray  # (K, n, n) [i, j]: trace of the bound on r_j − r_i (m²); 0 on the diagonal
     kind: str  # "central" (every gyro and absolute reading) or "filter <f>"
+    att_axes_rad2: np.ndarray | None = None  # (K, n, 3) per axis (body frame): the diagonal of the attitude block
+    pos_axes_m2: np.ndarray | None = None  # (K, n, 3) per axis (H): the diagonal of the position block
 
 
 def bound_params(sc) -> FilterParams:
@@ -171,6 +173,7 @@ def posterior_crlb(sc, truth, relative: Sequence[RelativeMeasurements | None], a
     P = prior_covariance(sc, gyro_mask)
     absolute_info: dict[int, np.ndarray | None] = {}
     att, pos, rel = np.full((K, n), np.nan), np.full((K, n), np.nan), np.full((K, n, n), np.nan)
+    att_ax, pos_ax = np.full((K, n, 3), np.nan), np.full((K, n, 3), np.nan)
     for k in range(K):
         phi = Q = None
         if k > 0:
@@ -187,7 +190,9 @@ def posterior_crlb(sc, truth, relative: Sequence[RelativeMeasurements | None], a
                                       np.flatnonzero(absolute[k]), star, gps, absolute_info)
         P = crlb_step(P, n, phi, Q, Lam)
         att[k], pos[k], rel[k] = bound_of_covariance(P, n)
-    return BoundArrays(att_rad2=att, pos_m2=pos, rel_pos_m2=rel, kind=kind)
+        d = np.diag(P).reshape(n, BLOCK)
+        att_ax[k], pos_ax[k] = d[:, 0:3], d[:, 6:9]
+    return BoundArrays(att_rad2=att, pos_m2=pos, rel_pos_m2=rel, kind=kind, att_axes_rad2=att_ax, pos_axes_m2=pos_ax)
 
 
 def bound_of_covariance(P: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
