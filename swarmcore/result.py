@@ -350,7 +350,7 @@ class RunBuilder:
     def _bound(self, scenario: Scenario | None) -> BoundArrays | None:
         """The Cramér–Rao bound of what was given to :meth:`measured_at` and
         :meth:`absolute_at` along the truth (``scenario.bound``: on, and whose gyros)."""
-        if scenario is None or not scenario.bound.enabled or (self._bound_rel is None and self._bound_abs is None):
+        if scenario is None or not scenario.bound_on or (self._bound_rel is None and self._bound_abs is None):
             return None
         from .mekf import RelativeMeasurements
 

@@ -160,15 +160,16 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
             else:
                 assert wire_size is not None  # checked with the link model
                 received = _through_links(lm, k, truth, own, sent, wire_size, rec, up)
-            if sc.bound.enabled:
+            if sc.bound_on:
                 f = sc.bound.filter
                 _count_for_bound(sc, rec, k, up, own, received, G, f is not None and ests[f].hears_peer_absolute)
             views = []
+            anchors = {j: absm[j] for j in up if G[j, j]}  # every live anchor's reading (one dict for all filters)
             for i in up:
                 e = ests[i]
                 t0, c0 = time.perf_counter(), time.thread_time()
                 inputs = StepInputs(k, truth.t, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, own[i][0],
-                                    received[i], peers_of.get(i), {j: absm[j] for j in up if G[j, j] and j != i})
+                                    received[i], peers_of.get(i), anchors)
                 if i in cold:
                     if not e.cold_start(inputs):
                         continue

@@ -131,6 +131,7 @@ def test_more_information_gives_a_lower_bound_and_off_gives_none():
     assert central.bound.pos_m2[-1, 3] < 0.5 * mine.bound.pos_m2[-1, 3]
     off = simulate(Scenario(**base, bound={"enabled": False}))
     assert off.bound is None and "bound" not in off.summary() and "rms_over_bound" not in off.summary()
+    assert simulate(Scenario(**base, bound={"max_sats": 3})).bound is None  # a swarm too large for it: skipped
     s = central.summary()
     assert s["bound"]["kind"] == "central" and s["bound"]["rms"]["pos_m"] > 0
     assert set(s["rms_over_bound"]) == {"self", "others", "relative", "second_half"}

@@ -116,9 +116,10 @@ class StepInputs:
     #: Every on-time peer measurement in one batch (observer order), when the caller has them
     #: so (the radio's message is columnar); else :meth:`on_time_measurements` gathers them.
     peer_measurements: RelativeMeasurements | None = None
-    #: Every other live anchor's absolute reading of this step ``{sat: reading}``: the
-    #: in-process simulator's (the centralized reference applies them); None where they do
-    #: not travel (a distributed agent: they are not on the radio).
+    #: Every live anchor's absolute reading of this step ``{sat: reading}`` (the own one
+    #: among them, if anchored): the in-process simulator's (the centralized reference
+    #: applies its peers'); None where they do not travel (a distributed agent: they are not
+    #: on the radio).
     peer_absolute: Mapping[int, AbsoluteMeasurement] | None = None
 
     def on_time(self) -> list[Received]:
