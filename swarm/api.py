@@ -292,7 +292,9 @@ class Result:
 
     def plot_errors(self, filter: int = 0, sat: int | None = None, *, sigma: float = 3.0, fig: Figure | None = None) -> Figure:
         """Filter ``filter``'s attitude (deg) and position (m) errors of satellite ``sat``
-        (default: its own) per axis against ±``sigma``σ of its covariance."""
+        (default: its own) per axis against ±``sigma``σ of its covariance and, when the run
+        has one, ±``sigma``√ of the Cramér–Rao bound on that axis (dashed: the band no
+        estimator fed the same measurements can shrink below)."""
         import matplotlib.pyplot as plt
 
         sat = filter if sat is None else sat
@@ -301,6 +303,7 @@ class Result:
         if fig is None:
             fig = plt.figure(figsize=(10, 5.2), layout="constrained")
         axs = fig.subplots(2, 3, sharex=True)
+        bound = getattr(self._data, "bound", None) if self._data is not None else None
         for row, (q, unit, scale) in enumerate((("att", "deg", np.degrees(1.0)), ("pos", "m", 1.0))):
             for col, x in enumerate(_AXES):
                 ax = axs[row, col]
@@ -308,6 +311,12 @@ class Result:
                 s = sigma * d[f"{q}_sigma_{x}_{'rad' if q == 'att' else 'm'}"] * scale
                 ax.fill_between(d["t_s"], -s, s, color="tab:blue", alpha=0.15, lw=0, label=f"±{sigma:g}σ")
                 ax.plot(d["t_s"], err, color="tab:red", lw=1.0, label="error")
+                axes_var = None if bound is None else (bound.att_axes_rad2 if q == "att" else bound.pos_axes_m2)
+                if axes_var is not None:
+                    b = sigma * np.sqrt(axes_var[:, sat, col]) * scale
+                    t = self.data.t_s
+                    ax.plot(t, b, color="k", lw=0.8, ls="--", label=f"±{sigma:g}√bound")
+                    ax.plot(t, -b, color="k", lw=0.8, ls="--")
                 ax.set_title(f"{'attitude' if q == 'att' else 'position'} {x} [{unit}]", fontsize=9)
                 if row == 1:
                     ax.set_xlabel("t [s]")

@@ -28,6 +28,7 @@ import numpy as np
 
 from .cameras import best_camera
 from .mekf import (
+    Absolute,
     AbsoluteMeasurement,
     FilterParams,
     RelativeMeasurements,
@@ -216,7 +217,7 @@ class _Record:
 
     step: int
     prior: SwarmEstimate  # after predicting to this step, before its update
-    absolute: AbsoluteMeasurement | None
+    absolute: Absolute  # the own reading, or {sat: reading} (the centralized reference)
     relative: RelativeMeasurements  # applied, canonical
     updated: bool = True  # False: a coasted step (posterior = prior) until measurements come
     gyro_next: np.ndarray | None = None  # the gyro sample used to predict to step + 1
@@ -279,7 +280,7 @@ class AgentFilter:
         self,
         k: int,
         gyro: np.ndarray | None,
-        absolute: AbsoluteMeasurement | None,
+        absolute: Absolute,
         relative: RelativeMeasurements,
         late: dict[int, RelativeMeasurements] | None = None,
     ) -> tuple[UpdateReport, LateReport]:

@@ -43,6 +43,7 @@ Gate: each relative measurement is tested against the prior, ``d² = νᵀ S⁻�
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import lru_cache, partial
 
@@ -67,6 +68,9 @@ __all__ = [
     "update",
     "relative_residuals",
     "absolute_residual",
+    "absolute_residual_of",
+    "absolute_rows",
+    "Absolute",
     "linearize",
     "Linearized",
     "SOLVERS",
@@ -76,6 +80,8 @@ __all__ = [
     "bearing_residuals_padded",
     "reframe",
     "apply_correction",
+    "information_posterior",
+    "propagate_blockdiag",
 ]
 
 BLOCK = 12
@@ -525,7 +531,12 @@ _H_ABS = np.eye(6)
 
 def absolute_residual(est: SwarmEstimate, params: FilterParams, meas: AbsoluteMeasurement):
     """Residual, local Jacobian on the own [a, Δr] and (diagonal) R of the available parts."""
-    own = params.own
+    return absolute_residual_of(est, params.own, meas)
+
+
+def absolute_residual_of(est: SwarmEstimate, own: int, meas: AbsoluteMeasurement):
+    """:func:`absolute_residual` of satellite ``own``'s reading (any satellite's: the
+    centralized reference applies its peers' too)."""
     has_q, has_r = meas.q_BI is not None, meas.r_H is not None
     if not (has_q or has_r):
         return None
@@ -574,7 +585,9 @@ class Linearized:
 
     Relative rows: ``y`` (m, 6), Jacobian blocks ``Hi``/``Hj`` (m, 6, 6) on the observer's and
     target's ``[a, Δr]``, noise ``R`` (m, 6, 6). Absolute rows of the own satellite:
-    ``ya`` (k,), ``Ha`` (k, 6) on its ``[a, Δr]``, ``Ra`` (k, k); or None.
+    ``ya`` (k,), ``Ha`` (k, 6) on its ``[a, Δr]``, ``Ra`` (k, k); or None. ``peers_abs``:
+    other satellites' absolute readings, ``(sat, y, H, R)`` each (the centralized reference,
+    ``estimator: {kind: full, central: true}``; empty otherwise).
     """
 
     own: int
@@ -587,28 +600,48 @@ class Linearized:
     ya: np.ndarray | None = None
     Ha: np.ndarray | None = None
     Ra: np.ndarray | None = None
+    peers_abs: tuple = ()
 
     @property
     def count(self) -> int:
-        return int(self.observer.size) + (self.ya is not None)
+        return int(self.observer.size) + (self.ya is not None) + len(self.peers_abs)
 
     def shifted(self, dx: np.ndarray, n: int) -> Linearized:
         """Residuals plus ``H δx_O`` (the iterated-EKF residual about the prior)."""
         dO = dx.reshape(n, BLOCK)[:, np.r_[0:3, 6:9]]  # (n, 6)
         y = self.y + (self.Hi @ dO[self.observer][:, :, None])[:, :, 0] + (self.Hj @ dO[self.target][:, :, None])[:, :, 0]
         ya = None if self.ya is None else self.ya + self.Ha @ dO[self.own]
-        return replace(self, y=y, ya=ya)
+        peers = tuple((i, yi + Hi @ dO[i], Hi, Ri) for i, yi, Hi, Ri in self.peers_abs)
+        return replace(self, y=y, ya=ya, peers_abs=peers)
 
 
-def linearize(est: SwarmEstimate, params: FilterParams, absolute: AbsoluteMeasurement | None, relative: RelativeMeasurements) -> Linearized:
-    """Residuals and Jacobians of the absolute reading and the relative batch at ``est``."""
+def linearize(est: SwarmEstimate, params: FilterParams, absolute: Absolute, relative: RelativeMeasurements) -> Linearized:
+    """Residuals and Jacobians of the absolute reading(s) and the relative batch at ``est``."""
     y, Hi, Hj = relative_residuals(est, params, relative)
+    ya, Ha, Ra, peers = absolute_rows(est, params, absolute)
+    return Linearized(params.own, relative.observer, relative.target, y, Hi, Hj, relative.R_Bi, ya, Ha, Ra, peers)
+
+
+#: What an update is given of absolute readings: the own satellite's (or None), or a mapping
+#: ``{sat: reading}`` of every satellite's it applies (the centralized reference).
+Absolute = AbsoluteMeasurement | Mapping[int, AbsoluteMeasurement] | None
+
+
+def absolute_rows(est: SwarmEstimate, params: FilterParams, absolute: Absolute):
+    """``(ya, Ha, Ra, peers_abs)`` of :class:`Linearized`: the own reading's rows and the
+    other satellites' (``absolute`` a mapping ``{sat: reading}``), at ``est``."""
+    peers: tuple = ()
+    if isinstance(absolute, Mapping):
+        readings = absolute
+        absolute = readings.get(params.own)
+        peers = tuple((i, *res) for i in sorted(readings) if i != params.own
+                      and (res := absolute_residual_of(est, i, readings[i])) is not None)
     ya = Ha = Ra = None
     if absolute is not None:
         res = absolute_residual(est, params, absolute)
         if res is not None:
             ya, Ha, Ra = res
-    return Linearized(params.own, relative.observer, relative.target, y, Hi, Hj, relative.R_Bi, ya, Ha, Ra)
+    return ya, Ha, Ra, peers
 
 
 def apply_correction(est: SwarmEstimate, params: FilterParams, dx: np.ndarray, P: np.ndarray) -> SwarmEstimate:
@@ -640,6 +673,8 @@ def _rows(lin: Linearized, n: int):
     rows = []
     if lin.ya is not None:
         rows.append((O[lin.own], lin.ya, lin.Ha, lin.Ra))
+    for i, yi, Hi, Ri in lin.peers_abs:
+        rows.append((O[i], yi, Hi, Ri))
     for k in range(lin.observer.size):
         i, j = lin.observer[k], lin.target[k]
         rows.append((np.r_[O[i], O[j]], lin.y[k], np.concatenate([lin.Hi[k], lin.Hj[k]], axis=1), lin.R[k]))
@@ -728,6 +763,21 @@ def _solve_information(P: np.ndarray, n: int, lin: Linearized, blocks=None):
         Lam[oo, oo] += lin.Ha.T @ (lin.Ha * w[:, None])
         b[oo] += lin.Ha.T @ (w * lin.ya)
         yRy += float(np.sum(w * lin.ya * lin.ya))
+    for i, yi, Hi, Ri in lin.peers_abs:
+        w = 1.0 / np.diag(Ri)
+        oo = slice(6 * i, 6 * i + 6)
+        Lam[oo, oo] += Hi.T @ (Hi * w[:, None])
+        b[oo] += Hi.T @ (w * yi)
+        yRy += float(np.sum(w * yi * yi))
+    return information_posterior(P, n, Lam, b, yRy, blocks)
+
+
+def information_posterior(P: np.ndarray, n: int, Lam: np.ndarray, b: np.ndarray, yRy: float, blocks=None):
+    """The second half of :func:`_solve_information`: given the information ``Λ`` (6n × 6n,
+    in the observed subspace O, :func:`observed_indices`' order), ``b = Σ Hᵀ R⁻¹ y`` and
+    ``yᵀ R⁻¹ y``, the correction, ``P⁺ = (P⁻¹ + Λ)⁻¹`` (on O, the rest by regression) and the
+    joint NIS. Also the update step of the Cramér–Rao recursion (:mod:`swarmcore.crlb`, with
+    ``b = 0``)."""
     P_OO, P_OU, P_UU = kernels.split_observed(P, n) if blocks is None else blocks
     # (Symmetric matrices in C order are their own transposes in Fortran order: .T hands
     # them to LAPACK and BLAS without a copy. Only lower triangles are read and written.)
@@ -775,11 +825,14 @@ def choose_method(method: str, n: int, m: int) -> str:
 def update(
     est: SwarmEstimate,
     params: FilterParams,
-    absolute: AbsoluteMeasurement | None,
+    absolute: Absolute,
     relative: RelativeMeasurements,
     method: str | None = None,
 ) -> tuple[SwarmEstimate, UpdateReport]:
     """Measurement update with the absolute reading and the (gated) relative batch of a step.
+
+    ``absolute``: the own reading (or None), or ``{sat: reading}`` of every satellite whose
+    reading this filter applies (:data:`Absolute`; the centralized reference).
 
     Relative measurements must already be in canonical order (see
     :meth:`RelativeMeasurements.canonical`); every form gives the same result to round-off.
@@ -803,18 +856,15 @@ def update(
     else:
         kept = relative.subset(accepted)
         y, Hi, Hj = y[accepted], Hi[accepted], Hj[accepted]
-    ya = Ha = Ra = None
-    if absolute is not None:
-        res = absolute_residual(est, params, absolute)
-        if res is not None:
-            ya, Ha, Ra = res
-    lin = Linearized(params.own, kept.observer, kept.target, y, Hi, Hj, kept.R_Bi, ya, Ha, Ra)
+    ya, Ha, Ra, peers = absolute_rows(est, params, absolute)
+    lin = Linearized(params.own, kept.observer, kept.target, y, Hi, Hj, kept.R_Bi, ya, Ha, Ra, peers)
     method = choose_method(method or params.update_method, n, lin.count)
     solve = SOLVERS[method]
     if method == "information" and blocks is not None:
         solve = partial(_solve_information, blocks=blocks)
     dx, P, nis = solve(est.P, n, lin)
-    dof = params.rel_dof * int(lin.observer.size) + (0 if lin.ya is None else int(lin.ya.size))
+    dof = (params.rel_dof * int(lin.observer.size) + (0 if lin.ya is None else int(lin.ya.size))
+           + sum(int(p[1].size) for p in lin.peers_abs))
     iterations = 1
     for _ in range(params.max_iterations - 1):
         if np.max(np.abs(dx.reshape(n, BLOCK)[:, A_SL]), initial=0.0) <= params.iterate_above_rad:

@@ -15,7 +15,7 @@ if TYPE_CHECKING:
     from .result import BusRecord, RunResult
     from .scenario import Scenario
 
-__all__ = ["estimator_summary", "relative_errors_of", "run_summary", "link_summary", "bus_summary", "security_summary",
+__all__ = ["bound_summary", "estimator_summary", "relative_errors_of", "run_summary", "link_summary", "bus_summary", "security_summary",
            "pose_errors", "pose_nees", "pose_cov_blocks", "summarize"]
 
 
@@ -187,9 +187,60 @@ def run_summary(result: RunResult, sc: Scenario) -> dict:
         blocks["links"] = link_summary(r.links.counters, r.links.latencies)
     if r.bus is not None:
         blocks.update(bus_summary(r.bus, sc))
+    if r.bound is not None:
+        blocks.update(bound_summary(r))
     return summarize(n_sats=sc.n_sats, dt=sc.dt_s, seed=sc.seed, att_err=r.att_err_rad, pos_err=r.pos_err_m, nees=r.nees,
                      gate_accepted=r.gate_accepted, gate_rejected=r.gate_rejected, step_ms=r.step_ms, nis=r.nis, nis_dof=r.nis_dof,
                      extra=blocks)
+
+
+def bound_summary(r: RunResult) -> dict:
+    """``summary.json``'s ``bound`` (the Cramér–Rao bound of the run, :mod:`swarmcore.crlb`:
+    time-RMS of √bound per satellite, their mean, and of each pair's relative position) and
+    ``rms_over_bound``: each filter's time-RMS error over the bound's time-RMS, for the
+    same steps (its own satellite ``self``, the others it tracks ``others``, each tracked
+    peer relative to itself ``relative``), averaged over filters and satellites; full run
+    and second half. 1 is the limit; an unbiased estimator cannot go below it (on average)."""
+    b = r.bound
+    assert b is not None
+    K, n = b.pos_m2.shape
+    off = ~np.eye(n, dtype=bool)
+
+    def bound_block(start):
+        att, pos, rel = (np.sqrt(np.nanmean(x[start:], axis=0)) for x in (b.att_rad2, b.pos_m2, b.rel_pos_m2))
+        return {"att_rad": float(np.mean(att)), "pos_m": float(np.mean(pos)), "rel_pos_m": float(np.mean(rel[off])),
+                "per_sat": [{"sat": i, "att_rad": float(att[i]), "pos_m": float(pos[i])} for i in range(n)]}
+
+    def ratio(err, bnd, start):
+        """(F, n) time-RMS of err over time-RMS of √bnd on the steps err exists; NaN elsewhere."""
+        e = err[start:]
+        bb = np.broadcast_to(bnd[start:], e.shape)
+        have = np.isfinite(e)
+        cnt = have.sum(axis=0)
+        num = np.sqrt(np.where(have, e**2, 0.0).sum(axis=0) / np.maximum(cnt, 1))
+        den = np.sqrt(np.where(have, bb, 0.0).sum(axis=0) / np.maximum(cnt, 1))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where((cnt > 0) & (den > 0), num / np.where(den > 0, den, 1.0), np.nan)
+
+    def over(start):
+        F = r.pos_err_m.shape[1]
+        own = np.eye(F, n, dtype=bool)
+        a = ratio(r.att_err_rad, b.att_rad2[:, None, :], start)
+        p = ratio(r.pos_err_m, b.pos_m2[:, None, :], start)
+        rp = ratio(r.rel_pos_err_m, b.rel_pos_m2[:, :F, :], start)
+
+        def mean(x, mask):
+            v = x[mask]
+            v = v[np.isfinite(v)]
+            return float(np.mean(v)) if v.size else None
+
+        return {"self": {"att": mean(a, own), "pos": mean(p, own)}, "others": {"att": mean(a, ~own), "pos": mean(p, ~own)},
+                "relative": {"pos": mean(rp, ~own)}}
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return {"bound": {"kind": b.kind, "rms": bound_block(0), "rms_second_half": bound_block(K // 2)},
+                "rms_over_bound": {**over(0), "second_half": over(K // 2)}}
 
 
 def link_summary(counters: LinkCounters, latencies) -> dict:

@@ -26,14 +26,15 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .crlb import BoundArrays, posterior_crlb
 from .links import LinkCounters
 from .metrics import pose_errors, pose_nees, relative_errors_of, run_summary
 
 if TYPE_CHECKING:
     from .scenario import Scenario
 
-__all__ = ["RunResult", "RunBuilder", "TruthArrays", "EstimateArrays", "LinkArrays", "BusRecord", "BusTimes", "LINK_TOTALS",
-           "POSE_ROWS"]
+__all__ = ["RunResult", "RunBuilder", "TruthArrays", "EstimateArrays", "LinkArrays", "BusRecord", "BusTimes", "BoundArrays",
+           "LINK_TOTALS", "POSE_ROWS"]
 
 #: The columns of :attr:`LinkArrays.totals`: copies over every directed link, cumulative.
 LINK_TOTALS = ("sent", "delivered", "delivered_late", "lost", "dropped_queue", "unreachable")
@@ -177,6 +178,7 @@ class RunResult:
     taken: np.ndarray  # (K, n, n) bool: relative measurements in the batches put on the radio
     links: LinkArrays | None = None  # runs with links
     bus: BusRecord | None = None  # distributed runs (the recording's)
+    bound: BoundArrays | None = None  # the Cramér–Rao bound (in-process runs with bound.enabled: swarmcore.crlb)
 
     @property
     def K(self) -> int:
@@ -238,6 +240,9 @@ class RunBuilder:
         self._link_given: np.ndarray | None = None  # (K,) bool
         self._link_last: tuple[int, LinkCounters] | None = None
         self.link_latencies: list = []
+        # What the Cramér–Rao bound counts (measured_at, absolute_at); None: no bound.
+        self._bound_rel: list[list] | None = None
+        self._bound_abs: np.ndarray | None = None
 
     # -- the world ------------------------------------------------------------------------------
     def truth_at(self, k: int, t_s: float, q_BI, omega_BI_B_rad_s, r_H_m, v_H_m_s, bias_B_rad_s) -> None:
@@ -253,6 +258,21 @@ class RunBuilder:
     def taken_at(self, k: int, observer: int, targets) -> None:
         """Observer's relative measurements of step k in the batch it put on the radio."""
         self.taken[k, observer, targets] = True
+
+    def measured_at(self, k: int, batch) -> None:
+        """Relative measurements (a :class:`~swarmcore.mekf.RelativeMeasurements`) taken at
+        step k that the Cramér–Rao bound counts (called once or more per step; a step never
+        called counts nothing)."""
+        if self._bound_rel is None:
+            self._bound_rel = [[] for _ in range(self.K)]
+        if len(batch):
+            self._bound_rel[k].append(batch)
+
+    def absolute_at(self, k: int, sats) -> None:
+        """The satellites whose absolute reading (star tracker, GPS) of step k the bound counts."""
+        if self._bound_abs is None:
+            self._bound_abs = np.zeros((self.K, self.n), dtype=bool)
+        self._bound_abs[k, sats] = True
 
     def links_at(self, k: int, counters: LinkCounters, queue_bytes) -> None:
         """The radio's cumulative per-link counters after step k and each transmitter's
@@ -324,4 +344,18 @@ class RunBuilder:
             rel_pos_err_m=self.rel_pos_err_m, rel_nees=self.rel_nees, gate_accepted=self.gate_accepted,
             gate_rejected=self.gate_rejected, nis=self.nis, nis_dof=self.nis_dof, late_used=self.late_used,
             late_dropped=self.late_dropped, replayed_steps=self.replayed_steps, step_ms=self.step_ms, cpu_ms=self.cpu_ms,
-            bytes_sent=self.bytes_sent, schedule=self.schedule, taken=self.taken, links=links, bus=bus)
+            bytes_sent=self.bytes_sent, schedule=self.schedule, taken=self.taken, links=links, bus=bus,
+            bound=self._bound(scenario))
+
+    def _bound(self, scenario: Scenario | None) -> BoundArrays | None:
+        """The Cramér–Rao bound of what was given to :meth:`measured_at` and
+        :meth:`absolute_at` along the truth (``scenario.bound``: on, and whose gyros)."""
+        if scenario is None or not scenario.bound_on or (self._bound_rel is None and self._bound_abs is None):
+            return None
+        from .mekf import RelativeMeasurements
+
+        rel = [RelativeMeasurements.concat(b) for b in (self._bound_rel or [[] for _ in range(self.K)])]
+        absolute = self._bound_abs if self._bound_abs is not None else np.zeros((self.K, self.n), dtype=bool)
+        f = scenario.bound.filter
+        return posterior_crlb(scenario, self.truth, rel, absolute, gyros=None if f is None else [f],
+                              kind="central" if f is None else f"filter {f}")

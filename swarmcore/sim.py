@@ -160,12 +160,16 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
             else:
                 assert wire_size is not None  # checked with the link model
                 received = _through_links(lm, k, truth, own, sent, wire_size, rec, up)
+            if sc.bound_on:
+                f = sc.bound.filter
+                _count_for_bound(sc, rec, k, up, own, received, G, f is not None and ests[f].hears_peer_absolute)
             views = []
+            anchors = {j: absm[j] for j in up if G[j, j]}  # every live anchor's reading (one dict for all filters)
             for i in up:
                 e = ests[i]
                 t0, c0 = time.perf_counter(), time.thread_time()
                 inputs = StepInputs(k, truth.t, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, own[i][0],
-                                    received[i], peers_of.get(i))
+                                    received[i], peers_of.get(i), anchors)
                 if i in cold:
                     if not e.cold_start(inputs):
                         continue
@@ -195,6 +199,25 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
     if lm is not None:
         rec.link_latencies = lm.latencies
     return rec.result(sc)
+
+
+def _count_for_bound(sc: Scenario, rec: RunBuilder, k: int, up: list[int], own: dict, received: dict, G: np.ndarray,
+                     hears_all: bool = False) -> None:
+    """What the Cramér–Rao bound (``sc.bound``) counts of step k: centralized, every live
+    satellite's relative measurements and absolute reading; of filter f, its own and what
+    reached it (a late delivery counted at the step it was taken), and its own absolute
+    reading, or every live anchor's when it hears them (``hears_all``: the centralized
+    reference)."""
+    f = sc.bound.filter
+    if f is None:
+        for i in up:
+            rec.measured_at(k, own[i][0])
+        rec.absolute_at(k, [i for i in up if G[i, i]])
+    elif f in up:
+        rec.measured_at(k, own[f][0])
+        for r in received[f]:
+            rec.measured_at(r.step, r.measurements)
+        rec.absolute_at(k, [j for j in up if G[j, j]] if hears_all else [f] if G[f, f] else [])
 
 
 def _through_links(lm: LinkModel, k: int, truth, own: dict, sent: dict, wire_size: WireSize, rec: RunBuilder,

@@ -78,6 +78,8 @@ def test_simulate_gives_the_simulators_numbers_as_dataframes(tmp_path):
     assert ci.summary["estimator"] == "ci" and set(ci.errors["sat"]) <= set(range(n))
     fig = res.plot_errors(filter=0, sat=1)
     assert len(fig.axes) == 6
+    # The Cramér–Rao bound of the run under the ±3σ band (dashed), on every axis.
+    assert all(any(line.get_label() == "±3√bound" for line in ax.get_lines()) for ax in fig.axes)
 
 
 def test_compare_and_monte_carlo(tmp_path):

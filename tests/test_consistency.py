@@ -5,7 +5,8 @@ so a consistent filter gives NEES ~ χ²(6) per pose and NIS ~ χ²(dof) per upd
 runs, the run-average at each step, times M, is χ²(6M) (NEES) and χ²(Σ dof) (NIS).
 Seeds are fixed, so the test is deterministic; the bounds are the textbook two-sided 95 %.
 With links (2 s latency, 30 % bursty loss, replay) the NIS is that of each step's own
-update, whose prior already holds every replayed late batch.
+update, whose prior already holds every replayed late batch. The centralized reference
+(``central``: every anchor's absolute readings in every filter) is held to the same.
 """
 
 import numpy as np
@@ -27,7 +28,7 @@ LINKS = {"enabled": True, "latency": {"fixed_s": 2.0, "jitter": {"distribution":
          "loss": {"model": "gilbert_elliott", "rate": 0.3, "mean_burst": 3.0}}
 
 
-def _mc(n, graph, links=None):
+def _mc(n, graph, links=None, estimator="full"):
     out = []
     for r in range(RUNS):
         sc = Scenario(
@@ -37,16 +38,18 @@ def _mc(n, graph, links=None):
             graph={"kind": graph},
             filter={"att_rw_other_rad_sqrt_s": 0.0, "pos_rw_m_sqrt_s": 0.0, "gate": {"enabled": False}, "late": "replay"},
             links=links or {},
+            estimator={"kind": estimator},
         )
         out.append(simulate_scenario(sc))
     return out
 
 
-@pytest.fixture(scope="module", params=[(3, "complete", None), (5, "chain", None), (4, "complete", LINKS)],
-                ids=["n3-complete", "n5-chain", "n4-links-2s-30pc-bursty-replay"])
+@pytest.fixture(scope="module", params=[(3, "complete", None, "full"), (5, "chain", None, "full"),
+                                        (4, "complete", LINKS, "full"), (4, "chain", None, "central")],
+                ids=["n3-complete", "n5-chain", "n4-links-2s-30pc-bursty-replay", "n4-chain-central"])
 def mc(request):
-    n, graph, links = request.param
-    runs = _mc(n, graph, links)
+    n, graph, links, estimator = request.param
+    runs = _mc(n, graph, links, estimator)
     if links is not None:
         late = sum(r.late_used.sum() for r in runs)
         assert late > 0, "the links made nothing late: the case tests nothing"

@@ -16,7 +16,10 @@ alone. Conditions (:data:`CONDITIONS`; ``--conditions`` picks some):
   for ``full``, a cold start from its own sensors for the others.
 
 What each run reports (:func:`run_one`, from its ``summary.json``): own-state errors,
-errors of its estimate of each tracked peer relative to itself, NEES of both against what
+the run's centralized Cramér–Rao bound (:mod:`swarmcore.crlb`: every gyro, anchor and
+relative measurement taken; the same for every estimator of a seed) and each estimator's
+RMS over it (own and relative position, "RMS / bound"), errors of its estimate of each
+tracked peer relative to itself, NEES of both against what
 the estimator claims, bytes each satellite put on its radio per second, median filter step
 CPU time. Writes ``results.jsonl`` (as runs finish), ``compare_estimators.json``,
 ``compare_estimators.md`` and ``estimators.png`` into OUT. Runs on the local pool or a Dask
@@ -43,6 +46,9 @@ CONDITIONS = ("ideal", "latency", "loss", "cap", "restart")
 METRICS = (
     ("self_pos", "own position RMS, 2nd half (m)", True),
     ("self_att", "own attitude RMS, 2nd half (rad)", True),
+    ("bound_pos", "bound: own position, 2nd half (m)", None),
+    ("self_pos_over_bound", "RMS / bound (own position, 2nd half)", True),
+    ("rel_pos_over_bound", "RMS / bound (relative position, 2nd half)", True),
     ("rel_pos", "relative position RMS, 2nd half (m)", True),
     ("rel_att", "relative attitude RMS, 2nd half (rad)", True),
     ("nees_dof", "NEES / dof (own and tracked)", None),
@@ -105,6 +111,9 @@ def run_one(data: dict, kind: str, condition: str, over: dict, seed: int) -> dic
         "self_att": s["rms_second_half"]["self"]["att_rad"],
         "rel_pos": rel.get("rms_second_half", {}).get("pos_m", float("nan")),
         "rel_att": rel.get("rms_second_half", {}).get("att_rad", float("nan")),
+        "bound_pos": s.get("bound", {}).get("rms_second_half", {}).get("pos_m", float("nan")),
+        "self_pos_over_bound": _num(s.get("rms_over_bound", {}).get("second_half", {}).get("self", {}).get("pos")),
+        "rel_pos_over_bound": _num(s.get("rms_over_bound", {}).get("second_half", {}).get("relative", {}).get("pos")),
         "nees_dof": s["nees"]["mean"] / 6,
         "rel_nees_dof": rel.get("nees", {}).get("mean", float("nan")) / 6,
         "bytes_per_s": s.get("traffic", {}).get("bytes_per_sat_per_s_mean", float("nan")),
@@ -112,6 +121,16 @@ def run_one(data: dict, kind: str, condition: str, over: dict, seed: int) -> dic
         "late": s.get("late", {}),
         "links": (s.get("links") or {}).get("totals", {}),
     }
+
+
+def _num(x) -> float:
+    return float("nan") if x is None else float(x)
+
+
+def _reference(estimators: Sequence[str]) -> str:
+    """The estimator the others' paired ratios are taken to: the centralized reference
+    (``central``) when it runs, else ``full``, else the first."""
+    return next((e for e in ("central", "full") if e in estimators), estimators[0])
 
 
 def _stats(rows: list[dict], key: str) -> dict:
@@ -128,7 +147,7 @@ def _fmt(v: float, spec: str = ".3g") -> str:
 
 def _markdown(doc: dict) -> str:
     ests, conds = doc["estimators"], doc["conditions"]
-    ref = "full" if "full" in ests else ests[0]
+    ref = _reference(ests)
     lines = [f"# Estimators compared: {doc['scenario']} (n = {doc['n_sats']}, {doc['duration_s']:g} s, "
              f"{len(doc['seeds'])} paired seeds)", "",
              f"Conditions: ideal radio; {LATENCY_S:g} s latency; {LATENCY_S:g} s + {LOSS_RATE:.0%} bursty loss (mean burst "
@@ -215,7 +234,7 @@ def run_compare_estimators(sc: Scenario, runs: int, out: Path, *, estimators: Se
     failed = [{"condition": c, "estimator": e, "seed": s, "error": st.errors[f"{c}/{e}@{s}"]}
               for c in conditions for e in estimators for s in seeds if f"{c}/{e}@{s}" in st.errors]
     summary: dict[str, dict] = {}
-    ref = "full" if "full" in estimators else estimators[0]
+    ref = _reference(estimators)
     for c in conditions:
         ok = [s for s in seeds if all(f"{c}/{e}@{s}" in st.results for e in estimators)]
         summary[c] = {}

@@ -1,6 +1,8 @@
 """Estimators an agent can fly, behind one interface (:mod:`.base`).
 
-Built in: ``full`` (:mod:`.full`, the full-swarm MEKF: the reference), ``ci``
+Built in: ``full`` (:mod:`.full`, the full-swarm MEKF), ``central`` (:mod:`.full`, the
+full-swarm MEKF that also applies every anchor's absolute reading: the centralized
+reference, in-process only), ``ci``
 (:mod:`.ci`, covariance intersection), ``pairwise`` (:mod:`.pairwise`, Luft et al.'s
 pairwise cross-covariance factors). Plug-ins from other packages are found by the runtime
 (:mod:`swarmrt.estimators`, entry-point group ``swarm_coloc.estimators``).
@@ -22,7 +24,7 @@ from .base import (
     StepReport,
 )
 from .ci import CIEstimator
-from .full import FullEstimator
+from .full import CentralEstimator, FullEstimator
 from .pairwise import PairwiseEstimator
 
 __all__ = [
@@ -40,7 +42,7 @@ __all__ = [
 ]
 
 #: The estimators that ship with the core, by ``estimator.kind``.
-BUILTIN: dict[str, type[Estimator]] = {c.kind: c for c in (FullEstimator, CIEstimator, PairwiseEstimator)}
+BUILTIN: dict[str, type[Estimator]] = {c.kind: c for c in (FullEstimator, CIEstimator, PairwiseEstimator, CentralEstimator)}
 
 
 def estimator_class(kind: str, extra: Mapping[str, type[Estimator]] | None = None) -> type[Estimator]:

@@ -37,7 +37,7 @@ numbers in, numbers out, like the rest of the core.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -116,6 +116,11 @@ class StepInputs:
     #: Every on-time peer measurement in one batch (observer order), when the caller has them
     #: so (the radio's message is columnar); else :meth:`on_time_measurements` gathers them.
     peer_measurements: RelativeMeasurements | None = None
+    #: Every live anchor's absolute reading of this step ``{sat: reading}`` (the own one
+    #: among them, if anchored): the in-process simulator's (the centralized reference
+    #: applies its peers'); None where they do not travel (a distributed agent: they are not
+    #: on the radio).
+    peer_absolute: Mapping[int, AbsoluteMeasurement] | None = None
 
     def on_time(self) -> list[Received]:
         return [r for r in self.received if r.step == self.step]
@@ -212,6 +217,12 @@ class Estimator(ABC):
     warm_rejoin: ClassVar[bool] = False
     #: Version of its message's layout (recorded with every message).
     message_version: ClassVar[int] = 1
+
+    @property
+    def hears_peer_absolute(self) -> bool:
+        """True when it applies its peers' absolute readings (:attr:`StepInputs.peer_absolute`;
+        the centralized reference): the Cramér–Rao bound of this filter counts them."""
+        return False
 
     def __init__(self, sc: Any, own: int, params: EstimatorParams | None = None):
         self.sc = sc

@@ -21,11 +21,22 @@ import numpy as np
 from pydantic import Field
 
 from ..agent import AgentFilter, filter_params
-from ..mekf import RelativeMeasurements, SwarmEstimate, reframe
-from .base import EstimateView, Estimator, EstimatorParams, StepInputs, StepReport
+from ..mekf import Absolute, RelativeMeasurements, SwarmEstimate, reframe
+from .base import EstimateView, Estimator, EstimatorParams, IncompatibleScenario, StepInputs, StepReport
 from .views import full_view
 
-__all__ = ["FullEstimator", "FullParams"]
+__all__ = ["FullEstimator", "FullParams", "CentralEstimator", "central_refusal"]
+
+
+def central_refusal(sc) -> str | None:
+    """Why a distributed run (``swarm run``) cannot fly the scenario's estimator, or None:
+    the centralized reference (``estimator: {kind: full, central: true}``) applies every
+    anchor's absolute reading, which the agents do not put on the radio."""
+    if sc.estimator.kind == "central" or (sc.estimator.kind == "full" and sc.estimator.params().get("central")):
+        return ("estimator.central: the centralized reference applies every anchor's absolute readings (star tracker, "
+                "GPS), which do not travel on the radio of a distributed run; fly it in-process (swarm sim, swarm mc, "
+                "swarm compare-estimators) or set estimator.central: false")
+    return None
 
 
 class FullParams(EstimatorParams):
@@ -34,6 +45,9 @@ class FullParams(EstimatorParams):
 
     mode: Literal["cooperative", "isolated"] | None = Field(
         None, description="override filter.mode (cooperative: every broadcast measurement; isolated: only its own)")
+    central: bool = Field(
+        False, description="the centralized reference: also apply every other anchor's absolute reading (star tracker, "
+        "GPS) each step; in-process only (swarm sim): the readings do not travel on the radio of a distributed run")
 
 
 class FullEstimator(Estimator):
@@ -51,6 +65,11 @@ class FullEstimator(Estimator):
         self.late = f.late
         self.history_steps = int(np.ceil(f.history_s / sc.dt_s)) if sc.links.enabled and f.late == "replay" else 0
         self.filter: AgentFilter | None = None
+        self.central = bool(self.params.central)  # type: ignore[attr-defined]
+
+    @property
+    def hears_peer_absolute(self) -> bool:
+        return self.central
 
     # -- start -----------------------------------------------------------------------
     @classmethod
@@ -110,14 +129,34 @@ class FullEstimator(Estimator):
 
     def step(self, inputs: StepInputs) -> StepReport:
         rel = RelativeMeasurements.concat([inputs.own, *(r.measurements for r in inputs.on_time())])
+        absolute: Absolute = inputs.absolute
+        if self.central:
+            if inputs.peer_absolute is None:
+                raise IncompatibleScenario(central_refusal(self.sc) or "estimator.central: no peer absolute readings")
+            absolute = {**({self.own: inputs.absolute} if inputs.absolute is not None else {}),
+                        **{i: m for i, m in inputs.peer_absolute.items() if i != self.own}}
         late: dict[int, list] = {}
         for r in inputs.late():
             late.setdefault(r.step, []).append(r.measurements)
         late_m = {s: RelativeMeasurements.concat(v) for s, v in late.items()}
-        rep, lrep = self.flt.step(inputs.step, inputs.gyro_rate_B, inputs.absolute, rel, late=late_m)
+        rep, lrep = self.flt.step(inputs.step, inputs.gyro_rate_B, absolute, rel, late=late_m)
         return StepReport(gate_accepted=rep.n_accepted, gate_rejected=rep.n_rejected, nis=rep.nis, nis_dof=rep.nis_dof,
                           iterations=rep.iterations, late_used=lrep.used, late_dropped=lrep.dropped,
                           replayed_steps=lrep.replayed_steps)
 
     def view(self) -> EstimateView:
         return full_view(self.flt.est, self.own)
+
+
+class CentralEstimator(FullEstimator):
+    """``central``: the centralized reference, ``full`` with ``central: true``. Every
+    agent's full-swarm filter applies, besides its own gyro, star tracker and GPS and every
+    relative measurement, every other live anchor's absolute reading of the step: one
+    filter of everything the swarm measures but the peers' gyros (which no estimator here
+    hears). In-process only: a distributed run refuses it (:func:`central_refusal`)."""
+
+    kind = "central"
+
+    def __init__(self, sc, own: int, params: FullParams | None = None):
+        super().__init__(sc, own, params)
+        self.central = True
