@@ -3,7 +3,7 @@
 Messages are Protocol Buffers, schema version 1: ``proto/swarm/v1/*.proto`` is the single
 source of truth (one file per message family; ``proto/README.md`` gives the conventions
 and the evolution rules), and the classes here are the code generated from it
-(``swarm/v1/*_pb2.py``, made by ``scripts/gen_proto.py``). Any language with a protobuf
+(``swarmrt/bus/v1/*_pb2.py``, made by ``scripts/gen_proto.py``). Any language with a protobuf
 code generator reads them; the recorder embeds the schemas in the MCAP file.
 
 Fields 1–5 of every message are the header: ``schema_version``, ``run``, ``sender``,
@@ -69,21 +69,21 @@ from typing import Any, NamedTuple
 import numpy as np
 from google.protobuf.message import DecodeError, Message
 
-from swarm.v1.claim_pb2 import Claim
-from swarm.v1.clock_pb2 import Clock
-from swarm.v1.common_pb2 import Header, Matrix
-from swarm.v1.estimate_pb2 import Estimate, FullEstimate
-from swarm.v1.estimators_pb2 import CiState, EstimatorMessage, PairwiseState
-from swarm.v1.fault_pb2 import Fault
-from swarm.v1.health_pb2 import Health
-from swarm.v1.images_pb2 import CameraView, Images
-from swarm.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
-from swarm.v1.measurements_pb2 import MeasBatch, StepBatches
-from swarm.v1.recording_pb2 import BusGap, Liveliness, Malformed
-from swarm.v1.selection_pb2 import Select
-from swarm.v1.sensors_pb2 import CameraOutput, Detection, Sensors
-from swarm.v1.truth_pb2 import Truth
 from swarmcore.scenario import FAULT_ACTIONS, STALL_FAULTS, TARGETED_FAULTS
+from swarmrt.bus.v1.claim_pb2 import Claim
+from swarmrt.bus.v1.clock_pb2 import Clock
+from swarmrt.bus.v1.common_pb2 import Header, Matrix
+from swarmrt.bus.v1.estimate_pb2 import Estimate, FullEstimate
+from swarmrt.bus.v1.estimators_pb2 import CiState, EstimatorMessage, PairwiseState
+from swarmrt.bus.v1.fault_pb2 import Fault
+from swarmrt.bus.v1.health_pb2 import Health
+from swarmrt.bus.v1.images_pb2 import CameraView, Images
+from swarmrt.bus.v1.links_pb2 import Delivered, Delivery, Latency, LinkStats, RejoinFate
+from swarmrt.bus.v1.measurements_pb2 import MeasBatch, StepBatches
+from swarmrt.bus.v1.recording_pb2 import BusGap, Liveliness, Malformed
+from swarmrt.bus.v1.selection_pb2 import Select
+from swarmrt.bus.v1.sensors_pb2 import CameraOutput, Detection, Sensors
+from swarmrt.bus.v1.truth_pb2 import Truth
 
 SCHEMA_VERSION = 1
 MAX_SAT_ID = 10_000
