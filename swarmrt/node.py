@@ -16,18 +16,8 @@ from typing import Any
 import zenoh
 
 from swarmcore.scenario import Scenario
-from swarmrt.bus.messages import (
-    MAX_PAYLOAD_DEFAULT,
-    KeyMismatch,
-    Keys,
-    MessageError,
-    check_key,
-    counted,
-    decode,
-    encode,
-    parse_key,
-    prepare,
-)
+from swarmrt.bus.messages import MAX_PAYLOAD_DEFAULT, KeyMismatch, Keys, MessageError, counted, encode, parse_key, prepare
+from swarmrt.bus.receive import receive
 from swarmrt.bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
 from swarmrt.protocol import BusLost, Event, Query, RunBroken, Send, Wait
 from swarmrt.security import size_limit_of
@@ -211,7 +201,7 @@ class Node:
     def subscribe(self, key: str, shallow: bool = False) -> None:
         """Samples of ``key`` go to the inbox. ``shallow``: this role reads only the header
         and scalars of these messages (estimates: who, which step, which phase), so only
-        those are decoded and checked (:func:`swarmrt.bus.messages.decode`)."""
+        those are decoded and checked (:func:`swarmrt.bus.receive.receive`)."""
         if shallow:  # by message kind (a wildcard key parsed as one of its satellites')
             self._shallow.add(parse_key(key.replace("*", "0"))[1])
         if key in (self.keys.meas(), self.keys.batches()):
@@ -290,13 +280,7 @@ class Node:
                 if reply.ok is None:
                     continue
                 try:
-                    rkey = str(reply.ok.key_expr)
-                    msg = decode(kind, reply.ok.payload.to_bytes(), n_sats=self.n)
-                    run, _kind, sat = parse_key(rkey)
-                    if run != self.run or msg.run != self.run:
-                        raise MessageError(f"a reply of another run ({run!r}, {msg.run!r})")
-                    check_key(rkey, kind, sat, msg)
-                    return msg
+                    return receive(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), self.run, n_sats=self.n, expect=kind).msg
                 except MessageError as exc:
                     self.count_malformed(key, exc)
         except zenoh.ZError as exc:
@@ -348,29 +332,13 @@ class Node:
         """A sample as an event, or None (counted, logged) if it is malformed. Runs on the
         subscribers' callback threads: it reads only what __init__ and subscribe() set."""
         try:
-            run, kind, sat = parse_key(s.key)
-            if run != self.run:
-                raise MessageError(f"run id {run!r} is not this swarm's ({self.run!r})")
-            if kind == "alive":
-                role = s.key.split("/")[3]
-                return Event(s.key, "alive", sat, alive=(s.kind == "put"), role=role)
-            if s.kind == "delete":
-                raise MessageError("unexpected delete")
-            if sat is not None and sat >= self.n:
-                raise MessageError(f"unknown satellite {sat} in the key (swarm has 0..{self.n - 1})")
-            # Every satellite id the message names is checked against the swarm's size there.
-            msg = decode(kind, s.payload, shallow=kind in self._shallow, n_sats=self.n)
-            if msg.run != self.run:
-                raise MessageError(f"message run id {msg.run!r} is not this swarm's")
-            rows = len(msg.ids) if kind in ("est", "full_est") and len(msg.ids) else self.n
-            if kind in ("est", "full_est") and len(msg.q_BI) != 4 * rows:
-                raise MessageError(f"an estimate of {len(msg.q_BI) // 4} satellites (this swarm has {self.n}"
-                                   + (f", its ids list {rows})" if rows != self.n else ")"))
-            check_key(s.key, kind, sat, msg)
-            return Event(s.key, kind, sat, msg=msg, size=len(s.payload))
+            r = receive(s.key, s.payload, self.run, n_sats=self.n, shallow=self._shallow, delete=s.kind == "delete")
         except MessageError as exc:
             self.count_malformed(s.key, exc)
             return None
+        if r.kind == "alive":
+            return Event(s.key, "alive", r.sat, alive=r.alive, role=r.role)
+        return Event(s.key, r.kind, r.sat, msg=r.msg, size=len(s.payload))
 
     # -- running a protocol machine -------------------------------------------------
     def wait_for(self, cond, timeout: float, on_event, wake=None) -> bool:

@@ -362,7 +362,7 @@ def _problems_of(snippet: str, tmp_path: Path) -> list[str]:
         ("`make soak` and `make sock`", "no target sock"),
         ("`swarmrt/tuning.py` and `swarmcore/tuning.py`", "names swarmcore/tuning.py: no such file"),
         ("`tests/test_chaos.py::test_no_such_test`", "defines no test_no_such_test"),
-        ("`runs/demo/report/report.html`, `swarm/v1/*_pb2.py`", None),
+        ("`runs/demo/report/report.html`, `swarmrt/bus/v1/*_pb2.py`", None),
         ("| a | b |\n| --- | --- |\n| 1 | 2 |", None),
         ("| 1 | 2 |\n| 3 | 4 |", "without its header separator"),
         ("| a | b |\n| --- | --- |\n| 1 | 2 | 3 |", "a table row of 3 cells under a header of 2"),

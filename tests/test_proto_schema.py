@@ -26,8 +26,8 @@ PROTO = ROOT / "proto"
 def test_generated_code_is_what_the_schema_files_generate(tmp_path):
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "gen_proto.py"), "--out", str(tmp_path)], capture_output=True, text=True, timeout=120)
     assert p.returncode == 0, p.stderr
-    fresh = sorted((tmp_path / "swarm" / "v1").glob("*_pb2.py*"))  # the code and its type stubs
-    committed = sorted((ROOT / "swarm" / "v1").glob("*_pb2.py*"))
+    fresh = sorted((tmp_path / "swarmrt" / "bus" / "v1").glob("*_pb2.py*"))  # the code and its type stubs
+    committed = sorted((ROOT / "swarmrt" / "bus" / "v1").glob("*_pb2.py*"))
     want = sorted(f.stem + suffix for f in (PROTO / "swarm" / "v1").glob("*.proto") for suffix in ("_pb2.py", "_pb2.pyi"))
     assert [f.name for f in fresh] == [f.name for f in committed] == want
     stale = [f.name for f, g in zip(fresh, committed, strict=True) if f.read_bytes() != g.read_bytes()]

@@ -1,7 +1,9 @@
 """What the fuzzers feed hostile bytes to, and the valid inputs they start from.
 
 One target per kind of input that crosses a trust boundary: a bus message (per kind: the
-receiver's whole path, :func:`receive`), a scenario file, a credential or keys file, an
+receiver's whole path, :func:`receive`, which is :func:`swarmrt.bus.receive.receive`, the
+function every role, the recorder and the live view open samples with, followed by the
+role's conversions), a scenario file, a credential or keys file, an
 MCAP recording. Each target takes bytes and returns normally when the input was used or
 refused with the error its loader documents; any other exception is a finding. The same
 functions serve the atheris harnesses (``fuzz/fuzz_*.py``), the corpus replay in CI
@@ -48,8 +50,9 @@ from swarmrt.bus.convert import (
     step_batches_msg,
     truth_msg,
 )
+from swarmrt.bus.receive import receive as bus_receive
 
-__all__ = ["RUN", "N_SATS", "KEYS", "MESSAGE_KINDS", "TARGETS", "receive", "seeds", "target"]
+__all__ = ["RUN", "N_SATS", "KEYS", "MESSAGE_KINDS", "SHALLOW_READERS", "TARGETS", "receive", "seeds", "target"]
 
 RUN = "fz"
 N_SATS = 3  # the swarm a fuzzed receiver belongs to
@@ -77,25 +80,40 @@ MESSAGE_KINDS = tuple(sorted(M.MODELS))
 
 
 # -- the receiver's path -------------------------------------------------------------------
-def receive(kind: str, payload: bytes, key: str | None = None, n: int = N_SATS, convert: bool = True):
-    """What a node does with a sample (:meth:`swarmrt.node.Node._decode`), then what the
-    receiving role does with the message (the conversions of :mod:`swarmrt.bus.convert`).
-    Returns the message, or raises :class:`~swarmrt.bus.messages.MessageError`."""
+#: The kinds each role reads shallowly (its Node.subscribe(..., shallow=True)): the world and
+#: the selector read estimates for their header; an agent on the ideal radio reads ``batches``
+#: shallowly and checks each peer's estimator message as its estimator reads it.
+SHALLOW_READERS = {"est": "world and selector", "batches": "agent (ideal radio)"}
+
+
+def receive(kind: str, payload: bytes, key: str | None = None, n: int = N_SATS, convert: bool = True, shallow: bool = False):
+    """What a node does with a sample (:func:`swarmrt.bus.receive.receive`, the function
+    :meth:`swarmrt.node.Node._decode` calls), then what the receiving role does with the
+    message (the conversions of :mod:`swarmrt.bus.convert`). ``shallow``: as a role that
+    subscribed shallowly reads it (:data:`SHALLOW_READERS`). Returns the message, or raises
+    :class:`~swarmrt.bus.messages.MessageError`."""
     key = KEYS[kind] if key is None else key
-    run, k, sat = M.parse_key(key)
+    run, k, _sat = M.parse_key(key)
     if k != kind:
         raise ValueError(f"key {key} is not a {kind} key")  # a harness mistake, never a message's
-    if sat is not None and sat >= n:
-        raise M.MessageError(f"unknown satellite {sat} in the key")
-    msg = M.decode(kind, payload, n_sats=n)
-    if msg.run != run:
-        raise M.MessageError(f"message run id {msg.run!r} is not this swarm's")
-    if kind in ("est", "full_est") and len(msg.q_BI) != 4 * n:
-        raise M.MessageError(f"an estimate of {len(msg.q_BI) // 4} satellites (this swarm has {n})")
-    M.check_key(key, kind, sat, msg)
-    if convert:
+    msg = bus_receive(key, payload, run, n_sats=n, shallow=shallow).msg
+    if shallow:
+        _read_shallow(kind, msg, n)
+    elif convert:
         _CONVERT.get(kind, _nothing)(msg, n)
     return msg
+
+
+def _read_shallow(kind: str, msg, n: int) -> None:
+    """What a shallow reader reads of the message: an estimate's header and scalars (nothing
+    more to do); an agent's ``batches``: the batches in full, and each peer's estimator
+    message checked as ``sat_agent.protocol`` checks it before its estimator reads it (a
+    refused one is counted there, not an error of the sample)."""
+    if kind == "batches":
+        relative_from_step(msg, skip=ME)
+        for o, e in zip(msg.observers, msg.estimators):
+            with contextlib.suppress(M.MessageError):
+                M.check_estimator_message(e, int(o), n)
 
 
 def _nothing(msg, n: int) -> None:
@@ -137,23 +155,17 @@ def message_target(kind: str) -> Callable[[bytes], None]:
     swarm: ids up to MAX_SAT_ID); only :class:`MessageError` may come out."""
 
     def run(data: bytes) -> None:
-        with contextlib.suppress(M.MessageError):
+        with contextlib.suppress(M.MessageError):  # a role that reads this kind in full
             receive(kind, data)
-        try:  # the recorder: no swarm size, the key checked
-            msg = M.decode(kind, data)
-            M.check_key(KEYS[kind], kind, M.parse_key(KEYS[kind])[2], msg)
+        try:  # the recorder (and the live view): no swarm size, ids up to MAX_SAT_ID
+            msg = bus_receive(KEYS[kind], data, RUN).msg
         except M.MessageError:
             pass
         else:
             M.forget_arrays(msg)
-        if kind in M.SHALLOW_KINDS:  # the recorder's and selector's reading of estimates, an agent's of batches
+        if kind in SHALLOW_READERS:  # the world's and selector's reading of estimates, an agent's of batches
             with contextlib.suppress(M.MessageError):
-                msg = M.decode(kind, data, shallow=True, n_sats=N_SATS)
-                if kind == "batches":  # and each peer's estimator message checked as the agent reads it
-                    relative_from_step(msg, skip=ME)
-                    for o, e in zip(msg.observers, msg.estimators):
-                        with contextlib.suppress(M.MessageError):
-                            M.check_estimator_message(e, int(o), N_SATS)
+                receive(kind, data, shallow=True)
 
     run.__name__ = f"message_{kind}"
     return run

@@ -31,13 +31,14 @@ MODES = ("off", "view", "view+client")
 def _stepping(mcap: Path, skip: int) -> tuple[float, int]:
     """(wall seconds, steps) of the recorded clocks from step ``skip`` on."""
     from swarm.record.mcaplog import iter_messages
-    from swarmrt.bus.messages import MessageError, decode
+    from swarmrt.bus.messages import MessageError
+    from swarmrt.bus.receive import receive
 
     t: dict[int, int] = {}
     for topic, _s, data, log_ns, _p in iter_messages(mcap):
         if topic.endswith("/clock") and not topic.startswith("/"):
             try:
-                m = decode("clock", data)
+                m = receive(topic, data, None, expect="clock").msg
             except MessageError:
                 continue
             if not m.done:

@@ -15,7 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from swarm.record.mcaplog import iter_messages
-from swarmrt.bus.messages import BusGap, Liveliness, Malformed, MessageError, check_key, decode, parse_key
+from swarmrt.bus.messages import BusGap, Liveliness, Malformed, MessageError, parse_key
+from swarmrt.bus.receive import receive
 
 __all__ = ["Evidence", "load_evidence", "estimate_arrays"]
 
@@ -136,8 +137,7 @@ def load_evidence(path: str | Path, run: str, sat: int, n: int) -> Evidence:
         if kind in ("rx",) and ksat != sat:
             continue
         try:
-            msg = decode(kind, data)
-            check_key(topic, kind, ksat, msg)
+            msg = receive(topic, data, run, n_sats=n).msg  # checked as every receiver of the swarm checks it
         except MessageError as exc:
             if topic in own_keys:
                 ev.refused.append((topic, f"(read back) {exc}"))

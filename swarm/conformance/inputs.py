@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from swarmrt.bus import messages as M
+from swarmrt.bus.receive import receive
 
 __all__ = ["Injection", "injections", "self_check"]
 
@@ -88,16 +89,13 @@ def injections(run: str, sat: int, n: int, k: int) -> list[Injection]:
 
 
 def self_check(items: list[Injection], n: int) -> None:
-    """Every malformed injection fails ``decode`` (not as a key mismatch); every forged
-    one decodes and fails ``check_key`` with ``KeyMismatch``. (Node._decode's own checks
-    — the run id against the run — count as malformed too.)"""
+    """Every malformed injection fails the receive path every node runs
+    (:func:`swarmrt.bus.receive.receive`) but not as a key mismatch; every forged one
+    passes every check but the last and fails it with ``KeyMismatch``."""
     for it in items:
-        run, kind, sat = M.parse_key(it.key)
+        run = M.parse_key(it.key)[0]
         try:
-            msg = M.decode(kind, it.payload, n_sats=n)
-            if msg.run != run:
-                raise M.MessageError("another run's id")
-            M.check_key(it.key, kind, sat, msg)
+            receive(it.key, it.payload, run, n_sats=n)
         except M.KeyMismatch:
             if not it.forged:
                 raise AssertionError(f"{it.name}: a key mismatch, meant as malformed") from None

@@ -31,7 +31,8 @@ import zenoh
 from swarm.conformance.evidence import Evidence, load_evidence
 from swarm.supervise.launch import LocalSwarm
 from swarmcore.scenario import Scenario
-from swarmrt.bus.messages import Keys, MessageError, check_key, decode, parse_key
+from swarmrt.bus.messages import Keys, MessageError
+from swarmrt.bus.receive import receive
 from swarmrt.bus.session import BusConfig
 
 __all__ = ["Kit", "CaseRun", "CASES", "CASE_NAMES", "kit_scenario", "DEFAULT_SCENARIO"]
@@ -138,13 +139,9 @@ class StepWatch:
         probe.subscribe(Keys(run).clock(), self._cb)
 
     def _cb(self, s) -> None:
-        key = str(s.key_expr)
         try:
-            m = decode("clock", s.payload.to_bytes())
-            check_key(key, "clock", None, m)
+            m = receive(str(s.key_expr), s.payload.to_bytes(), self.run, expect="clock").msg
         except MessageError:
-            return
-        if m.run != self.run:
             return
         with self.cv:
             if m.done:
@@ -335,9 +332,7 @@ def drive_clean(kit: Kit, sw: KitSwarm, notes: dict) -> None:
                     continue
                 rkey = str(reply.ok.key_expr)
                 try:
-                    m = decode("full_est", reply.ok.payload.to_bytes(), n_sats=kit.n)
-                    _run, kind, sat = parse_key(rkey)
-                    check_key(rkey, kind, sat, m)
+                    m = receive(rkey, reply.ok.payload.to_bytes(), sw.run, n_sats=kit.n, expect="full_est").msg
                     got.update(k=int(m.k), own=int(m.own), sender=m.sender, run=m.run, rows=len(m.q_BI) // 4,
                                q=list(m.q_BI), r=list(m.r_H_m), ms=round((time.monotonic() - t0) * 1e3, 1))
                 except MessageError as exc:
@@ -364,7 +359,7 @@ def drive_inputs(kit: Kit, sw: KitSwarm, notes: dict) -> None:
 
     def on_health(s) -> None:
         try:
-            h = decode("health", s.payload.to_bytes())
+            h = receive(str(s.key_expr), s.payload.to_bytes(), sw.run, n_sats=kit.n, expect="health").msg
         except MessageError:
             return
         with cv:

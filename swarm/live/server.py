@@ -165,14 +165,13 @@ class LiveView:
 
     def _open(self, kind: str, sat, key: str, payload):
         """The message decoded and checked against its key, or None (malformed: dropped)."""
-        from swarmrt.bus.messages import MessageError, check_key, decode
+        from swarmrt.bus.messages import MessageError
+        from swarmrt.bus.receive import receive
 
         try:
-            msg = decode(kind, payload)
-            check_key(key, kind, sat, msg)
+            return receive(key, payload, self.run, expect=kind).msg
         except MessageError:
             return None
-        return msg
 
     def process(self, batch: list) -> None:
         """Draw one batch: every truth (one small message a step: the errors of a step need

@@ -42,13 +42,12 @@ from swarmrt.bus.messages import (
     Liveliness,
     Malformed,
     MessageError,
-    check_key,
-    decode,
     file_descriptor_set,
     parse_key,
     prepare,
     replace,
 )
+from swarmrt.bus.receive import receive
 from swarmrt.bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
 
 if TYPE_CHECKING:
@@ -178,23 +177,18 @@ class Recorder:
         now = s.received_ns or time.time_ns()
         published = s.published_ns if s.published_ns is not None else now
         try:
-            run, kind, _sat = parse_key(s.key)
-            if run != self.run:
-                raise MessageError(f"foreign run {run!r}")
+            # Any swarm size (no n_sats): ids up to MAX_SAT_ID, the recording keeps what it heard.
+            r = receive(s.key, s.payload, self.run, delete=s.kind == "delete")
+            kind, msg = r.kind, r.msg
             if kind == "alive":
-                parts = s.key.split("/")
-                body = Liveliness(key=s.key, role=parts[3], id=parts[4], alive=s.kind == "put").SerializeToString()
-                if parts[3] == "world":
-                    if s.kind == "put":
+                body = Liveliness(key=s.key, role=r.role, id=s.key.split("/")[4], alive=bool(r.alive)).SerializeToString()
+                if r.role == "world":
+                    if r.alive:
                         self._world_seen, self._world_gone_at = True, None
                     elif self._world_seen and not self.done and self.down is None:
                         self._world_gone_at = time.monotonic()
                 self.w.add(self._channel(f"{self.keys.root}/alive", "alive"), body, now)
                 return
-            if s.kind == "delete":
-                raise MessageError("unexpected delete")
-            msg = decode(kind, s.payload)
-            check_key(s.key, kind, _sat, msg)
             k_msg = getattr(msg, "k", None)
             if self.steps is not None and k_msg is not None:
                 if k_msg > self.steps:

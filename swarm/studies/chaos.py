@@ -437,15 +437,15 @@ def _clocks(path: Path, n: int) -> dict[int, tuple[set[int], int]]:
     """Step → the agents its (first recorded) clock lists live, and when the recorder got
     that clock (log time, Unix ns)."""
     from swarm.record.mcaplog import iter_messages
-    from swarmrt.bus.messages import MessageError, decode, parse_key
+    from swarmrt.bus.messages import MessageError, parse_key
+    from swarmrt.bus.receive import receive
 
     out: dict[int, tuple[set[int], int]] = {}
     for topic, _schema, data, log_ns, _pub in iter_messages(path):
         try:
-            _run, kind, _sat = parse_key(topic)
-            if kind != "clock":
+            if parse_key(topic)[1] != "clock":
                 continue
-            c = decode("clock", data, n_sats=n)
+            c = receive(topic, data, None, n_sats=n).msg  # the recording's run: whichever its keys name
         except MessageError:
             continue
         if not c.done:

@@ -106,7 +106,8 @@ def _world_hold_s(scenario: str | None) -> float:
 def _watch_run(session, run: str, stop: threading.Event, world_hold_s: float = 30.0):
     """Stop when the run's world has said ``done`` (or is gone: a broken run) and no
     recorder is alive any more."""
-    from swarmrt.bus.messages import Keys, MessageError, check_key, decode
+    from swarmrt.bus.messages import Keys, MessageError
+    from swarmrt.bus.receive import receive
 
     keys = Keys(run)
     state = {"done": False, "world": False}
@@ -135,11 +136,10 @@ def _watch_run(session, run: str, stop: threading.Event, world_hold_s: float = 3
 
     def on_clock(sample):
         try:
-            msg = decode("clock", sample.payload.to_bytes())
-            check_key(str(sample.key_expr), "clock", None, msg)
+            msg = receive(str(sample.key_expr), sample.payload.to_bytes(), run, expect="clock").msg
         except MessageError:
             return
-        if msg.done and msg.run == run:
+        if msg.done:
             with lock:
                 state["done"] = True
                 check()
