@@ -133,8 +133,8 @@ def load_evidence(path: str | Path, run: str, sat: int, n: int) -> Evidence:
             ev.from_me[topic] = ev.from_me.get(topic, 0) + 1
         if kind not in ("clock", "est", "meas", "health", "batches", "rx", "fault", "links"):
             continue
-        if kind in ("rx",) and ksat != sat:
-            continue
+        if kind in ("rx", "batches") and ksat is not None and ksat != sat:
+            continue  # another agent's radio (rx/<j>, batches/<j>)
         try:
             msg = decode(kind, data)
             check_key(topic, kind, ksat, msg)
