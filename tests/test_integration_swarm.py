@@ -458,6 +458,31 @@ def test_free_running_mode_keeps_pace_and_estimates(tmp_path):
     assert summary["rms_second_half"]["others"]["pos_m"] < 0.1
 
 
+def test_free_running_graph_radio_sends_each_batch_to_the_observers_neighbours(tmp_path):
+    """Free-running, radio "graph" (ci on a duplex chain): each batch goes on as it comes,
+    on batches/<j> of its observer's neighbours j only; the agents keep estimating."""
+    from swarm.record.mcaplog import iter_messages
+    from swarmrt.bus.messages import decode, parse_key
+
+    sc = scenario(n_sats=5, duration_s=20, estimator={"kind": "ci"}, graph={"kind": "duplex_chain"},
+                  emulator={"time_mode": "free", "realtime_factor": 5.0})
+    hears = radio_peers(scenario_graph(sc), "graph")
+    assert hears is not None
+    rec, _summary, codes, _ = run_swarm(sc, tmp_path / "run")
+    assert codes["world"] == 0
+    assert rec.alive.mean() > 0.8, rec.alive.mean()
+    carried: dict[int, set[int]] = {i: set() for i in range(sc.n_sats)}
+    for topic, _schema, data, _log, _pub in iter_messages(tmp_path / "run" / "run.mcap"):
+        if "/batches" not in topic or not topic.startswith("swarm/"):
+            continue
+        _run, kind, to = parse_key(topic)
+        assert kind == "batches" and to is not None, f"a whole-swarm radio message on {topic}"
+        m = decode("batches", data)
+        assert set(m.observers) <= set(hears[to].tolist()), (to, list(m.observers))
+        carried[to] |= set(m.observers)
+    assert carried == {i: set(hears[i].tolist()) for i in range(sc.n_sats)}  # every neighbour heard, no one else
+
+
 def test_bench_bus_prints_and_writes_json(tmp_path):
     out = tmp_path / "bus.json"
     p = subprocess.run([sys.executable, "-m", "swarm.cli", "bench", "bus", "--samples", "30", "--out", str(out)], capture_output=True, text=True, timeout=300)
