@@ -234,7 +234,8 @@ class WorldProtocol:
                 one = step_batches_msg([m], run=self.run_id, k=m.k, t_s=m.t_s)
                 if self.heard_by is None:
                     return [Send(self.keys.batches(), one)]
-                return [Send(self.keys.batches(int(j)), one) for j in self.heard_by[m.observer] if j in self.alive_agents]
+                to = self.heard_by[m.observer] if 0 <= m.observer < self.n else []
+                return [Send(self.keys.batches(int(j)), one) for j in to if j in self.alive_agents]
             self.batches.setdefault(m.k, {})[m.observer] = (m, 0 if self.links is None else radio_bytes(m))
             self._new_batch = True
         elif ev.kind == "select":
@@ -497,7 +498,7 @@ class WorldProtocol:
         if self.hears is None:
             yield Send(self.keys.batches(), step_batches_msg([m for m, _size in got.values()], run=self.run_id, k=k, t_s=t))
             return
-        for i in sorted(self.alive_agents | set(live)):
+        for i in sorted(j for j in self.alive_agents | set(live) if 0 <= j < self.n):
             mine = [got[j][0] for j in self.hears[i].tolist() if j in got]
             yield Send(self.keys.batches(i), step_batches_msg(mine, run=self.run_id, k=k, t_s=t))
 
