@@ -31,8 +31,10 @@ class Agent(Node):
         self.machine = AgentProtocol(sc, sat, run, pose, estimator_for(sc, sat), restart=restart, malformed=lambda: self.malformed,
                                     key_mismatch=lambda: self.key_mismatch)
         # Peers' batches reach us only through the radio, which the world emulates: the
-        # ideal radio's one message a step (batches), or with links what reached us (rx/<i>).
-        peers = self.keys.rx(sat) if sc.links.enabled else self.keys.batches()
+        # ideal radio's one message a step (batches: every peer's; batches/<i>: our graph
+        # neighbours', radio "graph"), or with links what reached us (rx/<i>).
+        ideal = self.keys.batches() if self.machine.hears is None else self.keys.batches(sat)
+        peers = self.keys.rx(sat) if sc.links.enabled else ideal
         for key in (self.keys.clock(), self.keys.sensors(sat), self.keys.fault()):
             self.subscribe(key)
         # The ideal radio's message shallowly: each peer's estimator message is checked when

@@ -10,8 +10,10 @@ never the truth. Step k:
    attached; the image pipelines start from this step's prediction); transmit them as
    one batch (an empty one too) to the radio, which the world emulates;
 3. wait for what the radio delivers of step k: the ideal radio's one message with every
-   live peer's batch (``batches``; free-running: each batch as it comes, until the step's
-   time is up), or with ``links`` on what the link model let through (``rx/<i>``);
+   live peer's batch (``batches``) or, for an estimator whose ``radio`` is ``"graph"``,
+   with its graph neighbours' (``batches/<i>``; free-running: each batch as it comes,
+   until the step's time is up), or with ``links`` on what the link model let through
+   (``rx/<i>``);
 4. run its filter (:class:`swarmcore.agent.AgentFilter`: the same calls the in-process
    simulator makes) and publish the estimate and a health report.
 
@@ -31,6 +33,7 @@ from collections.abc import Callable
 import numpy as np
 
 from swarmcore.estimators import Estimator, StepInputs
+from swarmcore.graphs import radio_peers, scenario_graph
 from swarmcore.measurement import PoseEstimator
 from swarmcore.mekf import RelativeMeasurements
 from swarmcore.scenario import Scenario
@@ -109,6 +112,9 @@ class AgentProtocol:
         self.key_mismatch = key_mismatch  # of those, messages on a key their sender may not use
         self.payloads_refused = 0  # peers' estimator messages refused when read (counted with the malformed)
         self.linked = sc.links.enabled  # peers' batches come through the radio (rx/<i>), not straight off the bus
+        # The ideal radio's peers (None: every live peer, on batches; else on batches/<i>).
+        hears = radio_peers(scenario_graph(sc), type(estimator).radio)
+        self.hears: set[int] | None = None if hears is None else set(hears[sat].tolist())
         self.rx_steps: set[int] = set()  # steps whose delivery (lockstep) has come
         self.rx_items: list[MeasBatch] = []  # delivered peer batches not yet used
         self.late_used = self.late_dropped = self.replayed_steps = 0
@@ -396,10 +402,11 @@ class AgentProtocol:
         self._prune(k)
 
     def _ideal_radio(self, k: int, clock, timeout: float):
-        """The ideal radio: in lockstep one message with every live peer's batch of k;
-        free-running, each batch as it comes until the step's time is up."""
+        """The ideal radio: in lockstep one message with every live peer's batch of k (or,
+        radio "graph", its live graph neighbours'); free-running, each batch as it comes
+        until the step's time is up."""
         em = self.sc.emulator
-        expected = [j for j in clock.live_agents if j != self.i]
+        expected = [j for j in clock.live_agents if j != self.i and (self.hears is None or j in self.hears)]
         if em.time_mode == "lockstep":
             yield Wait(lambda: k in self.radio, timeout)
         else:

@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["incidence", "edges", "scenario_graph", "nominal_positions", "lattice_positions", "encounter_schedule", "GRAPH_KINDS"]
+__all__ = ["incidence", "edges", "scenario_graph", "radio_peers", "RADIO_SCOPES", "nominal_positions", "lattice_positions", "encounter_schedule", "GRAPH_KINDS"]
 
 GRAPH_KINDS = ("complete", "star", "chain", "duplex_chain", "matrix", "nearest")
+RADIO_SCOPES = ("all", "graph")
 
 
 def incidence(
@@ -117,3 +118,22 @@ def encounter_schedule(G: np.ndarray) -> tuple[np.ndarray, int]:
     for (i, j), v in sorted(c.items()):
         colour[i, j] = colour[j, i] = v
     return colour, int(colour.max()) + 1
+
+
+def radio_peers(G: np.ndarray, scope: str) -> list[np.ndarray] | None:
+    """Whose batches the ideal radio (``links.enabled: false``) delivers to each agent: for
+    every satellite i, the ascending ids j ≠ i it hears; None: every live peer (``scope``
+    ``"all"``). ``"graph"``: its neighbours in the measurement graph ``G``, both
+    directions (j measures i, or i measures j) — every measurement that involves i is
+    taken along such an edge (the selector chooses among the graph's edges too), and the
+    estimate of its other end comes with that end's batch. The in-process simulator and
+    the world both deliver by this function (the estimator's class says its scope:
+    :attr:`swarmcore.estimators.Estimator.radio`), so they give the same numbers."""
+    if scope == "all":
+        return None
+    if scope != "graph":
+        raise ValueError(f"radio scope {scope!r}: expected one of {RADIO_SCOPES}")
+    A = np.asarray(G, dtype=bool)
+    A = A | A.T
+    np.fill_diagonal(A, False)
+    return [np.flatnonzero(A[i]) for i in range(A.shape[0])]

@@ -10,9 +10,11 @@ One step k (t_k = k dt):
    (:class:`swarmcore.measurement.CameraModel`).
 2. agent i (:class:`swarmcore.agent.AgentFilter`): its pose estimator turns its own
    observation into relative measurements (predicting first when the estimator needs the
-   prediction); then it updates with its absolute reading (if it has the sensors) and every
-   observer's batch (all of it when cooperative, only its own rows when isolated) in
-   canonical order.
+   prediction); then it updates with its absolute reading (if it has the sensors) and the
+   batches its radio delivers (the ideal radio: every live peer's, or only its graph
+   neighbours' for an estimator whose ``radio`` is ``"graph"``:
+   :func:`swarmcore.graphs.radio_peers`, which the world's radio uses too) in canonical
+   order.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .estimators import EstimateView, Estimator, Received, StepInputs, builtin_estimator
-from .graphs import scenario_graph
+from .graphs import radio_peers, scenario_graph
 from .links import LinkCounters, LinkModel, scenario_link_model
 from .measurement import MeasurementModel
 from .mekf import RelativeMeasurements
@@ -100,6 +102,9 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
     truth = initial_truth(sc)
     ests = make_estimators(sc, truth, estimator_factory)
     lm = scenario_link_model(sc)
+    # Whose batches the ideal radio brings each agent (None: everyone's).
+    hears = radio_peers(G, type(ests[0]).radio) if n else None
+    hear_set = [] if hears is None else [set(h.tolist()) for h in hears]
     if lm is not None and wire_size is None:
         raise ValueError("links.enabled: the link model needs each batch's encoded size (pass wire_size, "
                          "see swarmrt.bus.convert.batch_wire_size)")
@@ -154,9 +159,13 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
             peers_of: dict[int, RelativeMeasurements] = {}
             if lm is None:
                 every = [Received(j, k, own[j][0], sent[j]) for j in up]
-                received = {i: [r for r in every if r.sender != i] for i in range(n)}
                 batch = RelativeMeasurements.concat([r.measurements for r in every])
-                peers_of = {i: batch.subset(batch.observer != i) for i in up}
+                if hears is None:  # the whole swarm's batches, to every agent
+                    received = {i: [r for r in every if r.sender != i] for i in range(n)}
+                    peers_of = {i: batch.subset(batch.observer != i) for i in up}
+                else:  # each agent's radio peers' (the world delivers the same: radio_peers)
+                    received = {i: [r for r in every if r.sender in hear_set[i]] for i in range(n)}
+                    peers_of = {i: batch.subset(np.isin(batch.observer, hears[i])) for i in up}
             else:
                 assert wire_size is not None  # checked with the link model
                 received = _through_links(lm, k, truth, own, sent, wire_size, rec, up)

@@ -204,7 +204,7 @@ class Node:
         those are decoded and checked (:func:`swarmrt.bus.receive.receive`)."""
         if shallow:  # by message kind (a wildcard key parsed as one of its satellites')
             self._shallow.add(parse_key(key.replace("*", "0"))[1])
-        if key in (self.keys.meas(), self.keys.batches()):
+        if key in (self.keys.meas(), self.keys.batches()) or key.startswith(self.keys.batches() + "/"):
             prepare("meas")  # before this node says it is alive
         self._handles.append(self.session.declare_subscriber(key, self.inbox.callback))
 

@@ -17,6 +17,8 @@ from swarm_harness import run_swarm, scenario, within_3sigma_fraction, within_3s
 
 from swarm.simulation import simulate_scenario
 from swarmcore.cameras import best_camera
+from swarmcore.estimators import estimator_class
+from swarmcore.graphs import radio_peers, scenario_graph
 from swarmcore.mekf import RelativeMeasurements
 from swarmcore.sensors import relative_pose
 from swarmcore.sim import simulate
@@ -54,6 +56,27 @@ def test_distributed_run_equals_in_process_run(tmp_path):
         assert 0 < s["min"] <= s["p50"] <= s["p95"] <= s["max"] and s["p50"] < 100.0, (sender, s)
 
 
+@pytest.mark.parametrize("estimator", ["ci", "pairwise"])
+def test_graph_radio_run_equals_in_process_run(tmp_path, estimator):
+    """An estimator that hears only its graph neighbours (radio "graph"): each agent is sent
+    only their batches (batches/<i>), and the numbers are still the simulator's, bit for bit."""
+    sc = scenario(duration_s=8, n_sats=7, estimator={"kind": estimator}, graph={"kind": "nearest", "neighbors": 2},
+                  initial={"layout": "lattice"})
+    hears = radio_peers(scenario_graph(sc), "graph")
+    assert hears is not None and max(len(h) for h in hears) < sc.n_sats - 1  # the test means something: not everyone
+    rec, summary, codes, _ = run_swarm(sc, tmp_path / "run")
+    assert codes["world"] == 0
+    res = simulate_scenario(sc)
+    ref = res.summary()
+    for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean"):
+        assert json.dumps(summary[key]) == json.dumps(ref[key]), key  # NaN (pairs never estimated) equal too
+    for name, a in _arrays(rec):
+        b = dict(_arrays(res))[name]
+        if name not in ("step_ms", "cpu_ms", "schedule"):
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+    _check_complete_recording(tmp_path / "run" / "run.mcap", sc)
+
+
 def _arrays(r, prefix=""):
     """Every array of a RunResult (and of its truth and estimates), by name."""
     import dataclasses
@@ -85,7 +108,10 @@ def _check_complete_recording(path, sc):
     run = runs.pop()
     root = f"swarm/{run}"
     per_sat = [f"{root}/{kind}" for i in range(n) for kind in (f"sat/{i}/sensors", f"sat/{i}/cam", f"meas/{i}", f"est/{i}", f"health/{i}")]
-    assert {t for t in chans if t.startswith("swarm/")} == {f"{root}/clock", f"{root}/truth", f"{root}/batches", f"{root}/alive", *per_sat}
+    # The ideal radio: one message a step to everyone, or (radio "graph") one to each agent.
+    hears = radio_peers(scenario_graph(sc), estimator_class(sc.estimator.kind).radio)
+    radio_keys = [f"{root}/batches"] if hears is None else [f"{root}/batches/{i}" for i in range(n)]
+    assert {t for t in chans if t.startswith("swarm/")} == {f"{root}/clock", f"{root}/truth", *radio_keys, f"{root}/alive", *per_sat}
     steps = defaultdict(list)  # topic -> [(k, message)]
     for topic in chans:
         if not topic.startswith("swarm/") or topic.endswith("/alive"):
@@ -96,17 +122,20 @@ def _check_complete_recording(path, sc):
             assert schema == f"swarm.v1.{type(m).__name__}", (topic, schema)
             # Publish time: the publisher's Zenoh timestamp, strictly before the recorder got it.
             assert m.run == run and latency_ns > 0, (topic, m.k, latency_ns)
-            if ident is not None:
+            if ident is not None and kind != "batches":  # batches/<i>: to agent i, not about it
                 assert ident == getattr(m, {"meas": "observer", "est": "own"}.get(kind, "sat")), (topic, m.k)
             steps[topic].append((m.k, m))
     every_step = list(range(K))
     assert sorted(k for k, _m in steps[f"{root}/truth"]) == every_step
-    # The ideal radio: one message a step, carrying every agent's batch of that step as sent.
-    radio = dict(steps[f"{root}/batches"])
-    assert sorted(radio) == every_step and all(list(m.observers) == list(range(n)) for m in radio.values())
-    for k, m in radio.items():
-        sent = sorted((b for i in range(n) for kb, b in steps[f"{root}/meas/{i}"] if kb == k), key=lambda b: b.observer)
-        assert list(m.counts) == [len(b.target) for b in sent] and list(m.target) == [t for b in sent for t in b.target]
+    # The ideal radio: one message a step, carrying every agent's batch of that step as sent
+    # (or, radio "graph", one message a step to each agent with its graph neighbours' batches).
+    for key, peers in ([(f"{root}/batches", list(range(n)))] if hears is None
+                       else [(f"{root}/batches/{i}", hears[i].tolist()) for i in range(n)]):
+        radio = dict(steps[key])
+        assert sorted(radio) == every_step and all(list(m.observers) == peers for m in radio.values()), key
+        for k, m in radio.items():
+            sent = sorted((b for i in peers for kb, b in steps[f"{root}/meas/{i}"] if kb == k), key=lambda b: b.observer)
+            assert list(m.counts) == [len(b.target) for b in sent] and list(m.target) == [t for b in sent for t in b.target]
     for i in range(n):
         for kind in (f"sat/{i}/sensors", f"sat/{i}/cam", f"meas/{i}", f"health/{i}"):
             assert sorted(k for k, _m in steps[f"{root}/{kind}"]) == every_step, kind
@@ -427,6 +456,31 @@ def test_free_running_mode_keeps_pace_and_estimates(tmp_path):
     # Paced by wall time, agents keep up on loopback: nearly every step is estimated.
     assert rec.alive.mean() > 0.8, rec.alive.mean()
     assert summary["rms_second_half"]["others"]["pos_m"] < 0.1
+
+
+def test_free_running_graph_radio_sends_each_batch_to_the_observers_neighbours(tmp_path):
+    """Free-running, radio "graph" (ci on a duplex chain): each batch goes on as it comes,
+    on batches/<j> of its observer's neighbours j only; the agents keep estimating."""
+    from swarm.record.mcaplog import iter_messages
+    from swarmrt.bus.messages import decode, parse_key
+
+    sc = scenario(n_sats=5, duration_s=20, estimator={"kind": "ci"}, graph={"kind": "duplex_chain"},
+                  emulator={"time_mode": "free", "realtime_factor": 5.0})
+    hears = radio_peers(scenario_graph(sc), "graph")
+    assert hears is not None
+    rec, _summary, codes, _ = run_swarm(sc, tmp_path / "run")
+    assert codes["world"] == 0
+    assert rec.alive.mean() > 0.8, rec.alive.mean()
+    carried: dict[int, set[int]] = {i: set() for i in range(sc.n_sats)}
+    for topic, _schema, data, _log, _pub in iter_messages(tmp_path / "run" / "run.mcap"):
+        if "/batches" not in topic or not topic.startswith("swarm/"):
+            continue
+        _run, kind, to = parse_key(topic)
+        assert kind == "batches" and to is not None, f"a whole-swarm radio message on {topic}"
+        m = decode("batches", data)
+        assert set(m.observers) <= set(hears[to].tolist()), (to, list(m.observers))
+        carried[to] |= set(m.observers)
+    assert carried == {i: set(hears[i].tolist()) for i in range(sc.n_sats)}  # every neighbour heard, no one else
 
 
 def test_bench_bus_prints_and_writes_json(tmp_path):

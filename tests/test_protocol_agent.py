@@ -326,3 +326,33 @@ def test_a_peers_bad_estimator_message_is_refused_when_read_and_the_others_are_f
     assert est.phase == "posterior" and est.k == 0
     assert a.payloads_refused == 1 and health.malformed == 1
     assert 1 in list(est.ids) and 2 not in list(est.ids), list(est.ids)
+
+
+def test_a_graph_radio_agent_waits_for_and_misses_only_its_neighbours():
+    """ci hears its graph neighbours (radio "graph"): on a chain 0 → 1 → 2 → 3 agent 0's
+    radio is satellite 1 alone; the peers it lists missing are its neighbours', never the
+    rest of the swarm's."""
+    sc = scenario(n_sats=4, graph={"kind": "chain"}, estimator={"kind": "ci"})
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
+    assert a.hears == {1}
+
+    def answer(q: Query):
+        return full_estimate_msg(initial_estimate(sc, world.truth, 0, [0]), run=RUN, sender="world", own=0, ids=[0])
+
+    d = Driver(a, clock, answer=answer)
+    d.feed(*(Event(K.alive("agent", j), "alive", j, alive=True) for j in (1, 2, 3)))
+    live = (0, 1, 2, 3)
+    for k, delivered in ((0, [1]), (1, [])):
+        world.advance(k)
+        d.take()
+        d.feed(*world.events_for(0, k, live))
+        (own,) = d.sent_on(K.meas(0))
+        assert own.k == k and list(own.target) == [1]  # it measures 1 only
+        assert not d.sent_on(K.est(0)), "the agent waits for its radio"
+        msg = step_batches_msg([world.batch(j, k) for j in delivered], run=RUN, k=k, t_s=float(k))
+        d.feed(Event(K.batches(0), "batches", 0, msg=msg))
+        (est,) = d.sent_on(K.est(0))
+        assert est.k == k and list(est.batches_used) == delivered
+        assert list(est.batches_missing) == [j for j in (1,) if j not in delivered], "only its neighbour can be missing"

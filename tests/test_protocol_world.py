@@ -399,3 +399,24 @@ def test_a_scheduled_kill_node_holds_its_step_until_every_agent_it_took_is_back(
     d.feed(_health(1))
     clocks = d.sent_on(K.clock())
     assert [c.k for c in clocks] == [1] and clocks[0].live_agents == [0, 1, 2]
+
+
+def test_graph_radio_sends_each_agent_its_neighbours_batches_only():
+    """radio "graph" (ci, pairwise): the step's radio is one message per agent on its own
+    batches/<i>, with the batches of its graph neighbours (either direction) and no other;
+    free-running, each batch goes on to its observer's neighbours as it comes."""
+    # A chain 0 → 1 → 2 → 3: 0 hears 1; 1 hears 0 and 2; 2 hears 1 and 3; 3 hears 2.
+    sc = scenario(n_sats=4, graph={"kind": "chain"})
+    d, _w, _ = started_world(sc, radio="graph")
+    d.take()
+    d.feed(*(batch(i, 0, [i + 1] if i < 3 else []) for i in range(4)))
+    assert not d.sent_on(K.batches()), "no whole-swarm message"
+    got = {i: d.sent_on(K.batches(i)) for i in range(4)}
+    assert {i: [list(m.observers) for m in ms] for i, ms in got.items()} == {0: [[1]], 1: [[0, 2]], 2: [[1, 3]], 3: [[2]]}
+    assert all(m.k == 0 for ms in got.values() for m in ms)
+    assert list(got[1][0].target) == [1, 3]  # 0's measurement of 1, then 2's of 3: the batches as sent
+    free = scenario(n_sats=4, graph={"kind": "chain"}, emulator={"time_mode": "free"})
+    d, _w, _ = started_world(free, radio="graph")
+    d.take()
+    d.feed(batch(1, 0, [2]))
+    assert sorted(s.key for s in d.take()) == sorted([K.batches(0), K.batches(2)])  # 1's neighbours, nobody else

@@ -107,7 +107,8 @@ def _forge(out: Path, forged: dict) -> None:
         s.put(keys.clock(), M.encode(M.Clock(run=run, sender="agent-0", k=4, t_s=4.0, live_agents=[0, 1, 2, 3], mode="lockstep")))
         s.put(keys.sensors(SAT), M.encode(M.Sensors(run=run, sender="world", k=5, t_s=5.0, sat=SAT, gyro_rate_B_rad_s=[0.0, math.nan, 0.0],
                                                     sigma_star_rad=1e-5, sigma_gps_m=0.01)))
-        s.put(keys.batches(), M.encode(M.StepBatches(run="another-run", sender="world", k=5, t_s=5.0)))
+        # ci hears its graph neighbours: its radio is its own batches/<i>.
+        s.put(keys.batches(SAT), M.encode(M.StepBatches(run="another-run", sender="world", k=5, t_s=5.0)))
         time.sleep(0.5)
     forged["sent"] = 4
 

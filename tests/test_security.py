@@ -79,6 +79,8 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
         meas_at_world = Witness(world, k.meas())  # the world is the radio: it hears every batch
         meas_at_agent = Witness(a1, k.meas())  # an agent hears its peers only through the radio
         radio_at_agent = Witness(a1, k.batches())
+        others_radio_at_agent = Witness(a1, k.batches(3))  # agent 3's own radio: refused to agent 1
+        own_radio_at_agent = Witness(a1, k.batches(1))  # declared after it: the control
         # Subscriptions propagate through the router: probe until the recorder sees a put.
         for _ in range(100):
             world.put(k.clock(), b"probe")
@@ -99,6 +101,10 @@ def test_the_router_refuses_strangers_and_enforces_who_may_say_what(router):
         assert k.meas(2) not in meas_at_world.seen_keys()
         # What agent 1 may hear, after the batches it may not.
         assert _until_seen(lambda: world.put(k.batches(), b"radio"), radio_at_agent, lambda key, p: p == b"radio")
+        world.put(k.batches(3), b"agent 3's radio")
+        assert _until_seen(lambda: world.put(k.batches(1), b"own radio"), own_radio_at_agent, lambda key, p: p == b"own radio")
+        assert everything.wait_for(lambda key, p: p == b"agent 3's radio")
+        assert not others_radio_at_agent.got, "an agent heard another agent's radio delivery"
         assert not meas_at_agent.got, "an agent heard a peer's batch straight off the bus"
 
         # The world puts the truth: the recorder gets it, agent 1 (subscribed) does not. The
@@ -207,6 +213,10 @@ def test_access_rules_follow_the_key_space():
     assert "swarm/r/batches" in ideal["agent-2:ingress:sub"]["key_exprs"]
     assert not any("meas" in e for e in ideal["agent-2:ingress:sub"]["key_exprs"])
     assert "swarm/r/batches" in ideal["world:ingress:put"]["key_exprs"]
+    # Or (radio "graph") its own batches/<i>, never another's.
+    assert "swarm/r/batches/2" in ideal["agent-2:ingress:sub"]["key_exprs"]
+    assert not any(e.startswith("swarm/r/batches/") and e != "swarm/r/batches/2" for e in ideal["agent-2:ingress:sub"]["key_exprs"])
+    assert "swarm/r/batches/*" in ideal["world:ingress:put"]["key_exprs"]
     assert "recorder:ingress:put" not in rules
     assert rules["cli:ingress:put"]["key_exprs"] == ["swarm/r/fault", "swarm/r/fault/cli"]
     assert not any("truth" in e for name in ("agent-0", "selector", "observer") for e in rules[f"{name}:egress:samples"]["key_exprs"])

@@ -7,9 +7,13 @@ The world owns truth and time. Lockstep step k:
    set, and each live agent's own sensors;
 3. take the selector's choice for k (or fall back when it is dead or late);
 4. publish each live agent's camera delivery (synthetic detections, or rendered images);
-5. be the radio: take every live agent's batch of k and deliver it to every agent — the
-   ideal radio puts them all in one message (``batches``), the link model
-   (``links.enabled``) gives each agent what reached it (``rx/<i>``);
+5. be the radio: take every live agent's batch of k and deliver it — the ideal radio
+   either puts them all in one message to every agent (``batches``: an estimator that
+   fuses the whole swarm's measurements) or gives each agent its graph neighbours'
+   (``batches/<i>``: an estimator whose ``radio`` is ``"graph"``, so that what an agent
+   receives does not grow with n; :func:`swarmcore.graphs.radio_peers`, which the
+   in-process simulator delivers by too); the link model (``links.enabled``) gives each
+   agent what reached it (``rx/<i>``);
 6. wait until every live agent has published its estimate for k (or the step timeout);
    optionally pace against wall time.
 
@@ -29,7 +33,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from swarmcore.graphs import edges, scenario_graph
+from swarmcore.graphs import edges, radio_peers, scenario_graph
 from swarmcore.links import LinkCounters, LinkModel, scenario_link_model
 from swarmcore.measurement import CameraModel
 from swarmcore.scenario import AGENT_PROCESS_FAULTS, CLUSTER_FAULTS, ROUTER_FAULTS, Scenario
@@ -77,7 +81,8 @@ class WorldProtocol:
     def __init__(self, sc: Scenario, run: str, cameras: CameraModel, expect_recorder: bool = True,
                  expect_selector: bool | None = None, clock: Callable[[], float] = time.monotonic,
                  agent_passwords: dict[int, str] | None = None, malformed: Callable[[], int] = lambda: 0,
-                 key_mismatch: Callable[[], int] = lambda: 0, prior_ids: Callable[[int], list[int] | None] | None = None):
+                 key_mismatch: Callable[[], int] = lambda: 0, prior_ids: Callable[[int], list[int] | None] | None = None,
+                 radio: str = "all"):
         self.sc = sc
         # Security on, agents started with --id auto: satellite i's bus password, handed to
         # the claimant given satellite i (swarmrt.security says why this is safe).
@@ -92,6 +97,10 @@ class WorldProtocol:
         self.key_mismatch = key_mismatch
         self.wp = world_params(sc)
         self.G = scenario_graph(sc)
+        # The ideal radio's deliveries: None, every batch to everyone (one message); else
+        # each agent's radio peers (radio: the agents' estimator's Estimator.radio).
+        self.hears = radio_peers(self.G, radio)
+        self.heard_by = self.hears  # the peers set is symmetric: who hears j = whom j hears
         self.truth = initial_truth(sc)
         self._ahead: tuple[TruthState, np.ndarray] | None = None  # the next step's (truth, gyro), computed ahead
         # Each agent's prior, over the satellites its estimator starts from (made when asked:
@@ -219,9 +228,14 @@ class WorldProtocol:
             if (m.k, m.observer) in self._aired:  # a copy sent again
                 return []
             if self.links is None and self.sc.emulator.time_mode == "free":
-                # The ideal radio, free-running: every batch goes on to everyone as it comes.
+                # The ideal radio, free-running: every batch goes on as it comes (to everyone,
+                # or to the agents whose radio peers include its observer).
                 self._aired.add((m.k, m.observer))
-                return [Send(self.keys.batches(), step_batches_msg([m], run=self.run_id, k=m.k, t_s=m.t_s))]
+                one = step_batches_msg([m], run=self.run_id, k=m.k, t_s=m.t_s)
+                if self.heard_by is None:
+                    return [Send(self.keys.batches(), one)]
+                to = self.heard_by[m.observer] if 0 <= m.observer < self.n else []
+                return [Send(self.keys.batches(int(j)), one) for j in to if j in self.alive_agents]
             self.batches.setdefault(m.k, {})[m.observer] = (m, 0 if self.links is None else radio_bytes(m))
             self._new_batch = True
         elif ev.kind == "select":
@@ -472,15 +486,21 @@ class WorldProtocol:
 
     def _relay(self, k: int, t: float, live: list[int]):
         """The ideal radio of step k (lockstep): every live agent's batch of k, to every
-        agent, in one message (an empty one too: every agent waits for it). A batch that
-        comes after its step's message went out is too late for anyone and is dropped."""
+        agent, in one message; or (``radio: graph``) to each agent its radio peers' batches
+        on its own ``batches/<i>`` (an empty message too: every agent waits for one). A batch
+        that comes after its step's message went out is too late for anyone and is dropped."""
         yield from self._batches_in(k, live)
         got = self.batches.pop(k, {})
         for s in [s for s in self.batches if s < k]:
             late = self.batches.pop(s)
             log.warning("step %d: batches of step %d from %s came after their step; dropped", k, s, sorted(late))
         self._aired.update((k, i) for i in got)
-        yield Send(self.keys.batches(), step_batches_msg([m for m, _size in got.values()], run=self.run_id, k=k, t_s=t))
+        if self.hears is None:
+            yield Send(self.keys.batches(), step_batches_msg([m for m, _size in got.values()], run=self.run_id, k=k, t_s=t))
+            return
+        for i in sorted(j for j in self.alive_agents | set(live) if 0 <= j < self.n):
+            mine = [got[j][0] for j in self.hears[i].tolist() if j in got]
+            yield Send(self.keys.batches(i), step_batches_msg(mine, run=self.run_id, k=k, t_s=t))
 
     def _radio(self, k: int, t: float, live: list[int]):
         """The radio channel of step k (lockstep): take every live agent's batch of k, hand

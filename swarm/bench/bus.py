@@ -369,12 +369,37 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
             a, b = cpu_marks[2], cpu_marks[last_k]
             role_ms = {r: 1e3 * (b.get(r, 0.0) - a.get(r, 0.0)) / (last_k - 2) for r in sorted(set(a) | set(b))}
         total = time.perf_counter() - t_start
-        from swarmrt.bus.messages import MessageError, decode
+        from swarmrt.bus.convert import step_batches_msg
+        from swarmrt.bus.messages import MessageError, decode, encode, parse_key
 
         clocks, est = [], []
         est_bytes: list[int] = []
         est_prefix = f"{sw.keys.root}/est/"  # the agents' own channels, not the derived /foxglove/est/<i>
+        # What the agents' subscriptions brought them (payload bytes): the clock and fault
+        # commands (every agent), its own sensors and cameras, and the radio (batches: every
+        # agent; batches/<i>, rx/<i>: agent i). And each step's batches as the one-message
+        # ideal radio would have sent them to every agent (the whole swarm's).
+        agent_in = radio_in = 0
+        meas_of: dict[int, list] = {}
         for topic, _s, data, lt, _p in iter_messages(out / "run.mcap"):
+            try:
+                _run, kind, ident = parse_key(topic)
+            except MessageError:
+                kind, ident = "", None
+            size = len(data)
+            if kind in ("clock", "fault") and topic.endswith(f"/{kind}"):
+                agent_in += size * n
+            elif kind in ("batches", "rx"):
+                agent_in += size * (n if ident is None else 1)
+                radio_in += size * (n if ident is None else 1)
+            elif kind in ("sensors", "cam", "img"):
+                agent_in += size
+            elif kind == "meas":
+                try:
+                    b = decode("meas", data)
+                except MessageError:
+                    continue
+                meas_of.setdefault(int(b.k), []).append(b)
             if topic.endswith("/clock"):
                 clocks.append(lt)
             elif topic.startswith(est_prefix):
@@ -392,6 +417,8 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
         codec_cpu = float(np.median(e[:, 2])) if len(e) else None
         share = codec_cpu / filt_cpu if codec_cpu is not None and filt_cpu else None
         traffic = [r for r in est_bytes if r > 0]
+        whole = [len(encode(step_batches_msg(sorted(ms, key=lambda b: b.observer), run=sw.run, k=k, t_s=k * sc.dt_s)))
+                 for k, ms in meas_of.items()]
         row: dict[str, Any] = {
             "n": n,
             "estimator": estimator,
@@ -403,6 +430,12 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
             "rss_peak_gib": peak["rss_bytes"] / 2**30,
             "processes": peak["processes"],
             "bytes_per_sat_per_s": float(np.mean(traffic)) / sc.dt_s if traffic else None,
+            # Received bytes per agent and step: everything its subscriptions bring, and the
+            # radio's part (its peers' batches); and the whole swarm's batches of a step in one
+            # message, which the one-message ideal radio delivers to every agent.
+            "agent_rx_bytes_per_step": agent_in / (n * sc.steps),
+            "agent_radio_rx_bytes_per_step": radio_in / (n * sc.steps),
+            "whole_swarm_batches_bytes_per_step": float(np.mean(whole)) if whole else None,
             "sim_seconds": duration_s,
             "stepping_wall_s": wall,
             "realtime_factor": duration_s / wall if wall > 0 else None,
@@ -427,6 +460,9 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
             f"{_ms(row['realtime_factor'], spec='.1f')}×, start-up {startup:.1f} s (total {total:.1f} s); agent per step: filter "
             f"{_ms(filt_cpu)} ms CPU, messages {_ms(codec_cpu)} ms CPU ({_ms(share, 100, '.0f')} % of the filter)"
         )
+        log(f"  received per agent and step: {row['agent_rx_bytes_per_step']:.0f} B, of which the radio (peers' batches) "
+            f"{row['agent_radio_rx_bytes_per_step']:.0f} B (the whole swarm's batches in one message: "
+            f"{_ms(row['whole_swarm_batches_bytes_per_step'], spec='.0f')} B)")
         if role_ms:
             log("  CPU per step by role: " + ", ".join(f"{r} {v:.0f} ms" for r, v in sorted(role_ms.items(), key=lambda kv: -kv[1]))
                 + f" (total {sum(role_ms.values()):.0f} ms)")

@@ -134,8 +134,8 @@ def load_evidence(path: str | Path, run: str, sat: int, n: int) -> Evidence:
             ev.from_me[topic] = ev.from_me.get(topic, 0) + 1
         if kind not in ("clock", "est", "meas", "health", "batches", "rx", "fault", "links"):
             continue
-        if kind in ("rx",) and ksat != sat:
-            continue
+        if kind in ("rx", "batches") and ksat is not None and ksat != sat:
+            continue  # another agent's radio (rx/<j>, batches/<j>)
         try:
             msg = receive(topic, data, run, n_sats=n).msg  # checked as every receiver of the swarm checks it
         except MessageError as exc:

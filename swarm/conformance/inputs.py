@@ -53,10 +53,13 @@ def _enc(msg) -> bytes:
     return M.encode(msg)
 
 
-def injections(run: str, sat: int, n: int, k: int) -> list[Injection]:
+def injections(run: str, sat: int, n: int, k: int, radio: str | None = None) -> list[Injection]:
     """What the kit puts on agent ``sat``'s inputs when the run is at step ``k`` (a swarm
-    of ``n``; the peer it names is ``(sat + 1) % n``)."""
+    of ``n``; the peer it names is ``(sat + 1) % n``). ``radio``: the key its ideal radio
+    delivers on (default ``batches``; ``batches/<sat>`` for an estimator that hears its
+    graph neighbours)."""
     keys = M.Keys(run)
+    radio = radio or keys.batches()
     peer = (sat + 1) % n
     nxt = k + 1
     sensors_v2 = _sensors(run, nxt, sat)
@@ -67,7 +70,7 @@ def injections(run: str, sat: int, n: int, k: int) -> list[Injection]:
         Injection("sensors: bytes that are no protobuf", keys.sensors(sat), b"\xff\xff\xff\xff\xff\xff\xff\xff\xff\xff\x01", False),
         Injection("sensors: schema_version 2", keys.sensors(sat), sensors_v2.SerializeToString(), False),
         Injection("cam: t_s not finite", keys.cam(sat), _enc(cam_nan), False),
-        Injection("batches: counts that do not add up", keys.batches(),
+        Injection("batches: counts that do not add up", radio,
                   _enc(_batches(run, nxt, peer, sat, counts=[2])), False),
         Injection("clock: another run's id, done", keys.clock(),
                   _enc(M.Clock(run="not-this-run", sender="world", k=nxt, t_s=float(nxt), live_agents=[sat], mode="lockstep",
@@ -82,7 +85,7 @@ def injections(run: str, sat: int, n: int, k: int) -> list[Injection]:
         Injection(f"fault command from agent-{peer}: drop all of {sat}'s messages", keys.fault(),
                   _enc(M.Fault(run=run, sender=f"agent-{peer}", k=k, t_s=float(k), action="drop", phase="command", target=sat,
                                rate=1.0)), True),
-        Injection(f"batches from agent-{peer}", keys.batches(),
+        Injection(f"batches from agent-{peer}", radio,
                   _enc(_batches(run, nxt, peer, sat, sender=f"agent-{peer}")), True),
     ]
     return out

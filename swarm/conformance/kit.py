@@ -30,10 +30,12 @@ import zenoh
 
 from swarm.conformance.evidence import Evidence, load_evidence
 from swarm.supervise.launch import LocalSwarm
+from swarmcore.graphs import radio_peers, scenario_graph
 from swarmcore.scenario import Scenario
 from swarmrt.bus.messages import Keys, MessageError
 from swarmrt.bus.receive import receive
 from swarmrt.bus.session import BusConfig
+from swarmrt.estimators import check_estimator
 
 __all__ = ["Kit", "CaseRun", "CASES", "CASE_NAMES", "kit_scenario", "DEFAULT_SCENARIO"]
 
@@ -373,7 +375,8 @@ def drive_inputs(kit: Kit, sw: KitSwarm, notes: dict) -> None:
             notes["inject"] = {"error": f"the run never reached step 2 (last clock seen: {steps.k})"}
             return
         k = steps.k
-        items = injections(sw.run, kit.sat, kit.n, k)
+        hears = radio_peers(scenario_graph(sw.sc), check_estimator(sw.sc).radio)  # its radio: batches or batches/<sat>
+        items = injections(sw.run, kit.sat, kit.n, k, Keys(sw.run).batches(None if hears is None else kit.sat))
         self_check(items, kit.n)
         for it in items:
             world.session.put(it.key, it.payload)

@@ -106,11 +106,18 @@ def foreign_agent_env(sc: Scenario, sat: int, run: str, bus: BusConfig, out: Pat
 
 def write_scenario_json(sc: Scenario, path: Path) -> Path:
     """The resolved scenario as JSON, with ``derived``: numbers the scenario implies
-    (``gate_threshold``: the χ²(6) quantile of filter.gate, null when the gate is off)."""
+    (``gate_threshold``: the χ²(6) quantile of filter.gate, null when the gate is off;
+    ``radio_peers``: for each satellite, the peers whose batches the ideal radio sends it on
+    its own ``batches/<i>``, or null when every agent hears everyone on ``batches``)."""
     import json
 
+    from swarmcore.graphs import radio_peers, scenario_graph
+    from swarmrt.estimators import check_estimator
+
+    hears = None if sc.links.enabled else radio_peers(scenario_graph(sc), check_estimator(sc).radio)
     doc = sc.model_dump(mode="json")
-    doc["derived"] = {"gate_threshold": sc.filter.gate.threshold(), "steps": sc.steps}
+    doc["derived"] = {"gate_threshold": sc.filter.gate.threshold(), "steps": sc.steps,
+                      "radio_peers": None if hears is None else [h.tolist() for h in hears]}
     path.write_text(json.dumps(doc, indent=1) + "\n")
     return path
 

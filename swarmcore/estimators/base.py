@@ -217,6 +217,12 @@ class Estimator(ABC):
     warm_rejoin: ClassVar[bool] = False
     #: Version of its message's layout (recorded with every message).
     message_version: ClassVar[int] = 1
+    #: Whose batches the ideal radio delivers to it (:func:`swarmcore.graphs.radio_peers`):
+    #: ``"all"`` (every live peer's; the default, so a plug-in that says nothing keeps
+    #: hearing the whole swarm) or ``"graph"`` (only its measurement graph's neighbours, in
+    #: and out: an estimator that uses nothing but the measurements involving its own
+    #: satellite and the messages of their other ends).
+    radio: ClassVar[str] = "all"
 
     @property
     def hears_peer_absolute(self) -> bool:

@@ -174,6 +174,7 @@ class _Kept:
 
 class CIEstimator(OwnStateEstimator):
     kind = "ci"
+    radio = "graph"  # it fuses only measurements involving its satellite, with their other end's estimate
     Params = CIParams
 
     def __init__(self, sc, own: int, params: CIParams | None = None):

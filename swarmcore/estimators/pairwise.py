@@ -76,6 +76,7 @@ class PairwiseState:
 
 class PairwiseEstimator(OwnStateEstimator):
     kind = "pairwise"
+    radio = "graph"  # it meets only graph neighbours and reads only their messages
     Params = PairwiseParams
 
     def __init__(self, sc, own: int, params: PairwiseParams | None = None):

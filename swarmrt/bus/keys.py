@@ -109,9 +109,11 @@ class Keys:
     def rx(self, i: int | str = "*") -> str:
         return f"{self.root}/rx/{i}"
 
-    def batches(self) -> str:
-        """Every batch of a step, from the ideal radio (links.enabled false) to every agent."""
-        return f"{self.root}/batches"
+    def batches(self, i: int | str | None = None) -> str:
+        """The ideal radio (links.enabled false): every batch of a step, to every agent
+        (``batches``); or what agent i's radio delivers, its graph neighbours' batches
+        (``batches/<i>``, an estimator whose ``radio`` is ``"graph"``)."""
+        return f"{self.root}/batches" if i is None else f"{self.root}/batches/{i}"
 
     def links(self) -> str:
         return f"{self.root}/links"
@@ -136,7 +138,7 @@ _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
     r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)(?:/[A-Za-z0-9_.-]+)?|(?P<truth>truth)|(?P<links>links)|(?P<batches>batches)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
-    r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin)/(?P<id>\d+)(?:/\d+/\d+)?"
+    r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin|batches)/(?P<id>\d+)(?:/\d+/\d+)?"
     r"|claim/(?P<token>[^/]+)"
     r"|alive/(?P<role>[^/]+)/(?P<ident>[^/]+))$"
 )
@@ -186,14 +188,15 @@ class Grants(NamedTuple):
 
 def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
     """The single table of who may say what. Agents hear their peers' batches only through
-    the world, the radio: ``batches`` (the ideal radio) or, when the scenario's ``links``
-    are on, their own ``rx/<i>``; never another agent's ``meas/<j>``."""
+    the world, the radio: ``batches`` or their own ``batches/<i>`` (the ideal radio) or,
+    when the scenario's ``links`` are on, their own ``rx/<i>``; never another agent's
+    ``meas/<j>`` or ``batches/<j>``."""
     k = keys
     alive = f"{k.root}/alive/**"
     if identity == "world":
         return Grants(
             put=(k.clock(), k.sensors("*"), k.cam("*"), k.img("*"), k.truth(), k.links(), k.rx("*"), k.batches(),
-                 k.rejoin("*"), k.select(), k.fault(), k.fault_report("world")),
+                 k.batches("*"), k.rejoin("*"), k.select(), k.fault(), k.fault_report("world")),
             sub=(k.est(), k.health(), k.select(), k.faults(), k.meas()),
             serve=(k.init(), k.claim(), k.rejoin("*") + "/*/*"),
             token=(k.alive("world"),), watch=(alive,))
@@ -201,7 +204,7 @@ def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
         i = int(m[1])
         return Grants(
             put=(k.meas(i), k.est(i), k.health(i), k.fault_report(identity)),
-            sub=(k.clock(), k.sensors(i), k.cam(i), k.img(i), k.rx(i) if links else k.batches(), k.fault()),
+            sub=(k.clock(), k.sensors(i), k.cam(i), k.img(i), *((k.rx(i),) if links else (k.batches(), k.batches(i))), k.fault()),
             query=(k.init(i), k.cov(), k.rejoin(i, "*", "*")),
             serve=(k.cov(i),), token=(k.alive("agent", i),), watch=(alive,))
     if identity == "selector":

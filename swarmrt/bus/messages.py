@@ -44,8 +44,10 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/sat/<i>/img          world → agent i       Images  (rendered scenarios)
     swarm/<run>/meas/<i>             agent i → the radio   MeasBatch (the world, the recorder; with the
                                                            selector or a tool that asks for them)
-    swarm/<run>/batches              world → all agents    StepBatches (links.enabled false: the ideal
-                                                           radio's every batch of a step, one message)
+    swarm/<run>/batches              world → all agents    StepBatches (links.enabled false, an estimator whose
+                                                           radio is "all": every batch of a step, one message)
+    swarm/<run>/batches/<i>          world → agent i       StepBatches (links.enabled false, radio "graph": the
+                                                           batches of i's graph neighbours, its radio's delivery)
     swarm/<run>/est/<i>              agent i → all         Estimate
     swarm/<run>/cov/<i>              agent i (queryable)   FullEstimate
     swarm/<run>/init/<i>             world (queryable)     FullEstimate (the prior)

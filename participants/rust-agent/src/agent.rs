@@ -4,7 +4,8 @@
 //! 1. wait for its own sensors and camera delivery of k (when the clock lists it live);
 //! 2. predict to k, measure its detections, transmit them with its estimator's message as
 //!    one batch (`meas/<i>`: an empty one too) to the radio, which the world emulates;
-//! 3. wait for the radio's batches of k (`batches`: every live peer's, one message);
+//! 3. wait for the radio's batches of k (`batches`: every live peer's, one message; or,
+//!    with `derived.radio_peers`, its radio peers' on its own `batches/<i>`);
 //! 4. run the `ci` step and publish the estimate (`est/<i>`) and a health report
 //!    (`health/<i>`).
 //!
@@ -670,10 +671,13 @@ impl Agent {
         Ok(received)
     }
 
-    /// The ideal radio in lockstep: one message with every live peer's batch of k.
+    /// The ideal radio in lockstep: one message with every live peer's batch of k (or, with
+    /// `derived.radio_peers`, with its live radio peers', on its own `batches/<i>`).
     fn ideal_radio(&mut self, k: u64, clock: &Clock, timeout: f64) -> Result<Vec<Received>, Exit> {
         let i = self.st.i;
-        let expected: Vec<u32> = clock.live_agents.iter().copied().filter(|&j| j as usize != i).collect();
+        let peers = self.st.sc.radio_peers.as_ref().map(|rp| &rp[i]);
+        let expected: Vec<u32> =
+            clock.live_agents.iter().copied().filter(|&j| j as usize != i && peers.is_none_or(|p| p.contains(&j))).collect();
         self.wait_for(|st| st.radio.contains_key(&k), timeout)?;
         let got = self.st.radio_obs.get(&k).cloned().unwrap_or_default();
         self.st.missing = expected.into_iter().filter(|j| !got.contains(j)).collect();

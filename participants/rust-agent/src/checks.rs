@@ -634,6 +634,7 @@ pub fn parse_key(key: &str) -> Option<(String, String, Option<u32>)> {
     let (kind, sat) = match parts.as_slice() {
         ["clock"] => ("clock", None),
         ["batches"] => ("batches", None),
+        ["batches", s] => ("batches", Some(num(s)?)),
         ["rx", s] => ("rx", Some(num(s)?)),
         ["fault"] => ("fault", None),
         ["fault", _] => ("fault", None),
@@ -655,6 +656,8 @@ mod tests {
         assert_eq!(parse_key("swarm/r1/fault/agent-2").map(|x| x.1), Some("fault".into()));
         assert_eq!(parse_key("swarm/r1/sat/x/cam"), None);
         assert_eq!(parse_key("swarm/r1/est/3"), None);
+        assert_eq!(parse_key("swarm/r1/batches/3"), Some(("r1".into(), "batches".into(), Some(3))));
+        assert_eq!(parse_key("swarm/r1/batches/x"), None);
     }
 
     /// Valid messages of every kind this agent reads, mutated (bytes flipped, cut, spliced)

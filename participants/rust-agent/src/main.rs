@@ -129,8 +129,15 @@ fn main() {
     let root = format!("swarm/{run}");
     let setup = (|| -> Result<(), String> {
         // What satellite i may hear: the clock, its own sensors and cameras, the ideal
-        // radio's batches, fault commands; liveliness of agents, the world and the recorder.
-        let radio = if sc.links_enabled { format!("rx/{sat}") } else { "batches".into() };
+        // radio's batches (every peer's on batches, or its radio peers' on batches/<i>),
+        // fault commands; liveliness of agents, the world and the recorder.
+        let radio = if sc.links_enabled {
+            format!("rx/{sat}")
+        } else if sc.radio_peers.is_some() {
+            format!("batches/{sat}")
+        } else {
+            "batches".into()
+        };
         for tail in ["clock".to_string(), format!("sat/{sat}/sensors"), format!("sat/{sat}/cam"), radio, "fault".into()] {
             node.subscribe(&format!("{root}/{tail}"))?;
         }

@@ -49,6 +49,10 @@ pub struct Scenario {
     pub emulator: Emulator,
     /// `links.enabled`: the peers' batches come as the link model's deliveries (`rx/<i>`).
     pub links_enabled: bool,
+    /// The ideal radio's peers of every satellite (`derived.radio_peers`, the world's
+    /// `swarmcore.graphs.radio_peers`): each agent is sent its peers' batches on its own
+    /// `batches/<i>`. None (null or absent): every peer's batches, on `batches`.
+    pub radio_peers: Option<Vec<Vec<u32>>>,
 }
 
 /// The JSON text with every number token quoted (strings untouched).
@@ -122,6 +126,25 @@ impl Doc {
 
     fn b(&self, path: &str) -> Result<bool, String> {
         self.get(path)?.as_bool().ok_or_else(|| format!("scenario: {path} is not true or false"))
+    }
+
+    /// A list of lists of satellite ids, or None (null or absent).
+    fn opt_id_lists(&self, path: &str) -> Result<Option<Vec<Vec<u32>>>, String> {
+        let v = match self.get(path) {
+            Err(_) | Ok(Value::Null) => return Ok(None),
+            Ok(v) => v,
+        };
+        let rows = v.as_array().ok_or_else(|| format!("scenario: {path} is not a list"))?;
+        let mut out = Vec::with_capacity(rows.len());
+        for (i, row) in rows.iter().enumerate() {
+            let ids = row.as_array().ok_or_else(|| format!("scenario: {path}.{i} is not a list"))?;
+            let mut r = Vec::with_capacity(ids.len());
+            for (k, x) in ids.iter().enumerate() {
+                r.push(x.as_str().and_then(|s| s.parse().ok()).ok_or_else(|| format!("scenario: {path}.{i}.{k} is not a satellite id"))?);
+            }
+            out.push(r);
+        }
+        Ok(Some(out))
     }
 
     fn f3(&self, path: &str) -> Result<[f64; 3], String> {
@@ -251,8 +274,15 @@ impl Scenario {
         if !(2..=10_000).contains(&n_sats) {
             return Err(format!("n_sats: {n_sats}"));
         }
+        let radio_peers = d.opt_id_lists("derived.radio_peers")?;
+        if let Some(rp) = &radio_peers {
+            if rp.len() != n_sats || rp.iter().flatten().any(|&j| j as usize >= n_sats) {
+                return Err(format!("derived.radio_peers: {} lists, expected one per satellite (0..{n_sats})", rp.len()));
+            }
+        }
         Ok(Scenario {
             links_enabled,
+            radio_peers,
             name: d.s("name")?.to_string(),
             seed: d.u("seed")?,
             n_sats,
