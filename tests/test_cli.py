@@ -151,3 +151,34 @@ def test_sim_runs_the_rendered_monocular_scenario(tmp_path):
     assert s["n_sats"] == 5 and s["gate"]["accepted"] > 50
     # Measurements from images: of the dissertation's order at these ranges.
     assert s["rms_second_half"]["others"]["pos_m"] < 0.05 and s["rms_second_half"]["others"]["att_rad"] < 0.01
+
+
+@pytest.mark.slow
+def test_starfox_study_runs_both_configurations_and_refuses_an_unknown_one(tmp_path):
+    """`swarm starfox` (the StarFOX-like study, once a script): one seed of each configuration
+    in-process, its JSON (per run and aggregate) and figure written; the same seed gives the
+    same numbers as a direct call of the study's run function; an unknown configuration is a
+    usage error that names it."""
+    from typer.testing import CliRunner
+
+    from swarm.cli import app
+    from swarm.studies.starfox import KEYS, one_run
+
+    root = Path(__file__).resolve().parents[1]
+    scenario, sets = str(root / "scenarios" / "starfox.yaml"), ["duration_s=300"]
+    r = CliRunner().invoke(app, ["starfox", scenario, "--runs", "1", "--workers", "1", "--out", str(tmp_path),
+                                 *[a for s in sets for a in ("--set", s)]], prog_name="swarm")
+    assert r.exit_code == 0, r.output
+    doc = json.loads((tmp_path / "starfox.json").read_text())
+    assert (tmp_path / "percent-of-range.png").stat().st_size > 10_000
+    assert [p["config"] for p in doc["per_run"]] == ["single", "several"] and doc["failed"] == []
+    for c in ("single", "several"):
+        agg = doc["aggregate"][c]
+        assert agg["runs"] == 1 and all(np.isfinite(agg[k]["mean"]) for k in KEYS), agg
+    seed = doc["per_run"][0]["seed"]
+    again = one_run((scenario, "single", seed, sets))
+    assert {k: again[k] for k in KEYS} == {k: doc["per_run"][0][k] for k in KEYS}
+    # satellite 0 alone sees less than the whole swarm: its relative error is the larger
+    assert doc["aggregate"]["single"]["err_pct"]["mean"] > doc["aggregate"]["several"]["err_pct"]["mean"]
+    bad = CliRunner().invoke(app, ["starfox", scenario, "--configs", "single,lonely", "--out", str(tmp_path / "x")], prog_name="swarm")
+    assert bad.exit_code == 2 and "lonely" in bad.output, bad.output

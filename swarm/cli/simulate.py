@@ -1,7 +1,8 @@
-"""In-process commands: ``sim``, ``mc``, ``compare``, ``links-study``."""
+"""In-process commands: ``sim``, ``mc``, ``compare``, ``links-study``, ``compare-estimators``, ``starfox``."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import typer
@@ -313,3 +314,49 @@ def compare_estimators(
         console.print(t)
     console.print(f"wrote {out / 'compare_estimators.md'}, {out / 'compare_estimators.json'} and {out / 'estimators.png'}")
     _report_failed([(f"{f['condition']}/{f['estimator']} seed {f['seed']}", f["error"]) for f in doc["failed"]], "runs", out, "run")
+
+
+@app.command()
+def starfox(
+    scenario: Path = typer.Argument(Path("scenarios/starfox.yaml"), help="scenario YAML file (a StarFOX-like long-range swarm)"),
+    out: Path = typer.Option(Path("runs/starfox"), "--out", "-o", help="folder for starfox.json and percent-of-range.png"),
+    runs: int = typer.Option(20, "--runs", "-r", min=1, help="seeds per configuration (run i has seed S + i)"),
+    configs: str = typer.Option("single,several", "--configs", help="comma-separated: single (satellite 0 the only observer), "
+                                "several (every satellite observes every other)"),
+    workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
+    sets: list[str] | None = SetOpt,
+    cluster: str | None = ClusterOpt,
+):
+    """Angles-only relative navigation at long range, one observer against several (the
+    StarFOX flight's comparison): satellite 0's relative position error and 1σ as a
+    percentage of range over the second half of each run, and the consistency (NEES) of
+    its filter. Writes OUT/starfox.json (every run and the aggregate) and
+    OUT/percent-of-range.png (median and 10–90 % band over time)."""
+    from swarm.studies.executor import open_executor
+    from swarm.studies.starfox import CONFIGS, plot, run_starfox
+
+    _load(scenario, sets)  # a bad file or field is a usage error before anything runs
+    cs = tuple(c.strip() for c in configs.split(",") if c.strip())
+    if not cs or any(c not in CONFIGS for c in cs):
+        console.print(f"[red]error:[/red] --configs {configs!r}: expected some of {', '.join(CONFIGS)}", highlight=False)
+        raise typer.Exit(2)
+    out.mkdir(parents=True, exist_ok=True)
+    with _study(open_executor, workers, cluster) as ex, _progress() as prog:
+        task = prog.add_task(f"starfox {scenario.name} {len(cs)}×{runs}", total=len(cs) * runs)
+        doc = _study(run_starfox, scenario, runs, ex, cs, tuple(sets or ()), progress=lambda k, K: prog.update(task, completed=k))
+    (out / "starfox.json").write_text(json.dumps(doc, indent=1))
+    plot(doc["per_run"], cs, out / "percent-of-range.png")
+    t = Table(title=f"{scenario.name}: satellite 0's filter, second half ({runs} seeds; mean, median in brackets)")
+    for col in ("observers", "runs", "|Δr| / range %", "1σ / range %", "rel NEES_pos/3", "abs NEES_pos/3", "pose NEES/6", "range km"):
+        t.add_column(col, justify="right" if col != "observers" else "left")
+    for c in cs:
+        a = doc["aggregate"][c]
+        t.add_row(c, str(a["runs"]), f"{a['err_pct']['mean']:.3f} ({a['err_pct']['median']:.3f})", f"{a['sigma_pct']['mean']:.3f}",
+                  f"{a['nees_pos']['mean']:.2f} ({a['nees_pos']['median']:.2f})", f"{a['nees_pos_abs']['mean']:.2f}",
+                  f"{a['nees6']['mean']:.2f}", f"{a['range_km']['mean']:.1f}")
+    console.print(t)
+    console.print(f"wrote {out / 'starfox.json'} and {out / 'percent-of-range.png'}")
+    if doc["failed"]:
+        for f in doc["failed"]:
+            console.print(f"[red]failed run {f['run']}:[/red] {f['error']}", highlight=False)
+        raise typer.Exit(1)

@@ -1,6 +1,6 @@
-"""StarFOX-like study (issue 25): angles-only relative navigation, one observer vs several.
+"""StarFOX-like study (``swarm starfox``): angles-only relative navigation, one observer vs several.
 
-Flies ``scenarios/starfox.yaml`` (or another file) over R seeds in two configurations:
+Flies ``scenarios/starfox.yaml`` (or another file) in-process over R seeds in two configurations:
 
 * ``several``: every satellite observes every other (graph.kind complete);
 * ``single``: satellite 0 (the one with GPS) is the only observer (graph.kind matrix, row 0),
@@ -15,25 +15,30 @@ of satellites 1..n−1 relative to itself (what StarFOX's figure is about):
 * ``nees6``: the run summary's pose NEES / 6 over every filter and satellite (includes the
   other satellites' attitudes, which bearings do not observe: they drift, nonlinearly).
 
-Mean and spread over the seeds go to stdout and to ``--out`` (JSON).
-
-    .venv/bin/python scripts/starfox_study.py --runs 20 --out /tmp/starfox.json
+:func:`run_starfox` returns each run and the mean, spread and median over the seeds of each
+configuration; ``swarm starfox`` prints them, writes them as JSON and draws :func:`plot`.
+The runs go through the studies' executors (:func:`swarm.studies.executor.open_executor`:
+the local pool or a Dask scheduler), each with its seed, so the numbers do not depend on
+where or in which order they ran.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
-import sys
-from multiprocessing import Pool
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
 from swarm.simulation import simulate_scenario
 from swarmrt.scenario_files import load_scenario
+
+__all__ = ["CONFIGS", "KEYS", "one_run", "run_starfox", "plot"]
+
+#: The two configurations: satellite 0 the only observer, or every satellite observing every other.
+CONFIGS = ("single", "several")
+#: The per-run numbers aggregated over the seeds.
+KEYS = ("err_pct", "sigma_pct", "nees_pos", "nees_pos_abs", "nees6", "range_km")
 
 
 def single_observer(n: int) -> list[str]:
@@ -86,43 +91,38 @@ def one_run(args: tuple[str, str, int, list[str]]) -> dict:
             "gate_rejected": int(summ["gate"]["rejected"]) if "gate" in summ else None, "series": series}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scenario", nargs="?", default="scenarios/starfox.yaml")
-    ap.add_argument("--runs", type=int, default=20)
-    ap.add_argument("--workers", type=int, default=2)
-    ap.add_argument("--out", default=None)
-    ap.add_argument("--set", action="append", default=[], help="scenario override dotted.key=value")
-    ap.add_argument("--configs", default="single,several")
-    ap.add_argument("--plot", default=None, help="PNG: error and 1σ as a percentage of range over time, per configuration")
-    a = ap.parse_args()
-    base = load_scenario(a.scenario, a.set).seed
-    tasks = [(a.scenario, c, base + r, a.set) for c in a.configs.split(",") for r in range(a.runs)]
-    with Pool(a.workers) as pool:
-        results = []
-        for res in pool.imap_unordered(one_run, tasks):
-            results.append(res)
-            print(json.dumps({k: v for k, v in res.items() if k != "series"}), flush=True)
+def run_starfox(scenario: str | Path, runs: int, executor, configs: tuple[str, ...] = CONFIGS, sets: tuple[str, ...] = (),
+                progress: Callable[[int, int], None] = lambda k, K: None, log: Callable[[str], None] = lambda s: None) -> dict:
+    """``runs`` seeds (the scenario's seed + r) of each configuration on ``executor``; returns
+    ``{"per_run": [...], "aggregate": {config: {"runs", key: {"mean", "std", "median"}}}, "failed": [...]}``."""
+    if bad := [c for c in configs if c not in CONFIGS]:
+        raise ValueError(f"unknown configuration(s) {bad}: expected some of {list(CONFIGS)}")
+    base = load_scenario(scenario, list(sets)).seed
+    tasks = [(str(scenario), c, base + r, list(sets)) for c in configs for r in range(runs)]
+    for t in tasks:
+        executor.submit(f"{t[1]}/{t[2]}", one_run, t)
+    results, failed = [], []
+    for done, o in enumerate(executor.as_completed(), start=1):
+        if o.ok:
+            results.append(o.result)
+            log(json.dumps({k: v for k, v in o.result.items() if k != "series"}))
+        else:
+            failed.append({"run": o.key, "error": o.error})
+        progress(done, len(tasks))
+    results.sort(key=lambda r: (configs.index(r["config"]), r["seed"]))
     out = {}
-    for c in a.configs.split(","):
+    for c in configs:
         rs = [r for r in results if r["config"] == c]
         agg = {}
-        for key in ("err_pct", "sigma_pct", "nees_pos", "nees_pos_abs", "nees6", "range_km"):
+        for key in KEYS:
             v = np.array([r[key] for r in rs])
-            agg[key] = {"mean": float(v.mean()), "std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
-                        "median": float(np.median(v))}
+            agg[key] = {"mean": float(v.mean()) if v.size else float("nan"), "std": float(v.std(ddof=1)) if v.size > 1 else 0.0,
+                        "median": float(np.median(v)) if v.size else float("nan")}
         out[c] = {"runs": len(rs), **agg}
-        print(f"{c:8s} runs {len(rs):3d}  |Δr|/range {agg['err_pct']['mean']:.3f} % (median {agg['err_pct']['median']:.3f})  "
-              f"1σ/range {agg['sigma_pct']['mean']:.3f} %  rel NEES_pos/3 {agg['nees_pos']['mean']:.2f} (median {agg['nees_pos']['median']:.2f})  "
-              f"abs NEES_pos/3 {agg['nees_pos_abs']['mean']:.2f}  pose NEES/6 {agg['nees6']['mean']:.2f}  "
-              f"range {agg['range_km']['mean']:.1f} km")
-    if a.out:
-        Path(a.out).write_text(json.dumps({"per_run": results, "aggregate": out}, indent=1))
-    if a.plot:
-        plot(results, a.configs.split(","), a.plot)
+    return {"per_run": results, "aggregate": out, "failed": failed}
 
 
-def plot(results: list[dict], configs: list[str], path: str) -> None:
+def plot(results: list[dict], configs: tuple[str, ...] | list[str], path: str | Path) -> None:
     """Median over the seeds (and the 10–90 % band) of satellite 0's relative position error
     and of its 1σ, as a percentage of range, over time: StarFOX's figure, one observer
     against several."""
@@ -156,7 +156,4 @@ def plot(results: list[dict], configs: list[str], path: str) -> None:
     ax.legend(fontsize=8, loc="upper right")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-
-
-if __name__ == "__main__":
-    main()
+    plt.close(fig)
