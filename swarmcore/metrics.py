@@ -262,7 +262,8 @@ def bus_summary(bus: BusRecord, sc: Scenario) -> dict:
         **({"bus_latency_ms": lat} if (lat := bus.latency_ms()) else {}),
         "faults": bus.faults,
         "selector_fallback_steps": bus.fallback_steps,
-        "messages": {**bus.counts, **({"not_recorded_over_the_flood_cap": bus.not_recorded} if bus.not_recorded else {})},
+        "messages": {**bus.counts, **({"not_recorded_over_the_flood_cap": bus.not_recorded} if bus.not_recorded else {}),
+                     **({"resent_not_written": bus.resent_not_written} if bus.resent_not_written else {})},
         "security": security_summary(sc.emulator.security, bus.dropped),
         **({"bus_gaps": bus.gaps} if bus.gaps else {}),
     }

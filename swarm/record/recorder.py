@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import logging
 import sys
 import threading
@@ -66,14 +67,16 @@ class _LinkChange:
         self.wall_ns = time.time_ns()
 
 
-#: The flood cap: the most messages the recorder writes of one key and step, and the most
-#: malformed ones of one key. A run puts one message per key and step, a few more when the
-#: bus came back (each role sends its step again); a flood (a stolen credential putting on its
-#: own keys as fast as it can, under the router's size limits) is cut there and counted. A
-#: message of a step beyond the run is malformed. So a recording holds at most
-#: PER_STEP · (K + 1) well-formed messages per key, each within its key's size limit on the
-#: router (``swarmrt.security.size_limit_of``), and MALFORMED_PER_KEY malformed ones, each
-#: kept to its first 64 KiB.
+#: The flood cap: the most messages of different content the recorder writes of one key and
+#: step, and the most malformed ones of one key. A run puts one message per key and step; when
+#: the bus came back each role sends its step again: those resends (same key, step and
+#: content as a message already recorded) are not written again and not counted against the
+#: cap, but counted apart (``messages.resent_not_written`` in summary.json); a flood (a stolen
+#: credential putting on its own keys as fast as it can, under the router's size limits) is
+#: cut at the cap and counted. A message of a step beyond the run is malformed. So a recording
+#: holds at most PER_STEP · (K + 1) well-formed messages per key, each within its key's size
+#: limit on the router (``swarmrt.security.size_limit_of``), and MALFORMED_PER_KEY malformed
+#: ones, each kept to its first 64 KiB.
 FLOOD_CAP_PER_STEP = 8
 FLOOD_CAP_MALFORMED_PER_KEY = 200
 
@@ -96,7 +99,10 @@ class Recorder:
         # The flood cap (above): messages written per (key, step) and malformed ones per key,
         # and those over it not written, per key.
         self.steps = scenario.steps if scenario is not None else None
-        self._per_key_step: dict[tuple[str, int], int] = {}
+        # (key, step) → the digest of the one message of it written, or the set of them when
+        # several of different content were (a single digest keeps the common case small).
+        self._per_key_step: dict[tuple[str, int], bytes | set[bytes]] = {}
+        self.resent: dict[str, int] = {}  # key → messages identical to one already written, not written again
         self._malformed_per_key: dict[str, int] = {}
         self.not_recorded: dict[str, int] = {}
         self._subs = [
@@ -175,6 +181,7 @@ class Recorder:
 
     def record(self, s) -> None:
         now = s.received_ns or time.time_ns()
+        resend = False  # the same key, step and content as a message already written: only counted
         published = s.published_ns if s.published_ns is not None else now
         try:
             # Any swarm size (no n_sats): ids up to MAX_SAT_ID, the recording keeps what it heard.
@@ -193,10 +200,20 @@ class Recorder:
             if self.steps is not None and k_msg is not None:
                 if k_msg > self.steps:
                     raise MessageError(f"step {k_msg}: beyond the run's {self.steps} steps")
-                seen = self._per_key_step[(s.key, k_msg)] = self._per_key_step.get((s.key, k_msg), 0) + 1
-                if seen > FLOOD_CAP_PER_STEP:
-                    self.not_recorded[s.key] = self.not_recorded.get(s.key, 0) + 1
-                    return
+                digest = hashlib.blake2b(s.payload, digest_size=8).digest()
+                got = self._per_key_step.get((s.key, k_msg))
+                if got is not None and (digest == got if isinstance(got, bytes) else digest in got):
+                    resend = True
+                    self.resent[s.key] = self.resent.get(s.key, 0) + 1
+                elif got is None:
+                    self._per_key_step[(s.key, k_msg)] = digest
+                else:
+                    if isinstance(got, bytes):
+                        got = self._per_key_step[(s.key, k_msg)] = {got}
+                    if len(got) >= FLOOD_CAP_PER_STEP:
+                        self.not_recorded[s.key] = self.not_recorded.get(s.key, 0) + 1
+                        return
+                    got.add(digest)
             if kind == "est" and msg.phase == "posterior":
                 self._est_at.setdefault(msg.k, set()).add(msg.own)
                 self._est_at.pop(msg.k - 3, None)
@@ -205,8 +222,9 @@ class Recorder:
             data = s.payload
             if kind == "img":
                 data = replace(msg, views=[replace(v, images_mono8=[]) for v in msg.views]).SerializeToString()
-            self.w.add(self._channel(s.key, kind), data, now, published)
-            if self.foxglove is not None and kind == "img":
+            if not resend:  # (what it says is in the recording; its bookkeeping below still runs: a clock sent again closes a gap)
+                self.w.add(self._channel(s.key, kind), data, now, published)
+            if self.foxglove is not None and kind == "img" and not resend:
                 self.foxglove.on_message(kind, msg, now)  # pixels are not kept: now or never
             if kind == "est" and self.final is not None and msg.k == self.final[0]:
                 self.final[1].discard(msg.own)
@@ -320,6 +338,11 @@ class Recorder:
                              payload=str(count).encode()).SerializeToString()
             self.w.add(self._channel(f"{self.keys.root}/_not_recorded", "malformed"), body, time.time_ns())
             log.warning("not recorded: %d messages on %s (over the flood cap)", count, key)
+        for key, count in sorted(self.resent.items()):
+            # Resends of what is recorded (after a bus gap): counted, on a channel of their own.
+            body = Malformed(key=key, error=f"sent again: {count} messages identical to one already recorded (not written again)",
+                             payload=str(count).encode()).SerializeToString()
+            self.w.add(self._channel(f"{self.keys.root}/_resent", "malformed"), body, time.time_ns())
         for undeclare in [*(s.undeclare for s in self._subs), self._transports.undeclare]:
             with contextlib.suppress(Exception):
                 undeclare()

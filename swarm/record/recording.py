@@ -120,6 +120,11 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
                 m = Malformed.FromString(data)
                 bus.not_recorded[m.key] = bus.not_recorded.get(m.key, 0) + int(m.payload.decode())
             continue
+        if kind == "_resent":  # the recorder's count of resends it did not write again: one record per key
+            with contextlib.suppress(DecodeError, ValueError):
+                m = Malformed.FromString(data)
+                bus.resent_not_written[m.key] = bus.resent_not_written.get(m.key, 0) + int(m.payload.decode())
+            continue
         counts[kind] = counts.get(kind, 0) + 1
         if kind == "alive":
             with contextlib.suppress(DecodeError):

@@ -296,7 +296,10 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
     if not compose and fields.get("action") in NETWORK_FAULTS:
         raise ValueError(f"{fields['action']} needs --compose (local processes share one network)")
     try:
-        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=endpoints, connect_timeout_ms=5000, credential_file=cred))
+        # 15 s to reach a router: on a busy machine (load 20 on 2 cores, routers in containers)
+        # a TLS session took longer than 5 s to open (a CI run failed "Timeout!" at 5 s); on a
+        # quiet one it takes milliseconds.
+        node = Node("cli", "fault", run, n, BusConfig(mode="client", connect=endpoints, connect_timeout_ms=15_000, credential_file=cred))
     except zenoh.ZError as exc:
         if cred is None:
             raise RuntimeError(f"cannot reach the swarm's bus at {endpoint}: {exc}") from None
