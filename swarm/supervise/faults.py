@@ -291,6 +291,12 @@ def send_fault(*, run_dir=None, connect=None, run_id=None, compose=False, projec
     for); by default the step of the next clock heard."""
     endpoints, run, n, cred = _target(run_dir, connect, run_id, compose)
     cred = credential or cred
+    if fields.get("action") in ROUTER_FAULTS and len(endpoints) > 1:
+        # Reach the swarm through another router than the one the fault takes down (the
+        # endpoints are in router order): a session on that one would lose the report it
+        # puts after the kill, or find itself without a bus mid-command.
+        r = int(fields.get("target") or 0)
+        endpoints = [e for i, e in enumerate(endpoints) if i != r] + [e for i, e in enumerate(endpoints) if i == r]
     endpoint = ",".join(endpoints)
     timeout += float(fields.get("down_s") or 0.0)
     if not compose and fields.get("action") in NETWORK_FAULTS:
