@@ -59,6 +59,11 @@ def forge(endpoint: str, run: str, keys_dir, done: dict, from_step: int = 3) -> 
     separate recorder-identity session saw (a session hears its own puts locally)."""
     k = M.Keys(run)
     cred = {name: str(keys_dir / f"{name}.json") for name in ("recorder", "agent-3", "observer")}
+    # First wait for the router itself (an observer's session, up to 60 s): a router in a
+    # container just started may take longer than 10 s to listen on a busy machine (CI saw
+    # "Unable to connect ... Timeout!" at 10 s), and a stranger refused by a router that is
+    # not listening yet would prove nothing.
+    _open(endpoint, cred["observer"], timeout_ms=60_000).close()
     try:
         _open(endpoint, timeout_ms=2000)
         done["stranger"] = "connected"
