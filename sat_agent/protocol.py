@@ -65,7 +65,19 @@ from swarmrt.bus.messages import (
     replace,
 )
 from swarmrt.estimators import EstimatorCodec
-from swarmrt.protocol import DROP_BATCH, DROP_ESTIMATE, Event, Outbox, Query, Send, Wait, WorldLost, message_dropped, world_wait_s
+from swarmrt.protocol import (
+    DROP_BATCH,
+    DROP_ESTIMATE,
+    Event,
+    Outbox,
+    Query,
+    Send,
+    Wait,
+    WorldLost,
+    message_dropped,
+    outbox_steps,
+    world_wait_s,
+)
 
 __all__ = ["AgentProtocol"]
 
@@ -123,7 +135,7 @@ class AgentProtocol:
         self.last_step = -1  # the last step this agent has processed (updated at)
         self.done = False
         self.world_seen = False
-        self.outbox = Outbox(skip_keys=("/fault",))  # this step's messages, sent again when the bus comes back
+        self.outbox = Outbox(skip_keys=("/fault",), keep=outbox_steps(sc.emulator))  # its last steps' messages, sent again when the bus comes back
         self._served = None  # what cov/<i> serves: the estimate at the end of the last step (serve_cov)
 
     @property

@@ -21,7 +21,7 @@ from swarmcore.scenario import Scenario
 from swarmcore.selection import choose_pairs, mask_dead
 from swarmrt.bus.convert import estimate_from_full, select_msg
 from swarmrt.bus.messages import Fault, Keys
-from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost
+from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost, outbox_steps
 
 __all__ = ["SelectorProtocol"]
 
@@ -49,7 +49,7 @@ class SelectorProtocol:
         self.clock_seen = False  # the run has started
         self._asked_first: int | None = None  # the agent last asked for its step-0 prior
         self.world_seen = False
-        self.outbox = Outbox()  # the latest two selections, sent again when the bus comes back
+        self.outbox = Outbox(keep=outbox_steps(sc.emulator))  # the latest selections, sent again when the bus comes back
         self._clock_only: set[int] = set()  # steps known plannable from the world's clock alone (lockstep)
 
     def ref_agent(self) -> int | None:

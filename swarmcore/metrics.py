@@ -266,6 +266,9 @@ def bus_summary(bus: BusRecord, sc: Scenario) -> dict:
                      **({"resent_not_written": bus.resent_not_written} if bus.resent_not_written else {})},
         "security": security_summary(sc.emulator.security, bus.dropped),
         **({"bus_gaps": bus.gaps} if bus.gaps else {}),
+        **({"recorder_lag": {"max_lag_steps": sc.emulator.recorder_max_lag_steps, "steps_waited": bus.recorder_waits[0],
+                             "wait_s": round(bus.recorder_waits[1], 3)}}
+           if bus.recorder_waits is not None and sc.emulator.time_mode == "lockstep" else {}),
     }
 
 

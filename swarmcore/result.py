@@ -139,6 +139,7 @@ class BusRecord:
     gaps: list = field(default_factory=list)  # the recorder's bus gaps (no router reachable)
     resent: int = 0  # messages recorded twice (sent again after a bus gap; read once)
     resent_not_written: dict = field(default_factory=dict)  # key → resends the recorder counted and did not write again
+    recorder_waits: tuple[int, float] | None = None  # the world's last clock: (steps it waited for the recorder, wall s)
 
     def latency_ms(self, published_from_ns: int | None = None, published_to_ns: int | None = None) -> dict:
         """:meth:`BusTimes.latency_stats` of the recording ({} without bus times)."""

@@ -577,6 +577,12 @@ class Emulator(_Model):
         "selector as for a live agent: step_timeout_s plus the bus lease; a selector gone is replaced at once)"
     )
     startup_timeout_s: PosFloat = Field(120.0, description="longest wait for every process to come up")
+    recorder_max_lag_steps: int = Field(
+        4, ge=1, le=1000, description="lockstep: the world begins step k only once the recorder has taken in the clock "
+        "of step k - recorder_max_lag_steps (it keeps up, or the swarm waits for it: counted as recorder_lag in "
+        "summary.json); every role keeps its messages of the last recorder_max_lag_steps + 2 steps and sends them again "
+        "when the recorder comes back after a gap, so a router failover loses nothing from the recording"
+    )
     flush_every_s: PosFloat = Field(1.0, description="recorder: flush to disk at least this often (sim time)")
     record_images: bool = Field(
         False, description="recorder: also write every rendered image (foxglove.RawImage, large) besides its metadata"

@@ -94,6 +94,12 @@ class Node:
         self.bus_lost_after_s = em.bus_lost_after_s
         if hold_world:
             self.hold_for["world"] = em.bus_lost_after_s
+        # A recorder whose token went is failing over to another router (up to Zenoh's
+        # open_timeout, 10 s, when its first try is the dead router) or stalled: held as
+        # long as it would itself wait for a router, every wait paused meanwhile; when it
+        # comes back (a resync) each role sends its last steps again (Outbox), so the
+        # recording loses nothing.
+        self.hold_for["recorder"] = em.bus_lost_after_s
 
     # -- the bus's health -------------------------------------------------------------
     def _on_transport(self, ev) -> None:

@@ -16,6 +16,7 @@ as that sequence, and the generator's frame is the machine's state.
 
 from __future__ import annotations
 
+import collections
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -23,7 +24,7 @@ from typing import Any, NamedTuple, Protocol
 from swarmcore.streams import stream
 
 __all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock", "RunBroken", "BusLost", "WorldLost",
-           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "EXIT_AGENT_LOST", "BUS_LEASE_S", "world_wait_s", "Outbox", "DROP_BATCH", "DROP_ESTIMATE", "message_dropped"]
+           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "EXIT_AGENT_LOST", "BUS_LEASE_S", "world_wait_s", "Outbox", "outbox_steps", "DROP_BATCH", "DROP_ESTIMATE", "message_dropped"]
 
 #: Exit status of a role (and of ``swarm run``) whose bus did not come back within
 #: ``emulator.bus_lost_after_s``, and of one whose world is gone before the run's end.
@@ -110,24 +111,37 @@ Action = Send | Query | Wait
 
 
 class Outbox:
-    """What a machine has published in its current and previous steps, to publish again when
-    the bus comes back (events ``bus`` with ``alive=True``: this role's link to a router
-    is up again; ``resync``: a peer's liveliness came back before it counted as gone).
+    """What a machine has published in its last ``keep`` steps (the current one among them),
+    to publish again when the bus comes back (events ``bus`` with ``alive=True``: this
+    role's link to a router is up again; ``resync``: a peer's liveliness came back before it
+    counted as gone: the recorder, say, after failing over to another router).
 
     Why: a put while no router is reachable is dropped without an error, and a router
     killed mid-step takes what it was forwarding with it; in lockstep every receiver
-    handles a message it already has as a no-op, so sending the step's messages again
-    loses nothing and changes nothing.
+    handles a message it already has as a no-op (the recorder writes it once), so sending
+    the steps' messages again loses nothing and changes nothing. ``keep``: the world runs
+    at most ``emulator.recorder_max_lag_steps`` steps ahead of the recorder, so
+    ``recorder_max_lag_steps + 2`` steps cover whatever a recorder that comes back lacks
+    (:func:`outbox_steps`).
     """
 
-    def __init__(self, skip_keys: tuple[str, ...] = ()):
+    def __init__(self, skip_keys: tuple[str, ...] = (), keep: int = 2):
+        if keep < 1:
+            raise ValueError(f"keep: {keep} steps (at least 1)")
         self.sends: list[Send] = []
-        self.previous: list[Send] = []  # the step before: a role that came back late may not have it either
+        self._earlier: collections.deque[list[Send]] = collections.deque(maxlen=keep - 1)  # the steps before, oldest first
         self.skip = skip_keys
 
+    @property
+    def previous(self) -> list[Send]:
+        """The sends of the step before the current one."""
+        return self._earlier[-1] if self._earlier else []
+
     def clear(self) -> None:
-        """A new step begins (the last one's sends are kept one step more)."""
-        self.previous, self.sends = self.sends, []
+        """A new step begins (the last ones' sends are kept ``keep - 1`` steps more)."""
+        if self._earlier.maxlen:
+            self._earlier.append(self.sends)
+        self.sends = []
 
     def wrap(self, gen):
         """Run generator ``gen`` (a machine's ``run``), keeping each Send it yields."""
@@ -144,8 +158,13 @@ class Outbox:
     def again(self, ev: Event) -> list[Send]:
         """The sends to repeat for event ``ev`` (none unless the bus came back)."""
         if ev.kind == "resync" or (ev.kind == "bus" and ev.alive):
-            return [*self.previous, *self.sends]
+            return [*(s for step in self._earlier for s in step), *self.sends]
         return []
+
+
+def outbox_steps(em) -> int:
+    """How many steps a role's :class:`Outbox` keeps under emulator settings ``em``."""
+    return int(em.recorder_max_lag_steps) + 2
 
 
 #: What a drop fault loses (the ``what`` of :func:`message_dropped`).

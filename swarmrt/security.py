@@ -218,7 +218,7 @@ def size_limit_of(kind: str, n_sats: int) -> int:
     every receiver holds it to (:data:`swarmrt.bus.messages.MAX_PAYLOAD_BYTES`)."""
     if kind == "est":
         return _EST_BASE_BYTES + _EST_PER_SAT_BYTES * n_sats
-    if kind in ("health", "fault"):
+    if kind in ("health", "fault", "recorded"):
         return _SMALL_BYTES
     return MAX_PAYLOAD_BYTES.get(kind, MAX_PAYLOAD_DEFAULT)
 

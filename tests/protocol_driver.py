@@ -4,6 +4,7 @@ real Zenoh session, done by hand so tests can say exactly what arrives and when.
 
 from __future__ import annotations
 
+from swarmrt.bus.messages import Recorded
 from swarmrt.protocol import Event, Query, Send, Wait
 
 
@@ -20,11 +21,15 @@ class Driver:
 
     ``answer(query) -> reply`` answers its queries (default: nothing). Events are handed in
     with :meth:`feed`; :meth:`elapse` moves the fake clock and times waits out.
+    ``recorder_keeps_up``: a world's every clock is answered at once by the recorder's
+    ``recorded`` (a recorder that keeps up, so the bounded recorder lag never waits); False:
+    the test feeds ``recorded`` itself.
     """
 
-    def __init__(self, machine, clock: FakeClock, answer=None):
+    def __init__(self, machine, clock: FakeClock, answer=None, recorder_keeps_up: bool = True):
         self.m = machine
         self.clock = clock
+        self.recorder_keeps_up = recorder_keeps_up
         self.answer = answer or (lambda q: None)
         self.sent: list[Send] = []
         self.queries: list[Query] = []
@@ -74,6 +79,9 @@ class Driver:
             value = None
             if isinstance(action, Send):
                 self.sent.append(action)
+                if self.recorder_keeps_up and action.key.endswith("/clock") and not action.msg.done:
+                    self.m.handle(Event(action.key.rsplit("/", 1)[0] + "/recorded", "recorded", None,
+                                        msg=Recorded(run=action.msg.run, sender="recorder", k=action.msg.k, t_s=action.msg.t_s)))
             elif isinstance(action, Query):
                 self.queries.append(action)
                 value = self.answer(action)

@@ -9,7 +9,7 @@ from protocol_driver import Driver, FakeClock
 from swarmcore.scenario import Scenario
 from swarmcore.synthetic import synthetic_model
 from swarmrt.bus.convert import matrix, select_msg
-from swarmrt.bus.messages import Estimate, Fault, Health, Keys, Matrix, MeasBatch
+from swarmrt.bus.messages import Estimate, Fault, Health, Keys, Matrix, MeasBatch, Recorded
 from swarmrt.protocol import Event
 from world_sim.protocol import WorldProtocol
 
@@ -51,10 +51,10 @@ def finish(k: int, agents=(0, 1, 2)) -> list[Event]:
     return [*(batch(i, k) for i in agents), *(est(i, k) for i in agents)]
 
 
-def started_world(sc: Scenario, **kw) -> tuple[Driver, WorldProtocol, FakeClock]:
+def started_world(sc: Scenario, recorder_keeps_up: bool = True, **kw) -> tuple[Driver, WorldProtocol, FakeClock]:
     clock = FakeClock()
     w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock, **kw)
-    d = Driver(w, clock)
+    d = Driver(w, clock, recorder_keeps_up=recorder_keeps_up)
     assert not d.sent, "nothing is published before every agent and the recorder are up"
     d.feed(alive("recorder"))
     for i in range(sc.n_sats):
@@ -80,6 +80,69 @@ def test_step_publishes_truth_clock_sensors_and_cameras_then_waits_for_every_est
     d.feed(est(2, 0))
     clocks = d.sent_on(K.clock())
     assert [c.k for c in clocks] == [1] and clocks[0].live_agents == [0, 1, 2]
+
+
+def recorded(k: int) -> Event:
+    return Event(K.recorded(), "recorded", None, msg=Recorded(run=RUN, sender="recorder", k=k, t_s=0.1 * k))
+
+
+def test_the_world_runs_at_most_recorder_max_lag_steps_ahead_of_the_recorder_and_counts_its_waits():
+    sc = scenario(emulator={"recorder_max_lag_steps": 2, "bus_lost_after_s": 30.0})
+    d, w, clock = started_world(sc, recorder_keeps_up=False)
+    d.take()
+    for k in range(2):  # steps 1 and 2 begin without a word from the recorder (2 steps of lag allowed)
+        d.feed(*finish(k))
+        assert [c.k for c in d.sent_on(K.clock())] == [k + 1]
+        d.take()
+    d.feed(*finish(2))
+    assert not d.sent_on(K.clock()), "step 3 waits until the recorder has taken in step 1"
+    d.feed(recorded(0))
+    assert not d.sent_on(K.clock()), "step 0 is not enough"
+    clock.t += 1.5
+    d.feed(recorded(1))
+    (c3,) = d.sent_on(K.clock())
+    assert c3.k == 3 and c3.recorder_waits == 1 and c3.recorder_wait_s == pytest.approx(1.5)
+    d.take()
+    d.feed(recorded(3), *finish(3))  # caught up: no wait
+    (c4,) = d.sent_on(K.clock())
+    assert c4.k == 4 and c4.recorder_waits == 1
+    assert w.recorded_k == 3
+
+
+def test_a_recorder_gone_for_good_is_not_waited_for_and_a_silent_one_is_given_up_on():
+    sc = scenario(emulator={"recorder_max_lag_steps": 1, "bus_lost_after_s": 20.0})
+    d, _w, _clock = started_world(sc, recorder_keeps_up=False)
+    d.take()
+    d.feed(*finish(0))
+    d.take()
+    d.feed(*finish(1))
+    assert not d.sent_on(K.clock())
+    d.elapse(19.9)
+    assert not d.sent_on(K.clock()), "a recorder that may still come back is waited for bus_lost_after_s"
+    d.elapse(0.2)
+    assert [c.k for c in d.sent_on(K.clock())] == [2]
+    d.take()
+    d.feed(*finish(2))
+    assert [c.k for c in d.sent_on(K.clock())] == [3], "given up on: not waited for again"
+    # Gone for good (its token's DELETE, after the node held it): not waited for at all.
+    d2, _w2, _ = started_world(sc, recorder_keeps_up=False)
+    d2.take()
+    d2.feed(alive("recorder", up=False), *finish(0))
+    d2.take()
+    d2.feed(*finish(1))
+    assert [c.k for c in d2.sent_on(K.clock())] == [2]
+
+
+def test_a_recorder_that_comes_back_is_sent_the_last_steps_again():
+    sc = scenario(emulator={"recorder_max_lag_steps": 2})
+    d, w, _ = started_world(sc)
+    for k in range(4):
+        d.feed(*finish(k))
+    d.take()
+    again = w.handle(Event(K.alive("recorder", 0), "resync", None, role="recorder"))
+    steps = sorted({s.msg.k for s in again if s.key == K.clock()})
+    assert steps == [1, 2, 3, 4], "recorder_max_lag_steps + 2 steps of clocks: whatever a recorder that was away lacks"
+    assert any(s.key == K.truth() for s in again) and not any(s.key == K.fault() for s in again)
 
 
 def test_camera_outputs_carry_each_observers_detections_of_every_other_satellite():

@@ -223,3 +223,32 @@ def test_a_client_reaches_the_second_router_when_the_first_is_down():
     with pytest.raises(zenoh.ZError, match="Unable to connect"):
         open_session(BusConfig(mode="client", connect=endpoints, connect_timeout_ms=2000))
     assert time.monotonic() - t0 < 5.0
+
+
+def test_the_recorders_router_killed_while_it_lags_behind_the_recording_loses_nothing(tmp_path):
+    """Issue 37: the recorder is stalled (SIGSTOP) at step 5, several steps behind the world
+    when router 0 (the one it is on) is killed for good at step 7; it fails over to router 1
+    when it resumes. The world runs at most ``recorder_max_lag_steps`` ahead of it (the
+    bounded lag) and every role sends its last steps again when the recorder's token comes
+    back: the recording holds every step, with the fault-free run's numbers, and every
+    fault's record."""
+    faults = [{"at_step": 5, "action": "stall-recorder", "down_s": 2.0}, {"at_step": 7, "action": "kill-router", "target": 0}]
+    sc = scenario(duration_s=20, selection={"strategy": "greedy", "budget": 4}, faults=faults,
+                  emulator={"recorder_max_lag_steps": 2})
+    out = tmp_path / "run"
+    sw = LocalSwarm(sc, out, log=lambda s: None, routers=2)
+    try:
+        sw.start()
+        code = sw.run_to_end(timeout=300)
+    finally:
+        sw.stop()
+    rec = load_recording(out / "run.mcap", sc.n_sats, sc.steps)
+    summary = rec.summary(sc)
+    print(summary.get("bus_gaps"), summary.get("recorder_lag"), summary["messages"].get("resent_not_written"))
+    assert code == 0
+    _assert_same_numbers_as_without_the_fault(rec, summary, sc)
+    lag = summary["recorder_lag"]
+    assert lag["max_lag_steps"] == 2 and lag["steps_waited"] >= 0 and lag["wait_s"] >= 0.0, lag
+    phases = {(f["action"], f["phase"]) for f in summary["faults"]}
+    for action in ("stall-recorder", "kill-router"):
+        assert (action, "command") in phases and (action, "done") in phases, summary["faults"]

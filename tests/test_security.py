@@ -217,7 +217,8 @@ def test_access_rules_follow_the_key_space():
     assert "swarm/r/batches/2" in ideal["agent-2:ingress:sub"]["key_exprs"]
     assert not any(e.startswith("swarm/r/batches/") and e != "swarm/r/batches/2" for e in ideal["agent-2:ingress:sub"]["key_exprs"])
     assert "swarm/r/batches/*" in ideal["world:ingress:put"]["key_exprs"]
-    assert "recorder:ingress:put" not in rules
+    assert rules["recorder:ingress:put"]["key_exprs"] == ["swarm/r/recorded"]  # how far it has got, and nothing else
+    assert "swarm/r/recorded" in rules["world:ingress:sub"]["key_exprs"]
     assert rules["cli:ingress:put"]["key_exprs"] == ["swarm/r/fault", "swarm/r/fault/cli"]
     assert not any("truth" in e for name in ("agent-0", "selector", "observer") for e in rules[f"{name}:egress:samples"]["key_exprs"])
     assert {p["subjects"][0] for p in acl["policies"]} == {s["id"] for s in acl["subjects"]}

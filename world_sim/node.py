@@ -35,6 +35,7 @@ class World(Node):
         self.subscribe(self.keys.select())
         self.subscribe(self.keys.faults())  # commands, and what others carried out
         self.subscribe(self.keys.meas())  # the world is the radio: it carries the agents' batches
+        self.subscribe(self.keys.recorded())  # how far the recorder has got (the bounded recorder lag)
         self.watch_liveliness()
         self.set_bus_limits(sc.emulator)
         self.queryable(self.keys.init(), self.machine.serve_prior)

@@ -66,7 +66,7 @@ from swarmrt.bus.messages import (
     Select,
     replace,
 )
-from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped, world_wait_s
+from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped, outbox_steps, world_wait_s
 
 __all__ = ["WorldProtocol"]
 
@@ -107,6 +107,12 @@ class WorldProtocol:
         # a whole-swarm prior of 100 satellites is 11 MB).
         self.prior_ids = prior_ids or (lambda i: None)
         self.expect_recorder = expect_recorder
+        # The bounded recorder lag (lockstep): the last step whose clock the recorder says
+        # it has taken in, and the steps and wall seconds the world waited for it.
+        self.recorded_k = -1
+        self.recorder_waits = 0
+        self.recorder_wait_s = 0.0
+        self._recorder_given_up = False  # it said nothing for bus_lost_after_s: not waited for again
         self.use_selector = sc.selection.strategy != "none" if expect_selector is None else expect_selector
         self.alive_agents: set[int] = set()
         self.ready: set[int] = set()  # agents with an estimate for the current step
@@ -134,9 +140,9 @@ class WorldProtocol:
         self._claims: dict[str, int] = {}
         self._claimed_at: dict[int, float] = {}
         self.progress: Callable[[int, int], None] | None = None
-        # The step's messages, sent again when the bus comes back (faults are not: a
-        # command executed twice would be two faults).
-        self.outbox = Outbox(skip_keys=("/fault",))
+        # The last steps' messages, sent again when the bus (or the recorder) comes back
+        # (faults are not: a command executed twice would be two faults).
+        self.outbox = Outbox(skip_keys=("/fault",), keep=outbox_steps(sc.emulator))
         self._aired: set[tuple[int, int]] = set()  # (step, observer) of batches already on the radio
         self.limbo: set[str] = set()  # liveliness tokens gone, not yet known whether for good (a bus gap)
 
@@ -238,6 +244,8 @@ class WorldProtocol:
                 return [Send(self.keys.batches(int(j)), one) for j in to if j in self.alive_agents]
             self.batches.setdefault(m.k, {})[m.observer] = (m, 0 if self.links is None else radio_bytes(m))
             self._new_batch = True
+        elif ev.kind == "recorded":
+            self.recorded_k = max(self.recorded_k, int(ev.msg.k))
         elif ev.kind == "select":
             if ev.msg.sender != "world":
                 self.selections[ev.msg.k] = ev.msg
@@ -300,6 +308,7 @@ class WorldProtocol:
         t_wall0 = self.clock()
         gyro = None
         for k in range(sc.steps):
+            yield from self._wait_for_recorder(k)
             self.k = k
             self.outbox.clear()
             self._aired = {(s, i) for s, i in self._aired if s >= k - 50}
@@ -316,7 +325,8 @@ class WorldProtocol:
             yield Wait(lambda: False, 0.0)  # take in what has arrived: the live set reflects deaths up to now
             live = self.live()
             yield Send(self.keys.clock(), Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode,
-                                                malformed=self.malformed(), key_mismatch=self.key_mismatch()))
+                                                malformed=self.malformed(), key_mismatch=self.key_mismatch(),
+                                                recorder_waits=self.recorder_waits, recorder_wait_s=self.recorder_wait_s))
             absm = absolute_measurements(self.wp, tr)
             for i in live:
                 yield Send(self.keys.sensors(i), sensors_msg(
@@ -353,7 +363,34 @@ class WorldProtocol:
     def done_clock(self) -> Clock:
         """The clock that tells everyone the run is over."""
         return Clock(run=self.run_id, sender="world", k=self.k, t_s=self.truth.t, live_agents=self.live(),
-                     mode=self.sc.emulator.time_mode, done=True, malformed=self.malformed(), key_mismatch=self.key_mismatch())
+                     mode=self.sc.emulator.time_mode, done=True, malformed=self.malformed(), key_mismatch=self.key_mismatch(),
+                     recorder_waits=self.recorder_waits, recorder_wait_s=self.recorder_wait_s)
+
+    def _wait_for_recorder(self, k: int):
+        """Lockstep, with a recorder: begin step k only once the recorder has taken in the
+        clock of step ``k - recorder_max_lag_steps`` (it keeps up, or the swarm waits for
+        it), so that no role is ever further ahead of the recording than its
+        :class:`~swarmrt.protocol.Outbox` reaches back. A recorder gone for good (its token
+        gone, after being held: :class:`swarmrt.node.Node`) is not waited for; one that
+        says nothing for ``bus_lost_after_s`` (its own limit for a bus gap) is given up on."""
+        em = self.sc.emulator
+        lag = em.recorder_max_lag_steps
+        if em.time_mode != "lockstep" or not self.expect_recorder or self._recorder_given_up or k <= lag:
+            return
+
+        def caught_up() -> bool:
+            return self.recorded_k >= k - lag or "recorder" not in self.alive_roles
+
+        if caught_up():
+            return
+        t0 = self.clock()
+        self.recorder_waits += 1
+        ok = yield Wait(caught_up, em.bus_lost_after_s)
+        self.recorder_wait_s += self.clock() - t0
+        if not ok:
+            self._recorder_given_up = True
+            log.warning("step %d: the recorder has taken in step %d, more than %d steps behind, for %.0f s; going on without "
+                        "waiting for it again", k, self.recorded_k, lag, em.bus_lost_after_s)
 
     def _pace(self, deadline: float):
         rem = deadline - self.clock()

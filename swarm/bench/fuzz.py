@@ -24,7 +24,7 @@ __all__ = ["ROOT", "CORPUS", "harnesses", "command", "run_harness", "write_seeds
 ROOT = Path(__file__).resolve().parents[2]
 CORPUS = ROOT / "fuzz" / "corpus"
 MESSAGE_KINDS = ("claim", "clock", "sensors", "cam", "img", "meas", "batches", "est", "full_est", "select", "fault", "health",
-                 "truth", "rx", "links", "rejoin")
+                 "truth", "rx", "links", "rejoin", "recorded")
 
 
 def harnesses() -> list[str]:

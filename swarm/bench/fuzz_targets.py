@@ -75,6 +75,7 @@ KEYS = {
     "rx": f"swarm/{RUN}/rx/{ME}",
     "links": f"swarm/{RUN}/links",
     "rejoin": f"swarm/{RUN}/rejoin/{ME}",
+    "recorded": f"swarm/{RUN}/recorded",
 }
 MESSAGE_KINDS = tuple(sorted(M.MODELS))
 
@@ -333,7 +334,7 @@ def seed_messages() -> dict[str, list]:
                           cx_px=1.5, cy_px=0.5, target=2, baseline_m=0.5, images_mono8=[bytes(range(8)), bytes(8)])
     counters: dict[str, Any] = {f: matrix(np.arange(9.0).reshape(3, 3)) for f in M._LINK_COUNTERS}
     return {
-        "clock": [M.Clock(**H, sender="world", live_agents=[0, 1, 2], mode="lockstep", malformed=2),
+        "clock": [M.Clock(**H, sender="world", live_agents=[0, 1, 2], mode="lockstep", malformed=2, recorder_waits=1, recorder_wait_s=0.5),
                   M.Clock(**H, sender="world", live_agents=[], mode="free", done=True)],
         "sensors": [sensors_msg(run=RUN, k=3, t_s=3.0, sat=ME, gyro=rng.normal(size=3) * 1e-3, absm=abs_meas, sigma_star=2.9e-5, sigma_gps=0.01),
                     sensors_msg(run=RUN, k=0, t_s=0.0, sat=ME, gyro=None, absm=None, sigma_star=2.9e-5, sigma_gps=0.01)],
@@ -355,6 +356,7 @@ def seed_messages() -> dict[str, list]:
                   M.Fault(**H, sender="world", action="restart-router", phase="command", down_s=2.0),
                   M.Fault(**H, sender="world", action="stall-agent", phase="command", target=1, down_s=3.5),
                   M.Fault(**H, sender="cli", action="link", phase="command", target=0, peer=2, delay_s=1.5, rate=0.25)],
+        "recorded": [M.Recorded(**H, sender="recorder")],
         "health": [M.Health(**H, sender="agent-2", sat=2, camera_ok=[True] * 5 + [False], malformed=2, drop_rate=0.25, host="node-2")],
         "truth": [truth_msg(initial_truth(Scenario(n_sats=N_SATS, seed=2)), run=RUN, k=3)],
         "claim": [M.Claim(**H, sender="world", sat=2, token="tok3n", password="secret", running=True)],

@@ -43,6 +43,8 @@ from swarmrt.bus.messages import (
     Liveliness,
     Malformed,
     MessageError,
+    Recorded,
+    encode,
     file_descriptor_set,
     parse_key,
     prepare,
@@ -110,6 +112,12 @@ class Recorder:
             self.session.liveliness().declare_subscriber(f"{self.keys.root}/alive/**", self.inbox.callback, history=True),
         ]
         self.token = self.session.liveliness().declare_token(self.keys.alive("recorder", 0))
+        # The bounded lag: the last step whose clock it has taken in, told the world on
+        # ``recorded`` at each new one, again when its bus comes back and once per wall
+        # second (a put while no router is reachable is lost, and the world waits on it).
+        self.acked_k = -1
+        self.acked_t_s = 0.0
+        self.last_ack_wall = 0.0
         self._schema_ids: dict[str, int] = {}
         self._est_at: dict[int, set[int]] = {}  # step → agents whose posterior of it is recorded
         self._live_at: dict[int, set[int]] = {}  # step → the agents its clock lists live
@@ -148,6 +156,7 @@ class Recorder:
             log.warning("bus lost after step %d: no router reachable (giving up after %.0f s)", self.last_k, self.bus_lost_after_s)
         elif ch.up and self.down is not None:
             log.warning("bus back after %.2f s", (ch.wall_ns - self.down[0]) / 1e9)
+            self.ack()
             self.gaps.append(BusGap(observer="recorder", down_unix_ns=self.down[0], up_unix_ns=ch.wall_ns,
                                     last_step_before=self.last_k, first_step_after=-1))
             self.down = None
@@ -187,6 +196,8 @@ class Recorder:
             # Any swarm size (no n_sats): ids up to MAX_SAT_ID, the recording keeps what it heard.
             r = receive(s.key, s.payload, self.run, delete=s.kind == "delete")
             kind, msg = r.kind, r.msg
+            if kind == "recorded":
+                return  # its own word to the world (sent again each second): not part of the run's story
             if kind == "alive":
                 body = Liveliness(key=s.key, role=r.role, id=s.key.split("/")[4], alive=bool(r.alive)).SerializeToString()
                 if r.role == "world":
@@ -232,6 +243,9 @@ class Recorder:
                 if self.gaps and not msg.done and msg.k >= max(g.last_step_before for g in self.gaps):
                     self._write_gaps(msg.k)  # (not a clock of an earlier step sent again)
                 self.last_k = max(self.last_k, msg.k)
+                if not msg.done and msg.k > self.acked_k:
+                    self.acked_k, self.acked_t_s = msg.k, msg.t_s
+                    self.ack()
                 if msg.done:
                     self.done = True
                     self.final = (msg.k, set(msg.live_agents) - self._seen_final(msg.k))
@@ -253,6 +267,15 @@ class Recorder:
                 return
             body = Malformed(key=s.key, error=str(exc), payload=bytes(s.payload[:65536])).SerializeToString()
             self.w.add(self._channel(f"{self.keys.root}/_malformed", "malformed"), body, now)
+
+    def ack(self) -> None:
+        """Tell the world how far the recording has got (``recorded``: the bounded lag)."""
+        if self.acked_k < 0:
+            return
+        self.last_ack_wall = time.monotonic()
+        msg = Recorded(run=self.run, sender="recorder", k=self.acked_k, t_s=self.acked_t_s)
+        with contextlib.suppress(Exception):  # (a session closing under us: the world gives up on us in time)
+            self.session.put(self.keys.recorded(), encode(msg))
 
     def _derive_scene(self, foxglove: FoxgloveDeriver) -> None:
         """The Foxglove 3-D channels (truth, estimates, measurement lines, links, cameras, faults,
@@ -307,6 +330,8 @@ class Recorder:
             self._check_broken()
             if time.monotonic() - self.last_flush_wall >= 1.0:
                 self.flush()
+            if time.monotonic() - self.last_ack_wall >= 1.0:
+                self.ack()
         end_by = time.monotonic() + max_linger_s
         while time.monotonic() < end_by:
             if self.stop.is_set():

@@ -162,7 +162,11 @@ class LocalSwarm:
         self._dropped: str | None = None  # a role whose session the router dropped while it ran (see _token_gone)
         self._started_at: dict[str, float] = {}  # process name → when (monotonic) its current process was started
         self.router_faults: list[dict] = []  # router faults executed here (the bus may not have carried the report)
-        self._router_report: tuple[Fault, float] | None = None  # the latest router fault's report, repeated until
+        # Every fault report put here, sent again (the same bytes: a recording and the world
+        # read each once) whenever a role or this supervisor comes back to the bus, or the
+        # recorder's token comes back: a report put while a router failed over, or while
+        # the recorder was stalled or away, must still reach the recording.
+        self._reports: list[Fault] = []
         self.bus: BusConfig | None = None  # the supervisor's own connection, once started
         self.node: Node | None = None
         self.faults: list[dict] = []
@@ -380,13 +384,13 @@ class LocalSwarm:
         k = max(self.k, f.k)
         done = replace(f, phase=phase, sender="supervisor", k=k, t_s=k * self.sc.dt_s, detail=detail)
         self._node().put(self.keys.fault_report("supervisor"), done)
+        self._reports.append(done)
         return done
 
     def _handle(self, ev) -> None:
-        if ev.kind == "resync" and self._router_report is not None and time.monotonic() < self._router_report[1]:
-            # A session reconnecting after the report went out may have missed it: again (the
-            # same bytes; a recording reads it once).
-            self._node().put(self.keys.fault_report("supervisor"), self._router_report[0])
+        if ev.kind == "resync" or (ev.kind == "bus" and ev.alive) or (ev.kind == "alive" and ev.alive and ev.role == "recorder"):
+            for report in self._reports:  # (see _reports)
+                self._node().put(self.keys.fault_report("supervisor"), report)
         if ev.kind == "alive" and not ev.alive:
             self._token_gone(ev)
         if ev.kind == "clock":
@@ -567,10 +571,10 @@ class LocalSwarm:
 
         n.wait_for(lambda: (n.bus_up and bool(n._routers)) or over(), 5.0 if f.action == "kill-router" else 30.0, on_event, wake=tick)
         if over():
-            self._router_report = (self._report(f, "done", detail), time.monotonic())
+            self._report(f, "done", detail)
             return
         n.wait_for(lambda: not n._held or over(), self.sc.emulator.bus_grace_s, on_event, wake=tick)
-        self._router_report = (self._report(f, "done", detail), time.monotonic() + self.sc.emulator.bus_grace_s)
+        self._report(f, "done", detail)
 
     # -- signals -------------------------------------------------------------------------
     @contextlib.contextmanager

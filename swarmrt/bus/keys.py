@@ -33,6 +33,8 @@ def check_key(key: str, kind: str, sat: int | None, msg) -> None:
         want = (f"agent-{sat}",)
     elif kind == "select":
         want = ("selector", "world")
+    elif kind == "recorded":
+        want = ("recorder",)
     else:  # fault: commands on fault (the CLI's, the world's schedule); outcomes on fault/<reporter>
         tail = key.rsplit("/", 1)[1]
         if tail == "fault":
@@ -63,6 +65,10 @@ class Keys:
 
     def clock(self) -> str:
         return f"{self.root}/clock"
+
+    def recorded(self) -> str:
+        """How far the recorder has got (recorder → world: the bounded recorder lag)."""
+        return f"{self.root}/recorded"
 
     def sensors(self, i: int | str) -> str:
         return f"{self.root}/sat/{i}/sensors"
@@ -136,7 +142,7 @@ class Keys:
 
 _KEY_RE = re.compile(
     r"^swarm/(?P<run>[^/]+)/(?:"
-    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)(?:/[A-Za-z0-9_.-]+)?|(?P<truth>truth)|(?P<links>links)|(?P<batches>batches)"
+    r"(?P<clock>clock)|(?P<select>select)|(?P<fault>fault)(?:/[A-Za-z0-9_.-]+)?|(?P<truth>truth)|(?P<links>links)|(?P<batches>batches)|(?P<recorded>recorded)"
     r"|sat/(?P<sat>\d+)/(?P<satkind>sensors|cam|img)"
     r"|(?P<idkind>meas|est|health|cov|init|rx|rejoin|batches)/(?P<id>\d+)(?:/\d+/\d+)?"
     r"|claim/(?P<token>[^/]+)"
@@ -155,7 +161,7 @@ def _parse_key(key: str) -> tuple[str, str, int | None]:
     if not m:
         raise MessageError(f"unexpected key {str(key)[:200]!r}")
     run = m["run"]
-    for k in ("clock", "select", "fault", "truth", "links", "batches"):
+    for k in ("clock", "select", "fault", "truth", "links", "batches", "recorded"):
         if m[k]:
             return run, k, None
     if m["satkind"]:
@@ -197,7 +203,7 @@ def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
         return Grants(
             put=(k.clock(), k.sensors("*"), k.cam("*"), k.img("*"), k.truth(), k.links(), k.rx("*"), k.batches(),
                  k.batches("*"), k.rejoin("*"), k.select(), k.fault(), k.fault_report("world")),
-            sub=(k.est(), k.health(), k.select(), k.faults(), k.meas()),
+            sub=(k.est(), k.health(), k.select(), k.faults(), k.meas(), k.recorded()),
             serve=(k.init(), k.claim(), k.rejoin("*") + "/*/*"),
             token=(k.alive("world"),), watch=(alive,))
     if m := re.fullmatch(r"agent-(\d+)", identity):
@@ -211,7 +217,7 @@ def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
         return Grants(put=(k.select(), k.fault_report("selector")), sub=(k.est(), k.fault(), k.health(), k.clock()),
                       query=(k.cov(),), token=(k.alive("selector"),), watch=(alive,))
     if identity == "recorder":
-        return Grants(sub=(k.everything(),), token=(k.alive("recorder"),), watch=(alive,))
+        return Grants(put=(k.recorded(),), sub=(k.everything(),), token=(k.alive("recorder"),), watch=(alive,))
     if identity == "cli":  # swarm fault: commands; under compose it carries out process faults and reports them
         return Grants(put=(k.fault(), k.fault_report("cli")), sub=(k.faults(), k.clock(), k.health()),
                       token=(k.alive("cli"),), watch=(alive,))

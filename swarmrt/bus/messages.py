@@ -39,6 +39,7 @@ reads as its zero value, ``msg.HasField(name)`` (or :func:`opt`) tells.
 Key space (one run id per swarm, so swarms can share a router)::
 
     swarm/<run>/clock                world → all           Clock
+    swarm/<run>/recorded             recorder → world      Recorded (the last step whose clock it has taken in)
     swarm/<run>/sat/<i>/sensors      world → agent i       Sensors
     swarm/<run>/sat/<i>/cam          world → agent i       CameraOutput
     swarm/<run>/sat/<i>/img          world → agent i       Images  (rendered scenarios)
@@ -117,6 +118,7 @@ from swarmrt.bus.wire import (
     MeasBatch,
     MessageError,
     PairwiseState,
+    Recorded,
     RejoinFate,
     Select,
     Sensors,
@@ -140,6 +142,7 @@ __all__ = [
     "Header",
     "Matrix",
     "Clock",
+    "Recorded",
     "Sensors",
     "Detection",
     "CameraOutput",

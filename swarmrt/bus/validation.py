@@ -21,7 +21,7 @@ import numpy as np
 
 from swarmcore.scenario import FAULT_ACTIONS, STALL_FAULTS, TARGETED_FAULTS
 from swarmrt.bus.v1.claim_pb2 import Claim
-from swarmrt.bus.v1.clock_pb2 import Clock
+from swarmrt.bus.v1.clock_pb2 import Clock, Recorded
 from swarmrt.bus.v1.common_pb2 import Matrix
 from swarmrt.bus.v1.estimate_pb2 import Estimate, FullEstimate
 from swarmrt.bus.v1.estimators_pb2 import EstimatorMessage
@@ -148,6 +148,12 @@ def _nonneg(name: str, v: float) -> None:
 def _clock(m: Clock, top: int) -> None:
     _ids(top, "live_agents", m.live_agents)
     _choice("mode", m.mode, ("lockstep", "free"))
+    if not (math.isfinite(m.recorder_wait_s) and m.recorder_wait_s >= 0.0):
+        raise MessageError(f"recorder_wait_s: {m.recorder_wait_s} is not a finite number of seconds >= 0")
+
+
+def _recorded(m: Recorded, top: int) -> None:
+    pass  # the header only (its k checked like every message's)
 
 
 def _small(name: str, vals, width: int) -> list[float] | None:
@@ -747,6 +753,7 @@ _VALIDATORS: dict[str, Callable[[Any, int], None]] = {
     "rx": _rx,
     "links": _links,
     "rejoin": _rejoin,
+    "recorded": _recorded,
 }
 _SHALLOW: dict[str, Callable[[Any, int], None]] = {"est": _est_shallow, "batches": _step_batches_shallow}
 SHALLOW_KINDS = tuple(_SHALLOW)

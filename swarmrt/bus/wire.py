@@ -10,7 +10,7 @@ import re
 from google.protobuf.message import Message
 
 from swarmrt.bus.v1.claim_pb2 import Claim
-from swarmrt.bus.v1.clock_pb2 import Clock
+from swarmrt.bus.v1.clock_pb2 import Clock, Recorded
 from swarmrt.bus.v1.common_pb2 import Header, Matrix
 from swarmrt.bus.v1.estimate_pb2 import Estimate, FullEstimate
 from swarmrt.bus.v1.estimators_pb2 import CiState, EstimatorMessage, PairwiseState
@@ -25,7 +25,7 @@ from swarmrt.bus.v1.sensors_pb2 import CameraOutput, Detection, Sensors
 from swarmrt.bus.v1.truth_pb2 import Truth
 
 __all__ = [
-    "Claim", "Clock", "Header", "Matrix", "Estimate", "FullEstimate", "CiState", "EstimatorMessage", "PairwiseState", "Fault",
+    "Claim", "Clock", "Recorded", "Header", "Matrix", "Estimate", "FullEstimate", "CiState", "EstimatorMessage", "PairwiseState", "Fault",
     "Health", "CameraView", "Images", "Delivered", "Delivery", "Latency", "LinkStats", "RejoinFate", "MeasBatch", "StepBatches",
     "BusGap", "Liveliness", "Malformed", "Select", "CameraOutput", "Detection", "Sensors", "Truth", "MODELS", "SCHEMA_VERSION",
     "MAX_SAT_ID", "QUAT_TOL", "SYM_TOL", "MAX_PAYLOAD_BYTES", "MAX_PAYLOAD_DEFAULT", "RUN_ID_RE", "MessageError", "KeyMismatch",
@@ -68,4 +68,5 @@ MODELS: dict[str, type[Message]] = {
     "rx": Delivery,
     "links": LinkStats,
     "rejoin": RejoinFate,
+    "recorded": Recorded,
 }

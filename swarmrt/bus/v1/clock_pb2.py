@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14swarm/v1/clock.proto\x12\x08swarm.v1\"\xae\x01\n\x05\x43lock\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x0b\n\x03run\x18\x02 \x01(\t\x12\x0e\n\x06sender\x18\x03 \x01(\t\x12\t\n\x01k\x18\x04 \x01(\x04\x12\x0b\n\x03t_s\x18\x05 \x01(\x01\x12\x13\n\x0blive_agents\x18\x06 \x03(\r\x12\x0c\n\x04mode\x18\x07 \x01(\t\x12\x0c\n\x04\x64one\x18\x08 \x01(\x08\x12\x11\n\tmalformed\x18\t \x01(\x04\x12\x14\n\x0ckey_mismatch\x18\n \x01(\x04\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x14swarm/v1/clock.proto\x12\x08swarm.v1\"\xdf\x01\n\x05\x43lock\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x0b\n\x03run\x18\x02 \x01(\t\x12\x0e\n\x06sender\x18\x03 \x01(\t\x12\t\n\x01k\x18\x04 \x01(\x04\x12\x0b\n\x03t_s\x18\x05 \x01(\x01\x12\x13\n\x0blive_agents\x18\x06 \x03(\r\x12\x0c\n\x04mode\x18\x07 \x01(\t\x12\x0c\n\x04\x64one\x18\x08 \x01(\x08\x12\x11\n\tmalformed\x18\t \x01(\x04\x12\x14\n\x0ckey_mismatch\x18\n \x01(\x04\x12\x16\n\x0erecorder_waits\x18\x0b \x01(\x04\x12\x17\n\x0frecorder_wait_s\x18\x0c \x01(\x01\"W\n\x08Recorded\x12\x16\n\x0eschema_version\x18\x01 \x01(\r\x12\x0b\n\x03run\x18\x02 \x01(\t\x12\x0e\n\x06sender\x18\x03 \x01(\t\x12\t\n\x01k\x18\x04 \x01(\x04\x12\x0b\n\x03t_s\x18\x05 \x01(\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -32,5 +32,7 @@ _builder.BuildTopDescriptorsAndMessages(DESCRIPTOR, 'swarm.v1.clock_pb2', _globa
 if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_CLOCK']._serialized_start=35
-  _globals['_CLOCK']._serialized_end=209
+  _globals['_CLOCK']._serialized_end=258
+  _globals['_RECORDED']._serialized_start=260
+  _globals['_RECORDED']._serialized_end=347
 # @@protoc_insertion_point(module_scope)

@@ -7,7 +7,7 @@ from typing import ClassVar as _ClassVar, Optional as _Optional
 DESCRIPTOR: _descriptor.FileDescriptor
 
 class Clock(_message.Message):
-    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "live_agents", "mode", "done", "malformed", "key_mismatch")
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s", "live_agents", "mode", "done", "malformed", "key_mismatch", "recorder_waits", "recorder_wait_s")
     SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
     RUN_FIELD_NUMBER: _ClassVar[int]
     SENDER_FIELD_NUMBER: _ClassVar[int]
@@ -18,6 +18,8 @@ class Clock(_message.Message):
     DONE_FIELD_NUMBER: _ClassVar[int]
     MALFORMED_FIELD_NUMBER: _ClassVar[int]
     KEY_MISMATCH_FIELD_NUMBER: _ClassVar[int]
+    RECORDER_WAITS_FIELD_NUMBER: _ClassVar[int]
+    RECORDER_WAIT_S_FIELD_NUMBER: _ClassVar[int]
     schema_version: int
     run: str
     sender: str
@@ -28,4 +30,20 @@ class Clock(_message.Message):
     done: bool
     malformed: int
     key_mismatch: int
-    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., live_agents: _Optional[_Iterable[int]] = ..., mode: _Optional[str] = ..., done: _Optional[bool] = ..., malformed: _Optional[int] = ..., key_mismatch: _Optional[int] = ...) -> None: ...
+    recorder_waits: int
+    recorder_wait_s: float
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ..., live_agents: _Optional[_Iterable[int]] = ..., mode: _Optional[str] = ..., done: _Optional[bool] = ..., malformed: _Optional[int] = ..., key_mismatch: _Optional[int] = ..., recorder_waits: _Optional[int] = ..., recorder_wait_s: _Optional[float] = ...) -> None: ...
+
+class Recorded(_message.Message):
+    __slots__ = ("schema_version", "run", "sender", "k", "t_s")
+    SCHEMA_VERSION_FIELD_NUMBER: _ClassVar[int]
+    RUN_FIELD_NUMBER: _ClassVar[int]
+    SENDER_FIELD_NUMBER: _ClassVar[int]
+    K_FIELD_NUMBER: _ClassVar[int]
+    T_S_FIELD_NUMBER: _ClassVar[int]
+    schema_version: int
+    run: str
+    sender: str
+    k: int
+    t_s: float
+    def __init__(self, schema_version: _Optional[int] = ..., run: _Optional[str] = ..., sender: _Optional[str] = ..., k: _Optional[int] = ..., t_s: _Optional[float] = ...) -> None: ...
