@@ -74,6 +74,7 @@ from swarmrt.protocol import (
     Send,
     Wait,
     WorldLost,
+    first_time,
     message_dropped,
     outbox_steps,
     world_wait_s,
@@ -136,6 +137,7 @@ class AgentProtocol:
         self.done = False
         self.world_seen = False
         self.outbox = Outbox(skip_keys=("/fault",), keep=outbox_steps(sc.emulator))  # its last steps' messages, sent again when the bus comes back
+        self._commands_seen: set[bytes] = set()
         self._served = None  # what cov/<i> serves: the estimate at the end of the last step (serve_cov)
 
     @property
@@ -217,6 +219,8 @@ class AgentProtocol:
     def _on_fault(self, f: Fault) -> list[Send]:
         if f.phase != "command" or f.target != self.i:
             return []
+        if not first_time(self._commands_seen, f):
+            return []  # the same command sent again (the world resends its last steps' commands): carried out once
         if f.action == "camera" and f.camera is not None:
             self.camera_ok[f.camera] = f.state == "on"
             self.log.info("camera %d %s", f.camera, f.state)

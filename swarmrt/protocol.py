@@ -24,7 +24,7 @@ from typing import Any, NamedTuple, Protocol
 from swarmcore.streams import stream
 
 __all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock", "RunBroken", "BusLost", "WorldLost",
-           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "EXIT_AGENT_LOST", "BUS_LEASE_S", "world_wait_s", "Outbox", "outbox_steps", "DROP_BATCH", "DROP_ESTIMATE", "message_dropped"]
+           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "EXIT_AGENT_LOST", "BUS_LEASE_S", "world_wait_s", "Outbox", "outbox_steps", "first_time", "DROP_BATCH", "DROP_ESTIMATE", "message_dropped"]
 
 #: Exit status of a role (and of ``swarm run``) whose bus did not come back within
 #: ``emulator.bus_lost_after_s``, and of one whose world is gone before the run's end.
@@ -160,6 +160,19 @@ class Outbox:
         if ev.kind == "resync" or (ev.kind == "bus" and ev.alive):
             return [*(s for step in self._earlier for s in step), *self.sends]
         return []
+
+
+def first_time(seen: set[bytes], command) -> bool:
+    """Whether fault ``command`` (a message) is new to ``seen`` (then noted there). The world
+    sends its last steps' messages again when the bus or the recorder comes back, its fault
+    commands among them, so that the recording has them: every executor carries out a
+    command once, and the same command twice (the same bytes: the same step, action, target
+    and parameters, from the same sender) is one command."""
+    key = command.SerializeToString(deterministic=True)
+    if key in seen:
+        return False
+    seen.add(key)
+    return True
 
 
 def outbox_steps(em) -> int:

@@ -54,7 +54,7 @@ def _img_views():
 
 
 EXAMPLES = {
-    "clock": M.Clock(**H, live_agents=[0, 2], mode="lockstep", recorder_waits=2, recorder_wait_s=0.75),
+    "clock": M.Clock(**H, live_agents=[0, 2], mode="lockstep", recorder_waited_steps=2, recorder_waited_s=0.75),
     "recorded": M.Recorded(**{**H, "sender": "recorder"}),
     "sensors": M.Sensors(**H, sat=1, gyro_rate_B_rad_s=[1e-3, 2e-3, -3e-3], q_BI_star=[0, 0, 0, 1.0], r_H_gps_m=[1.0, 2, 3], sigma_star_rad=2.9e-5, sigma_gps_m=0.01),
     "cam": M.CameraOutput(**H, sat=1, detections=[M.Detection(target=2, camera=4, q_BjBi=[0, 0, 0.6, 0.8], r_ij_Bi_m=[0.1, 0.2, 9.9])], cameras_off=[3]),

@@ -101,11 +101,11 @@ def test_the_world_runs_at_most_recorder_max_lag_steps_ahead_of_the_recorder_and
     clock.t += 1.5
     d.feed(recorded(1))
     (c3,) = d.sent_on(K.clock())
-    assert c3.k == 3 and c3.recorder_waits == 1 and c3.recorder_wait_s == pytest.approx(1.5)
+    assert c3.k == 3 and c3.recorder_waited_steps == 1 and c3.recorder_waited_s == pytest.approx(1.5)
     d.take()
     d.feed(recorded(3), *finish(3))  # caught up: no wait
     (c4,) = d.sent_on(K.clock())
-    assert c4.k == 4 and c4.recorder_waits == 1
+    assert c4.k == 4 and c4.recorder_waited_steps == 1
     assert w.recorded_k == 3
 
 

@@ -66,7 +66,7 @@ from swarmrt.bus.messages import (
     Select,
     replace,
 )
-from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, message_dropped, outbox_steps, world_wait_s
+from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, first_time, message_dropped, outbox_steps, world_wait_s
 
 __all__ = ["WorldProtocol"]
 
@@ -140,9 +140,11 @@ class WorldProtocol:
         self._claims: dict[str, int] = {}
         self._claimed_at: dict[int, float] = {}
         self.progress: Callable[[int, int], None] | None = None
-        # The last steps' messages, sent again when the bus (or the recorder) comes back
-        # (faults are not: a command executed twice would be two faults).
-        self.outbox = Outbox(skip_keys=("/fault",), keep=outbox_steps(sc.emulator))
+        # The last steps' messages, sent again when the bus (or the recorder) comes back, its
+        # fault commands too (so the recording has them; every executor carries a command
+        # out once: swarmrt.protocol.first_time).
+        self.outbox = Outbox(keep=outbox_steps(sc.emulator))
+        self._commands_seen: set[bytes] = set()
         self._aired: set[tuple[int, int]] = set()  # (step, observer) of batches already on the radio
         self.limbo: set[str] = set()  # liveliness tokens gone, not yet known whether for good (a bus gap)
 
@@ -256,6 +258,8 @@ class WorldProtocol:
         return []
 
     def _on_fault(self, f: Fault) -> list[Send]:
+        if f.phase == "command" and not first_time(self._commands_seen, f):
+            return []  # the same command sent again (the CLI's, say, after a bus gap): carried out once
         if f.phase != "command":
             self.fault_done.append(f)
             if f.action == "drop" and f.phase == "done" and f.HasField("target") and f.sender == f"agent-{f.target}":
@@ -326,7 +330,7 @@ class WorldProtocol:
             live = self.live()
             yield Send(self.keys.clock(), Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode,
                                                 malformed=self.malformed(), key_mismatch=self.key_mismatch(),
-                                                recorder_waits=self.recorder_waits, recorder_wait_s=self.recorder_wait_s))
+                                                recorder_waited_steps=self.recorder_waits, recorder_waited_s=self.recorder_wait_s))
             absm = absolute_measurements(self.wp, tr)
             for i in live:
                 yield Send(self.keys.sensors(i), sensors_msg(
@@ -364,7 +368,7 @@ class WorldProtocol:
         """The clock that tells everyone the run is over."""
         return Clock(run=self.run_id, sender="world", k=self.k, t_s=self.truth.t, live_agents=self.live(),
                      mode=self.sc.emulator.time_mode, done=True, malformed=self.malformed(), key_mismatch=self.key_mismatch(),
-                     recorder_waits=self.recorder_waits, recorder_wait_s=self.recorder_wait_s)
+                     recorder_waited_steps=self.recorder_waits, recorder_waited_s=self.recorder_wait_s)
 
     def _wait_for_recorder(self, k: int):
         """Lockstep, with a recorder: begin step k only once the recorder has taken in the

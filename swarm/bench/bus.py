@@ -16,6 +16,7 @@ echoes on ``meas/1``), so the router checks exactly the rules a run's batches me
 
 from __future__ import annotations
 
+import contextlib
 import os
 import subprocess
 import sys
@@ -381,6 +382,7 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
         # ideal radio would have sent them to every agent (the whole swarm's).
         agent_in = radio_in = 0
         meas_of: dict[int, list] = {}
+        recorder_waits = (0, 0.0)  # the bounded recorder lag's cost: steps the world waited for the recorder, wall s
         for topic, _s, data, lt, _p in iter_messages(out / "run.mcap"):
             try:
                 _run, kind, ident = parse_key(topic)
@@ -402,6 +404,9 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
                 meas_of.setdefault(int(b.k), []).append(b)
             if topic.endswith("/clock"):
                 clocks.append(lt)
+                with contextlib.suppress(MessageError):
+                    c = decode("clock", data)
+                    recorder_waits = max(recorder_waits, (int(c.recorder_waited_steps), float(c.recorder_waited_s)))
             elif topic.startswith(est_prefix):
                 try:
                     m = decode("est", data)
@@ -448,6 +453,10 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
             "codec_share_of_filter": share,
             "codec_share_of_filter_mean": float(e[:, 2].sum() / e[:, 1].sum()) if len(e) and e[:, 1].sum() > 0 else None,
             "world_exit_code": code,
+            # The bounded recorder lag (emulator.recorder_max_lag_steps): what waiting for the recorder cost.
+            "recorder_max_lag_steps": sc.emulator.recorder_max_lag_steps,
+            "recorder_steps_waited": recorder_waits[0],
+            "recorder_wait_s": recorder_waits[1],
             # CPU (ms) per simulated step of every process of the run, summed by role (agent:
             # all of them), between the clocks of step 2 and of the last step.
             "cpu_ms_per_step_by_role": role_ms,
@@ -460,6 +469,8 @@ def _bench_realtime(sats: list[int], duration_s: float, log, workdir: Path | Non
             f"{_ms(row['realtime_factor'], spec='.1f')}×, start-up {startup:.1f} s (total {total:.1f} s); agent per step: filter "
             f"{_ms(filt_cpu)} ms CPU, messages {_ms(codec_cpu)} ms CPU ({_ms(share, 100, '.0f')} % of the filter)"
         )
+        log(f"  waited for the recorder (at most {sc.emulator.recorder_max_lag_steps} steps behind): "
+            f"{recorder_waits[0]} steps, {recorder_waits[1]:.2f} s")
         log(f"  received per agent and step: {row['agent_rx_bytes_per_step']:.0f} B, of which the radio (peers' batches) "
             f"{row['agent_radio_rx_bytes_per_step']:.0f} B (the whole swarm's batches in one message: "
             f"{_ms(row['whole_swarm_batches_bytes_per_step'], spec='.0f')} B)")

@@ -334,7 +334,7 @@ def seed_messages() -> dict[str, list]:
                           cx_px=1.5, cy_px=0.5, target=2, baseline_m=0.5, images_mono8=[bytes(range(8)), bytes(8)])
     counters: dict[str, Any] = {f: matrix(np.arange(9.0).reshape(3, 3)) for f in M._LINK_COUNTERS}
     return {
-        "clock": [M.Clock(**H, sender="world", live_agents=[0, 1, 2], mode="lockstep", malformed=2, recorder_waits=1, recorder_wait_s=0.5),
+        "clock": [M.Clock(**H, sender="world", live_agents=[0, 1, 2], mode="lockstep", malformed=2, recorder_waited_steps=1, recorder_waited_s=0.5),
                   M.Clock(**H, sender="world", live_agents=[], mode="free", done=True)],
         "sensors": [sensors_msg(run=RUN, k=3, t_s=3.0, sat=ME, gyro=rng.normal(size=3) * 1e-3, absm=abs_meas, sigma_star=2.9e-5, sigma_gps=0.01),
                     sensors_msg(run=RUN, k=0, t_s=0.0, sat=ME, gyro=None, absm=None, sigma_star=2.9e-5, sigma_gps=0.01)],

@@ -139,8 +139,8 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
             try:
                 c = decode("clock", data, n_sats=n)
                 bus.dropped["world"] = (c.malformed, c.key_mismatch)
-                if bus.recorder_waits is None or c.recorder_waits >= bus.recorder_waits[0]:  # (counts only grow)
-                    bus.recorder_waits = (int(c.recorder_waits), float(c.recorder_wait_s))
+                if bus.recorder_waits is None or c.recorder_waited_steps >= bus.recorder_waits[0]:  # (counts only grow)
+                    bus.recorder_waits = (int(c.recorder_waited_steps), float(c.recorder_waited_s))
             except MessageError:
                 pass
         if kind == "_gap":

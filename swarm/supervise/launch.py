@@ -54,7 +54,7 @@ from swarmcore.scenario import AGENT_PROCESS_FAULTS, CLUSTER_FAULTS, ROUTER_FAUL
 from swarmrt.bus.messages import Fault, Keys, as_dict, opt, replace
 from swarmrt.bus.session import BusConfig
 from swarmrt.node import Node
-from swarmrt.protocol import BUS_LEASE_S, EXIT_AGENT_LOST, EXIT_BUS_LOST
+from swarmrt.protocol import BUS_LEASE_S, EXIT_AGENT_LOST, EXIT_BUS_LOST, first_time
 
 __all__ = ["LocalSwarm", "Interrupted", "free_port", "client_bus"]
 
@@ -167,6 +167,7 @@ class LocalSwarm:
         # recorder's token comes back: a report put while a router failed over, or while
         # the recorder was stalled or away, must still reach the recording.
         self._reports: list[Fault] = []
+        self._commands_seen: set[bytes] = set()
         self.bus: BusConfig | None = None  # the supervisor's own connection, once started
         self.node: Node | None = None
         self.faults: list[dict] = []
@@ -397,7 +398,8 @@ class LocalSwarm:
             self.k = ev.msg.k
             self.world_done = self.world_done or ev.msg.done
         elif ev.kind == "fault" and ev.msg.phase == "command":
-            self.execute(ev.msg)
+            if first_time(self._commands_seen, ev.msg):  # (a command sent again is carried out once)
+                self.execute(ev.msg)
         elif ev.kind == "fault":
             self.faults.append(as_dict(ev.msg, exclude=("schema_version", "run")))
 

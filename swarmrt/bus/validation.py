@@ -148,8 +148,8 @@ def _nonneg(name: str, v: float) -> None:
 def _clock(m: Clock, top: int) -> None:
     _ids(top, "live_agents", m.live_agents)
     _choice("mode", m.mode, ("lockstep", "free"))
-    if not (math.isfinite(m.recorder_wait_s) and m.recorder_wait_s >= 0.0):
-        raise MessageError(f"recorder_wait_s: {m.recorder_wait_s} is not a finite number of seconds >= 0")
+    if not (math.isfinite(m.recorder_waited_s) and m.recorder_waited_s >= 0.0):
+        raise MessageError(f"recorder_waited_s: {m.recorder_waited_s} is not a finite number of seconds >= 0")
 
 
 def _recorded(m: Recorded, top: int) -> None:

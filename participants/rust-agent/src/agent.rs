@@ -78,6 +78,9 @@ pub struct State {
     world_seen: bool,
     sends: Vec<Out>,
     previous: Vec<Out>,
+    // Fault commands carried out (their bytes): the world sends its last steps' commands
+    // again when the bus or the recorder comes back, and a command is carried out once.
+    commands_seen: BTreeSet<Vec<u8>>,
 }
 
 impl State {
@@ -110,6 +113,7 @@ impl State {
             world_seen: false,
             sends: vec![],
             previous: vec![],
+            commands_seen: BTreeSet::new(),
             sc,
         }
     }
@@ -204,6 +208,9 @@ impl State {
     fn on_fault(&mut self, f: Fault) -> Vec<Out> {
         if f.phase != "command" || f.target != Some(self.i as u32) {
             return vec![];
+        }
+        if !self.commands_seen.insert(f.encode_to_vec()) {
+            return vec![]; // the same command sent again: carried out already
         }
         match f.action.as_str() {
             "camera" => {
