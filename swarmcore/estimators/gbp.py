@@ -1,0 +1,494 @@
+"""``gbp``: Gaussian belief propagation on the swarm's factor graph (a Robot Web).
+
+After Murai, Ortiz, Saeedi, Kelly and Davison, "A Robot Web for Distributed Many-Device
+Localisation" (IEEE T-RO 2024): each device holds its own variables and the factors that
+touch them, and talks only to the devices it shares a factor with, by GBP messages. Here
+the variable of satellite i at step k is its own 12 error states
+``x_i = [a_i (rad, B_i), Δβ_i (rad/s), Δr_H,i (m), Δv_H,i (m/s)]`` (the own block of the
+full filter: gyro in dynamic-model-replacement mode), the window is one step long and
+everything older is marginalised into a Gaussian prior, so a variable's belief is a
+12-state MEKF (:class:`~swarmcore.estimators.own.OwnStateEstimator`). Its factors at k:
+
+* the **dynamics/gyro factor** ``x_i^k = Φ_i x_i^{k−1} + w``, ``w ~ N(0, Q_i)`` — the
+  prediction of the marginalised window, :func:`swarmcore.mekf.predict`;
+* the **absolute factor** of its own star tracker and GPS (anchors only);
+* one **relative factor** per relative pose measurement between i and a graph neighbour
+  j (either observer): ``z_ij = h(x_i, x_j) + v``, ``v ~ N(0, R)``, linearised at the
+  current means, ``y = z ⊟ h(x̂_i, x̂_j) ≈ H_i δx_i + H_j δx_j + v`` (Jacobians
+  :func:`swarmcore.mekf.relative_residuals`, those of every filter of the project).
+
+**Messages.** Variable → factor: the belief of ``x_j`` with the factor's own incoming
+message removed, ``m_{j→f}(x_j) = b_j(x_j) / m_{f→j}(x_j)``. Over a time window, the
+message ``f_ij`` sent at every earlier step reaches ``x_j^k`` through the dynamics
+factors too, so removing only the last one still double counts; what removes every one of
+them is a *cavity belief*: agent j runs, beside its own belief, one belief per graph
+neighbour i that fuses every factor of j except the ``f_ij`` (all steps), ``b_j^{∖i}``.
+Its pose marginal (6×6: the relative factor touches only ``[a, Δr]``) is j's message to
+i, and j broadcasts one per neighbour each step (:class:`GbpMessage`). Factor → variable
+(computed by i, which holds its copy of ``f_ij``): the factor times the incoming
+message, ``x_j`` marginalised out — for the linearised factor a pseudo-measurement of
+``x_i`` alone,
+
+    y ≈ H_i δx_i + n,      n ~ N(0, R + H_j P_j^{∖i} H_jᵀ),
+
+i.e. in information form ``Λ_{f→i} = H_iᵀ S⁻¹ H_i``, ``η_{f→i} = H_iᵀ S⁻¹ (y + H_i δx̂)``
+with ``S = R + H_j P_j^{∖i} H_jᵀ`` (all measurements of the pair at a step stacked, the
+pair's rows correlated through ``P_j^{∖i}``). The belief is the product of the prior and
+every factor message, ``Λ_i = Λ_prior + Σ_f Λ_{f→i}`` — applied as the equivalent
+Kalman update (Joseph form, multiplicative attitude reset), the same as the full filter's
+updates. Each cavity belief ``b_i^{∖l}`` takes every message but those of ``f_il``. One
+GBP iteration per step (the factors of step k are new at k: there is nothing to iterate
+on the same step without a second exchange).
+
+**Why a conservative device.** With ``Λ`` summed as above the update is exact on a tree.
+The study's graph is loopy (each satellite measures its three nearest: triangles), and in
+time the cavity belief of j towards i still holds i's own information that went round a
+loop ``i → l → j``: GBP's means converge on loopy Gaussian graphs but its covariances come
+out overconfident (Weiss & Freeman, Neural Computation 2001), and in a filter that grows
+step after step. The incoming factor messages are therefore fused by **split covariance
+intersection** (Julier & Uhlmann 2001, as :mod:`.ci`; ``fusion: ci``, the default):
+
+    P⁺⁻¹ = ω P⁻¹ + (1 − ω) H_iᵀ C(ω)⁻¹ H_i,   C(ω) = R + H_j P_j^{∖i} H_jᵀ / (1 − ω),
+
+with ω minimising ``det P⁺`` (:func:`swarmcore.kernels.ci_det_weight`): consistent
+whatever the unknown correlation between ``b_i`` and the incoming cavities, and, because
+the cavities carry less of i's own information than the beliefs ``ci`` fuses, less
+pessimistic (ω closer to 1). The camera noise R is independent and not inflated. The
+neighbours' cavities are taken as independent of each other (GBP's assumption; with
+``correlated_peers: true`` their stack is bounded by ``m · blockdiag`` as in ``ci``).
+``fusion: kalman`` is plain GBP (ω = 1): the Robot Web's own update, kept to measure what
+the loops cost in consistency. (Damping the messages, the other usual remedy, slows the
+means but does not bound the covariance; a sliding window with conservative
+marginalisation needs a second message per step.)
+
+**Why GBP and not ADMM/iMESA.** Consensus ADMM (MESA, iMESA, RSS 2024) reaches the
+centralised MAP by iterating to a consensus on shared variables — several exchanges per
+step with their duals — and gives no covariance without a further step; the lockstep
+radio gives one exchange per step and every estimator here must claim a covariance. GBP
+gives a belief (mean and covariance) after every single exchange and degrades gracefully
+when messages are lost or late (Murai et al.).
+
+**The view.** Its own row is its belief. A neighbour j whose factor it used at the step is
+claimed from the factor's belief ``b_f(x_i, x_j) ∝ f_ij · m_{i→f} · m_{j→f}`` (the edge
+marginal of BP: its own cavity towards j, j's cavity towards i, and the pair's
+measurements, joint update with zero prior correlation), which gives j's pose and its
+cross-covariance with i; the relative pose covariance is that of the edge belief.
+
+**Wire.** :class:`GbpMessage` travels as bytes (:meth:`GbpEstimator.encode`, the plug-in
+path: ``EstimatorMessage.opaque``): per target its cavity quaternion, position and the
+lower Cholesky factor of its 6×6 pose covariance (so the receiver's covariance is PSD by
+construction), float32, and the sender's rate and velocity once; 112 B per neighbour.
+The payload is quantised at :meth:`transmit`, so the in-process message is the decoded
+one, bit for bit.
+
+**Late deliveries** (``filter.late: replay``, as ``ci``): each step's beliefs, readings,
+measurements and what it heard are kept for ``filter.history_s``; a message of step s
+arriving at k is filed under s and the beliefs (own and cavities) are re-run from s.
+Older than the history, or with ``drop``: dropped. Counted either way (``late_used``,
+``late_dropped``, over the measurements involving the agent).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from .. import kernels
+from ..graphs import scenario_graph
+from ..mekf import (
+    BLOCK,
+    AbsoluteMeasurement,
+    FilterParams,
+    RelativeMeasurements,
+    SwarmEstimate,
+    apply_correction,
+    gate,
+    predict,
+    relative_residuals,
+    update,
+)
+from .base import EstimateView, EstimatorParams, Received, StepInputs, StepReport
+from .ci import _logdet_cost, _whitened, ci_weight
+from .own import OwnStateEstimator, absolute_update
+from .views import POSE, ViewRows, pose_block, relative_pose_cov
+
+__all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message"]
+
+#: Variance of a peer's rate and velocity states in a joint linearisation (the relative
+#: factor has zero Jacobian columns there: any positive value gives the same result).
+_UNUSED_VAR = 1.0
+_TRI = np.tril_indices(6)
+_HEAD = struct.Struct("<iiH")  # sat, step, number of targets
+
+
+class GbpParams(EstimatorParams):
+    fusion: str = Field("ci", pattern="^(ci|kalman)$",
+                        description="how the incoming factor messages are fused: ci (split covariance intersection, consistent "
+                        "on loopy graphs) or kalman (plain GBP, overconfident on loops)")
+    correlated_peers: bool = Field(False, description="bound the neighbours' cavities' mutual correlation (m × blockdiag)")
+
+
+@dataclass(frozen=True, eq=False)
+class GbpMessage:
+    """What a ``gbp`` agent broadcasts at step k: for each graph neighbour (``targets``) its
+    cavity belief's pose towards it (the variable → factor message), float32 on the wire.
+
+    ``q_BI`` (p, 4), ``r_H`` (p, 3) m, ``L_pose`` (p, 21) the rows of the lower Cholesky
+    factor of the 6×6 ``[a, Δr]`` covariance, ``omega_BI_B`` (3,) rad/s and ``v_H`` (3,) m/s
+    of its own belief; all float32."""
+
+    sat: int
+    step: int
+    targets: np.ndarray  # (p,) int
+    q_BI: np.ndarray  # (p, 4) float32
+    r_H: np.ndarray  # (p, 3) float32
+    L_pose: np.ndarray  # (p, 21) float32
+    omega_BI_B: np.ndarray  # (3,) float32
+    v_H: np.ndarray  # (3,) float32
+
+    def row(self, target: int) -> int | None:
+        hit = np.nonzero(self.targets == target)[0]
+        return int(hit[0]) if hit.size else None
+
+    def pose(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row r's (q_BI, r_H, P_pose) in float64 (q normalised, P = L Lᵀ)."""
+        q = self.q_BI[r].astype(float)
+        L = np.zeros((6, 6))
+        L[_TRI] = self.L_pose[r]
+        return q / np.linalg.norm(q), self.r_H[r].astype(float), L @ L.T
+
+    def encode(self) -> bytes:
+        p = int(self.targets.size)
+        return b"".join([_HEAD.pack(self.sat, self.step, p), np.asarray(self.targets, "<u2").tobytes(),
+                         *(np.ascontiguousarray(a, "<f4").tobytes() for a in (self.q_BI, self.r_H, self.L_pose,
+                                                                               self.omega_BI_B, self.v_H))])
+
+    @classmethod
+    def decode(cls, data: bytes) -> GbpMessage:
+        if len(data) < _HEAD.size:
+            raise ValueError(f"gbp message: {len(data)} bytes, shorter than its header")
+        sat, step, p = _HEAD.unpack_from(data)
+        want = _HEAD.size + 2 * p + 4 * (p * 28 + 6)
+        if len(data) != want:
+            raise ValueError(f"gbp message: {len(data)} bytes for {p} targets, expected {want}")
+        o = _HEAD.size
+        targets = np.frombuffer(data, "<u2", p, o).astype(int)
+        o += 2 * p
+        f = np.frombuffer(data, "<f4", p * 28 + 6, o).astype(np.float32)
+        if not np.isfinite(f).all():
+            raise ValueError("gbp message: non-finite values")
+        q, r, L = f[: 4 * p].reshape(p, 4), f[4 * p : 7 * p].reshape(p, 3), f[7 * p : 28 * p].reshape(p, 21)
+        if p and (np.linalg.norm(q, axis=1) < 0.5).any():
+            raise ValueError("gbp message: a quaternion far from unit norm")
+        return cls(int(sat), int(step), targets, q, r, L, f[28 * p : 28 * p + 3].copy(), f[28 * p + 3 :].copy())
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, GbpMessage):
+            return NotImplemented
+        return self.encode() == other.encode()
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def factor_message(Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, P_cav: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The factor → variable message of linearised relative factors in information form
+    (module docstring): ``(Λ, S)`` with ``S = R + Hp P_cav Hpᵀ`` the noise of the
+    pseudo-measurement of the own state and ``Λ = Hoᵀ S⁻¹ Ho`` its information (12×12)."""
+    S = R + Hp @ P_cav @ Hp.T
+    return Ho.T @ np.linalg.solve(S, Ho), S
+
+
+@dataclass
+class _Kept:
+    """What step s was given (for a replay when a late message of s comes)."""
+
+    prior: dict[int, SwarmEstimate]  # -1: the own belief; l: the cavity towards l
+    absolute: AbsoluteMeasurement | None
+    own: RelativeMeasurements
+    heard: dict[int, Received]
+    gyro_next: np.ndarray | None = None
+
+
+class GbpEstimator(OwnStateEstimator):
+    kind = "gbp"
+    radio = "graph"  # factors only with graph neighbours, messages only from them
+    Params = GbpParams
+
+    @classmethod
+    def encode(cls, message: Any) -> bytes:
+        if not isinstance(message, GbpMessage):
+            raise TypeError(f"gbp: cannot encode {type(message).__name__}")
+        return message.encode()
+
+    @classmethod
+    def decode(cls, data: bytes) -> Any:
+        return GbpMessage.decode(data)
+
+    def __init__(self, sc, own: int, params: GbpParams | None = None):
+        super().__init__(sc, own, params)
+        G = scenario_graph(sc)
+        self.neighbours = sorted(int(j) for j in np.nonzero(G[own] | G[:, own])[0] if j != own)
+        self.cav: dict[int, SwarmEstimate] = {}
+        self.unusable = 0
+        self._joint_params: dict[int, FilterParams] = {}
+        self._edges: dict[int, tuple[SwarmEstimate, GbpMessage]] = {}  # peer → (edge belief, its message) of this step
+        f = sc.filter
+        self.history_steps = math.ceil(f.history_s / sc.dt_s) if f.late == "replay" else 0
+        self._kept: dict[int, _Kept] = {}
+        self.last_omega = 1.0
+
+    # -- state -----------------------------------------------------------------------
+    def start(self, prior: SwarmEstimate, step_pending: bool = True) -> None:
+        super().start(prior, step_pending)
+        self.cav = {j: prior for j in self.neighbours}
+        self._kept.clear()
+        self._edges = {}
+
+    def _beliefs(self) -> dict[int, SwarmEstimate]:
+        return {-1: self.e, **self.cav}
+
+    def _set(self, b: dict[int, SwarmEstimate]) -> None:
+        self.est = b[-1]
+        self.cav = {j: v for j, v in b.items() if j != -1}
+
+    def propagate(self, gyro_rate_B) -> None:
+        """The dynamics/gyro factor on the own belief and on every cavity belief."""
+        super().propagate(gyro_rate_B)
+        self.cav = {j: predict(c, self.fp, gyro_rate_B) for j, c in self.cav.items()}
+
+    def predict(self, k, gyro_rate_B) -> None:
+        if not self._pending and self.e.step == k - 1 and k - 1 in self._kept:
+            self._kept[k - 1].gyro_next = gyro_rate_B
+        super().predict(k, gyro_rate_B)
+
+    def coast_to(self, k, gyro_of) -> None:
+        if self.e.step < k - 1:
+            self._kept.clear()
+        super().coast_to(k, gyro_of)
+
+    # -- radio -----------------------------------------------------------------------
+    def transmit(self, k: int) -> GbpMessage:
+        e = self.e
+        if e.step != k:
+            raise ValueError(f"gbp estimator of satellite {self.own}: transmit({k}) with its estimate at step {e.step}")
+        t = sorted(self.cav)
+        p = len(t)
+        q = np.zeros((p, 4), np.float32)
+        r = np.zeros((p, 3), np.float32)
+        L = np.zeros((p, 21), np.float32)
+        for a, j in enumerate(t):
+            c = self.cav[j]
+            q[a], r[a] = c.q_BI[0], c.r_H[0]
+            L[a] = np.linalg.cholesky(pose_block(c.P))[_TRI]
+        return GbpMessage(self.own, k, np.array(t, dtype=int), q, r, L, e.omega_BI_B[0].astype(np.float32),
+                          e.v_H[0].astype(np.float32))
+
+    # -- step ------------------------------------------------------------------------
+    def step(self, inputs: StepInputs) -> StepReport:
+        k = inputs.step
+        self.begin_step(k, inputs.gyro_rate_B)
+        rep = StepReport()
+        late = inputs.late()
+        if late:
+            first = self._take_late(late, rep)
+            if first is not None:
+                self._replay(first, k)
+                rep.replayed_steps = k - first
+        kept = _Kept(self._beliefs(), inputs.absolute, inputs.own, {r.sender: r for r in inputs.on_time()})
+        if self.history_steps:
+            self._kept[k] = kept
+            for old in [s for s in self._kept if s <= k - self.history_steps]:
+                del self._kept[old]
+        acc, rej, nis, dof = self._update(kept, count=True, peers_batch=inputs.peer_measurements)
+        rep.gate_accepted, rep.gate_rejected = acc, rej
+        rep.nis, rep.nis_dof = (nis, dof) if dof else (float("nan"), 0)
+        rep.extra["unusable"] = self.unusable
+        rep.extra["omega"] = self.last_omega
+        self._pending = False
+        return rep
+
+    def _take_late(self, late: list[Received], rep: StepReport) -> int | None:
+        first = None
+        for r in late:
+            kept = self._kept.get(r.step)
+            involving = int(np.count_nonzero(r.measurements.target == self.own))
+            if kept is None or r.sender in kept.heard:
+                rep.late_dropped += involving
+                continue
+            kept.heard[r.sender] = r
+            involving += int(np.count_nonzero(kept.own.target == r.sender))
+            rep.late_used += involving
+            first = r.step if first is None else min(first, r.step)
+        return first
+
+    def _replay(self, first: int, k: int) -> None:
+        self._set(self._kept[first].prior)
+        for s in range(first, k):
+            kept = self._kept[s]
+            kept.prior = self._beliefs()
+            self._update(kept, count=False)
+            self.propagate(kept.gyro_next)
+
+    def _update(self, kept: _Kept, count: bool, peers_batch: RelativeMeasurements | None = None) -> tuple[int, int, float, int]:
+        """The factors of one step on the own belief and every cavity: absolute (Kalman),
+        then the relative factors' messages (module docstring). Returns accepted,
+        rejected, NIS and its dof (of the own belief)."""
+        b = self._beliefs()
+        nis, dof = 0.0, 0
+        if kept.absolute is not None:
+            for j, e in b.items():
+                b[j], d2, dd = absolute_update(e, self.fp, kept.absolute)
+                if j == -1:
+                    nis, dof = d2, dd
+        self._edges = {}
+        me = self.own
+        if peers_batch is None:
+            peers_batch = RelativeMeasurements.concat([kept.heard[j].measurements for j in sorted(kept.heard)])
+        cand = RelativeMeasurements.concat([kept.own, peers_batch.subset(peers_batch.target == me)])
+        msgs: dict[int, GbpMessage] = {}
+        if len(cand):
+            other = np.where(cand.observer == me, cand.target, cand.observer)
+            for j in np.unique(other).tolist():
+                r = kept.heard.get(j)
+                if r is not None and isinstance(r.payload, GbpMessage) and r.payload.row(me) is not None:
+                    msgs[j] = r.payload
+            ok = np.isin(other, np.fromiter(msgs, dtype=int, count=len(msgs)))
+            if count:
+                self.unusable += int((~ok).sum())
+            cand = cand.subset(ok).canonical()
+        acc = 0
+        if len(cand):
+            b, acc, d2 = self._fuse_all(b, cand, msgs)
+            nis, dof = nis + d2, dof + self.fp.rel_dof * acc
+        self._set(b)
+        if acc:
+            self._edge_beliefs(cand, msgs)
+        return acc, len(cand) - acc, nis, dof
+
+    def _linearise(self, e: SwarmEstimate, rel: RelativeMeasurements, msgs: dict[int, GbpMessage], peers: list[int]):
+        """The relative factors linearised at belief ``e`` and the incoming cavities: joint
+        residuals, the own and peers' Jacobian blocks, and the joint estimate."""
+        me = self.own
+        m = 1 + len(peers)
+        row = {me: 0, **{j: r + 1 for r, j in enumerate(peers)}}
+        P = np.zeros((BLOCK * m, BLOCK * m))
+        P[:BLOCK, :BLOCK] = e.P
+        qs, rs = [e.q_BI[0]], [e.r_H[0]]
+        ws, vs = [e.omega_BI_B[0]], [e.v_H[0]]
+        for r, j in enumerate(peers, start=1):
+            s = msgs[j]
+            q, rr, Pp = s.pose(s.row(me))  # type: ignore[arg-type]
+            blk = np.diag(np.full(BLOCK, _UNUSED_VAR))
+            blk[np.ix_(POSE, POSE)] = Pp
+            P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)] = blk
+            qs.append(q)
+            rs.append(rr)
+            ws.append(s.omega_BI_B.astype(float))
+            vs.append(s.v_H.astype(float))
+        joint = SwarmEstimate(e.step, e.t, np.array(qs), np.array(ws), np.array(rs), np.array(vs), e.bias_B, P)
+        if m not in self._joint_params:
+            self._joint_params[m] = dataclasses.replace(self.fp, n=m, own=0, max_iterations=1)
+        jp = self._joint_params[m]
+        local = RelativeMeasurements(np.array([row[int(i)] for i in rel.observer]), np.array([row[int(j)] for j in rel.target]),
+                                     rel.q_BjBi, rel.r_ij_Bi, rel.R_Bi)
+        return joint, jp, local
+
+    def _fuse_all(self, b: dict[int, SwarmEstimate], rel: RelativeMeasurements, msgs: dict[int, GbpMessage]):
+        """Gate the step's relative measurements against the own belief, then fuse their
+        factor messages into the own belief (all) and each cavity (all but its target's)."""
+        me = self.own
+        peers = sorted(msgs)
+        joint, jp, local = self._linearise(b[-1], rel, msgs, peers)
+        _, _, _, d2, accepted = gate(joint, jp, local)
+        if not accepted.any():
+            return b, 0, 0.0
+        rel = rel.subset(accepted)
+        other = np.where(rel.observer == me, rel.target, rel.observer)
+        out = dict(b)
+        for key, e in b.items():
+            keep = other != key
+            if not keep.any():
+                continue
+            sub = rel.subset(keep)
+            used = sorted({int(x) for x in other[keep]})
+            out[key] = self._fuse(e, sub, msgs, used, own_belief=key == -1)
+        return out, int(accepted.sum()), float(d2[accepted].sum())
+
+    def _fuse(self, e: SwarmEstimate, rel: RelativeMeasurements, msgs: dict[int, GbpMessage], peers: list[int],
+              own_belief: bool) -> SwarmEstimate:
+        """One belief times the relative factors' messages (module docstring), with split
+        CI (``fusion: ci``) or as plain GBP (``kalman``)."""
+        joint, jp, local = self._linearise(e, rel, msgs, peers)
+        y, Hi, Hj = relative_residuals(joint, jp, local)
+        mine_obs = local.observer == 0
+        Ho6 = np.where(mine_obs[:, None, None], Hi, Hj)
+        Hq6 = np.where(mine_obs[:, None, None], Hj, Hi)
+        peer_row = np.where(mine_obs, local.target, local.observer) - 1
+        k = len(local)
+        Ho = np.zeros((6 * k, BLOCK))
+        Hp = np.zeros((6 * k, 6 * len(peers)))
+        R = np.zeros((6 * k, 6 * k))
+        for r in range(k):
+            rows = slice(6 * r, 6 * r + 6)
+            Ho[rows, POSE] = Ho6[r]
+            Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
+            R[rows, rows] = local.R_Bi[r]
+        Pp = np.zeros((6 * len(peers), 6 * len(peers)))
+        for r in range(len(peers)):
+            Pp[6 * r : 6 * r + 6, 6 * r : 6 * r + 6] = joint.P[BLOCK * (r + 1) : BLOCK * (r + 2), BLOCK * (r + 1) : BLOCK * (r + 2)][
+                np.ix_(POSE, POSE)]
+        bound = float(len(peers)) if self.params.correlated_peers else 1.0  # type: ignore[attr-defined]
+        C_p = bound * (Hp @ Pp @ Hp.T)
+        w = 1.0
+        if self.params.fusion == "ci":  # type: ignore[attr-defined]
+            W, lam = _whitened(e.P, Ho, R, C_p, True)
+            w_c = kernels.ci_det_weight(W, lam, True)
+            w = w_c if w_c is not None else ci_weight(_logdet_cost(W, lam, True))
+        Pw = e.P / w
+        Cw = R + C_p / (1.0 - w) if w < 1.0 else R + C_p
+        PHt = Pw @ Ho.T
+        S = Ho @ PHt + Cw
+        K = np.linalg.solve(S, PHt.T).T
+        A = np.eye(BLOCK) - K @ Ho
+        P_post = A @ Pw @ A.T + K @ Cw @ K.T
+        if own_belief:
+            self.last_omega = w
+        return apply_correction(e, self.fp, K @ y.ravel(), P_post)
+
+    def _edge_beliefs(self, rel: RelativeMeasurements, msgs: dict[int, GbpMessage]) -> None:
+        """The factor beliefs of this step's edges (for the view): own cavity towards j
+        and j's cavity towards the own satellite, uncorrelated, updated jointly with the
+        pair's measurements."""
+        me = self.own
+        other = np.where(rel.observer == me, rel.target, rel.observer)
+        for j in sorted({int(x) for x in other}):
+            c = self.cav.get(j, self.e)
+            joint, jp, local = self._linearise(c, rel.subset(other == j), msgs, [j])
+            jp2 = dataclasses.replace(jp, gate_threshold=None)
+            post, _ = update(joint, jp2, None, local.canonical())
+            self._edges[j] = (post, msgs[j])
+
+    def view(self) -> EstimateView:
+        """Its own belief; each neighbour whose factor it used this step from the edge
+        belief (with the cross-covariance and relative covariance of that belief)."""
+        peers = sorted(self._edges)
+        rows = ViewRows(self.own, peers, self.e)
+        for j in peers:
+            post, _ = self._edges[j]
+            rows.set(j, post.q_BI[1], post.omega_BI_B[1], post.r_H[1], post.v_H[1], P_pose=pose_block(post.P[BLOCK:, BLOCK:]))
+        v = rows.view(with_cross=False)
+        if not peers:
+            return v
+        P_rel = v.P_rel_pose.copy()
+        for j in peers:
+            post, _ = self._edges[j]
+            Pi, Pj = pose_block(post.P[:BLOCK, :BLOCK]), pose_block(post.P[BLOCK:, BLOCK:])
+            Pji = post.P[BLOCK:, :BLOCK][np.ix_(POSE, POSE)]
+            P_rel[rows.row[j]] = relative_pose_cov(post.q_BI[0], post.q_BI[1:2], Pi, Pj[None], Pji[None])[0]
+        return dataclasses.replace(v, P_rel_pose=P_rel)
