@@ -97,6 +97,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+import scipy.linalg as sla
 from pydantic import Field
 
 from .. import kernels
@@ -118,7 +119,7 @@ from .ci import _logdet_cost, _whitened, ci_weight
 from .own import OwnStateEstimator, absolute_update
 from .views import POSE, ViewRows, pose_block, relative_pose_cov
 
-__all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message"]
+__all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message", "stack_factors"]
 
 #: Variance of a peer's rate and velocity states in a joint linearisation (the relative
 #: factor has zero Jacobian columns there: any positive value gives the same result).
@@ -194,6 +195,27 @@ class GbpMessage:
         return self.encode() == other.encode()
 
     __hash__ = None  # type: ignore[assignment]
+
+
+def stack_factors(local: RelativeMeasurements, Hi: np.ndarray, Hj: np.ndarray, n_peers: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linearised relative factors of one belief (row 0 of the joint ``local`` is the own
+    satellite, rows 1… its neighbours): ``y ≈ Ho δx_i + Hp δp + v``, with ``Ho`` (6m × 12)
+    on the own 12 error states, ``Hp`` (6m × 6 n_peers) on the neighbours' ``[a, Δr]`` and
+    ``R`` (6m × 6m) the camera noise, from the Jacobian blocks of
+    :func:`swarmcore.mekf.relative_residuals` (``Hi`` on the observer, ``Hj`` on the target)."""
+    mine_obs = local.observer == 0
+    Ho6 = np.where(mine_obs[:, None, None], Hi, Hj)
+    Hq6 = np.where(mine_obs[:, None, None], Hj, Hi)
+    peer_row = np.where(mine_obs, local.target, local.observer) - 1
+    k = len(local)
+    Ho = np.zeros((6 * k, BLOCK))
+    Hp = np.zeros((6 * k, 6 * n_peers))
+    for r in range(k):
+        rows = slice(6 * r, 6 * r + 6)
+        Ho[rows, POSE] = Ho6[r]
+        Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
+    return Ho, Hp, sla.block_diag(*local.R_Bi) if k else np.zeros((0, 0))
 
 
 def factor_message(Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, P_cav: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -426,23 +448,9 @@ class GbpEstimator(OwnStateEstimator):
         CI (``fusion: ci``) or as plain GBP (``kalman``)."""
         joint, jp, local = self._linearise(e, rel, msgs, peers)
         y, Hi, Hj = relative_residuals(joint, jp, local)
-        mine_obs = local.observer == 0
-        Ho6 = np.where(mine_obs[:, None, None], Hi, Hj)
-        Hq6 = np.where(mine_obs[:, None, None], Hj, Hi)
-        peer_row = np.where(mine_obs, local.target, local.observer) - 1
-        k = len(local)
-        Ho = np.zeros((6 * k, BLOCK))
-        Hp = np.zeros((6 * k, 6 * len(peers)))
-        R = np.zeros((6 * k, 6 * k))
-        for r in range(k):
-            rows = slice(6 * r, 6 * r + 6)
-            Ho[rows, POSE] = Ho6[r]
-            Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
-            R[rows, rows] = local.R_Bi[r]
-        Pp = np.zeros((6 * len(peers), 6 * len(peers)))
-        for r in range(len(peers)):
-            Pp[6 * r : 6 * r + 6, 6 * r : 6 * r + 6] = joint.P[BLOCK * (r + 1) : BLOCK * (r + 2), BLOCK * (r + 1) : BLOCK * (r + 2)][
-                np.ix_(POSE, POSE)]
+        Ho, Hp, R = stack_factors(local, Hi, Hj, len(peers))
+        Pp = sla.block_diag(*[pose_block(joint.P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)])
+                              for r in range(1, 1 + len(peers))])
         bound = float(len(peers)) if self.params.correlated_peers else 1.0  # type: ignore[attr-defined]
         C_p = bound * (Hp @ Pp @ Hp.T)
         w = 1.0
@@ -470,8 +478,7 @@ class GbpEstimator(OwnStateEstimator):
         for j in sorted({int(x) for x in other}):
             c = self.cav.get(j, self.e)
             joint, jp, local = self._linearise(c, rel.subset(other == j), msgs, [j])
-            jp2 = dataclasses.replace(jp, gate_threshold=None)
-            post, _ = update(joint, jp2, None, local.canonical())
+            post, _ = update(joint, dataclasses.replace(jp, gate_threshold=None), None, local.canonical())
             self._edges[j] = (post, msgs[j])
 
     def view(self) -> EstimateView:
@@ -482,13 +489,4 @@ class GbpEstimator(OwnStateEstimator):
         for j in peers:
             post, _ = self._edges[j]
             rows.set(j, post.q_BI[1], post.omega_BI_B[1], post.r_H[1], post.v_H[1], P_pose=pose_block(post.P[BLOCK:, BLOCK:]))
-        v = rows.view(with_cross=False)
-        if not peers:
-            return v
-        P_rel = v.P_rel_pose.copy()
-        for j in peers:
-            post, _ = self._edges[j]
-            Pi, Pj = pose_block(post.P[:BLOCK, :BLOCK]), pose_block(post.P[BLOCK:, BLOCK:])
-            Pji = post.P[BLOCK:, :BLOCK][np.ix_(POSE, POSE)]
-            P_rel[rows.row[j]] = relative_pose_cov(post.q_BI[0], post.q_BI[1:2], Pi, Pj[None], Pji[None])[0]
-        return dataclasses.replace(v, P_rel_pose=P_rel)
+        return rows.view(with_cross=False)
