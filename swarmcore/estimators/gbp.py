@@ -75,11 +75,12 @@ measurements, joint update with zero prior correlation), which gives j's pose an
 cross-covariance with i; the relative pose covariance is that of the edge belief.
 
 **Wire.** :class:`GbpMessage` travels as bytes (:meth:`GbpEstimator.encode`, the plug-in
-path: ``EstimatorMessage.opaque``): per target its cavity quaternion, position and the
-lower Cholesky factor of its 6×6 pose covariance (so the receiver's covariance is PSD by
-construction), float32, and the sender's rate and velocity once; 112 B per neighbour.
-The payload is quantised at :meth:`transmit`, so the in-process message is the decoded
-one, bit for bit.
+path: ``EstimatorMessage.opaque``): per target its cavity quaternion and position (float32) and
+the lower Cholesky factor of its 6×6 pose covariance (so the receiver's covariance is PSD
+by construction) as 21 float16 with a power-of-two scale per row and a float32 factor
+κ ≥ 1 that keeps the rebuilt covariance at or above the sender's (:func:`pack_cholesky`);
+the sender's rate and velocity once; 82 B per neighbour and 34 B a message. The payload is quantised at :meth:`transmit`, so the in-process
+message is the decoded one, bit for bit.
 
 **Late deliveries** (``filter.late: replay``, as ``ci``): each step's beliefs, readings,
 measurements and what it heard are kept for ``filter.history_s``; a message of step s
@@ -119,7 +120,7 @@ from .ci import _logdet_cost, _whitened, ci_weight
 from .own import OwnStateEstimator, absolute_update
 from .views import POSE, ViewRows, pose_block, relative_pose_cov
 
-__all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message", "stack_factors"]
+__all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message", "stack_factors", "pack_cholesky", "unpack_cholesky"]
 
 #: Variance of a peer's rate and velocity states in a joint linearisation (the relative
 #: factor has zero Jacobian columns there: any positive value gives the same result).
@@ -135,59 +136,104 @@ class GbpParams(EstimatorParams):
     correlated_peers: bool = Field(False, description="bound the neighbours' cavities' mutual correlation (m × blockdiag)")
 
 
+_TRI_ROW = _TRI[0]  # the row of each packed entry
+
+
+def pack_cholesky(P: np.ndarray) -> tuple[np.float32, np.ndarray, np.ndarray]:
+    """A 6×6 covariance as ``(κ, e, u)``: the packed rows of its lower Cholesky factor,
+    each row ``r`` scaled by ``2^−e_r`` (int8; its largest entry within [½, 1)) and rounded
+    to float16 ``u``, and the float32 ``κ ≥ 1`` by which the rebuilt factor is multiplied so
+    that the rebuilt covariance is at or above ``P`` (the largest generalised eigenvalue of
+    ``P`` against the rounded one, rounded up): the rounding never makes a message claim more
+    than its sender knows. :func:`unpack_cholesky` is its inverse."""
+    tri = np.linalg.cholesky(P)[_TRI]
+    rowmax = np.array([np.abs(tri[_TRI_ROW == r]).max() for r in range(6)])
+    e = np.clip(np.ceil(np.log2(np.maximum(rowmax, 1e-300))), -127, 127).astype(np.int8)
+    u = (tri * np.exp2(-e.astype(float))[_TRI_ROW]).astype(np.float16)
+    Lt = _rebuild(np.float32(1.0), e, u)
+    W = np.linalg.solve(Lt, np.linalg.solve(Lt, P).T)
+    kappa = max(1.0, float(np.sqrt(np.linalg.eigvalsh(0.5 * (W + W.T)).max())))
+    k32 = np.float32(kappa)
+    if float(k32) < kappa * (1.0 + 1e-9):
+        k32 = np.nextafter(np.float32(kappa * (1.0 + 1e-9)), np.float32(np.inf))
+    return k32, e, u
+
+
+def _rebuild(kappa: np.float32, e: np.ndarray, u: np.ndarray) -> np.ndarray:
+    L = np.zeros((6, 6))
+    L[_TRI] = u.astype(float) * np.exp2(e.astype(float))[_TRI_ROW] * float(kappa)
+    return L
+
+
+def unpack_cholesky(kappa: np.float32, e: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The covariance :func:`pack_cholesky` packed (PSD by construction, ⪰ the sender's)."""
+    L = _rebuild(kappa, e, u)
+    return L @ L.T
+
+
 @dataclass(frozen=True, eq=False)
 class GbpMessage:
     """What a ``gbp`` agent broadcasts at step k: for each graph neighbour (``targets``) its
-    cavity belief's pose towards it (the variable → factor message), float32 on the wire.
+    cavity belief's pose towards it (the variable → factor message).
 
-    ``q_BI`` (p, 4), ``r_H`` (p, 3) m, ``L_pose`` (p, 21) the rows of the lower Cholesky
-    factor of the 6×6 ``[a, Δr]`` covariance, ``omega_BI_B`` (3,) rad/s and ``v_H`` (3,) m/s
-    of its own belief; all float32."""
+    ``q_BI`` (p, 4) and ``r_H`` (p, 3) m in float32; the 6×6 ``[a, Δr]`` covariance as
+    :func:`pack_cholesky` packs it: ``L_scale`` (p,) float32 κ, ``L_exp`` (p, 6) int8 row
+    exponents, ``L_unit`` (p, 21) float16; ``omega_BI_B`` (3,) rad/s and ``v_H`` (3,) m/s of
+    its own belief in float32. What :meth:`pose` rebuilds from these is what the
+    receiver uses, in-process and across the bus alike."""
 
     sat: int
     step: int
     targets: np.ndarray  # (p,) int
     q_BI: np.ndarray  # (p, 4) float32
     r_H: np.ndarray  # (p, 3) float32
-    L_pose: np.ndarray  # (p, 21) float32
+    L_scale: np.ndarray  # (p,) float32
+    L_exp: np.ndarray  # (p, 6) int8
+    L_unit: np.ndarray  # (p, 21) float16
     omega_BI_B: np.ndarray  # (3,) float32
     v_H: np.ndarray  # (3,) float32
+
+    @staticmethod
+    def size_of(p: int) -> int:
+        """Encoded bytes for p targets."""
+        return _HEAD.size + 2 * p + 4 * (8 * p + 6) + 6 * p + 2 * 21 * p
 
     def row(self, target: int) -> int | None:
         hit = np.nonzero(self.targets == target)[0]
         return int(hit[0]) if hit.size else None
 
     def pose(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Row r's (q_BI, r_H, P_pose) in float64 (q normalised, P = L Lᵀ)."""
+        """Row r's (q_BI, r_H, P_pose) in float64 (q normalised, P :func:`unpack_cholesky`)."""
         q = self.q_BI[r].astype(float)
-        L = np.zeros((6, 6))
-        L[_TRI] = self.L_pose[r]
-        return q / np.linalg.norm(q), self.r_H[r].astype(float), L @ L.T
+        return q / np.linalg.norm(q), self.r_H[r].astype(float), unpack_cholesky(self.L_scale[r], self.L_exp[r], self.L_unit[r])
 
     def encode(self) -> bytes:
         p = int(self.targets.size)
-        return b"".join([_HEAD.pack(self.sat, self.step, p), np.asarray(self.targets, "<u2").tobytes(),
-                         *(np.ascontiguousarray(a, "<f4").tobytes() for a in (self.q_BI, self.r_H, self.L_pose,
-                                                                               self.omega_BI_B, self.v_H))])
+        f32 = (np.ascontiguousarray(a, "<f4").tobytes() for a in (self.q_BI, self.r_H, self.L_scale, self.omega_BI_B, self.v_H))
+        return b"".join([_HEAD.pack(self.sat, self.step, p), np.asarray(self.targets, "<u2").tobytes(), *f32,
+                         np.ascontiguousarray(self.L_exp, "i1").tobytes(), np.ascontiguousarray(self.L_unit, "<f2").tobytes()])
 
     @classmethod
     def decode(cls, data: bytes) -> GbpMessage:
         if len(data) < _HEAD.size:
             raise ValueError(f"gbp message: {len(data)} bytes, shorter than its header")
         sat, step, p = _HEAD.unpack_from(data)
-        want = _HEAD.size + 2 * p + 4 * (p * 28 + 6)
-        if len(data) != want:
-            raise ValueError(f"gbp message: {len(data)} bytes for {p} targets, expected {want}")
+        if len(data) != cls.size_of(p):
+            raise ValueError(f"gbp message: {len(data)} bytes for {p} targets, expected {cls.size_of(p)}")
         o = _HEAD.size
         targets = np.frombuffer(data, "<u2", p, o).astype(int)
         o += 2 * p
-        f = np.frombuffer(data, "<f4", p * 28 + 6, o).astype(np.float32)
-        if not np.isfinite(f).all():
+        f = np.frombuffer(data, "<f4", 8 * p + 6, o).astype(np.float32)
+        o += 4 * (8 * p + 6)
+        ex = np.frombuffer(data, "i1", 6 * p, o).astype(np.int8).reshape(p, 6)
+        o += 6 * p
+        h = np.frombuffer(data, "<f2", 21 * p, o).astype(np.float16).reshape(p, 21)
+        if not (np.isfinite(f).all() and np.isfinite(h).all()):
             raise ValueError("gbp message: non-finite values")
-        q, r, L = f[: 4 * p].reshape(p, 4), f[4 * p : 7 * p].reshape(p, 3), f[7 * p : 28 * p].reshape(p, 21)
-        if p and (np.linalg.norm(q, axis=1) < 0.5).any():
-            raise ValueError("gbp message: a quaternion far from unit norm")
-        return cls(int(sat), int(step), targets, q, r, L, f[28 * p : 28 * p + 3].copy(), f[28 * p + 3 :].copy())
+        q, r, sc = f[: 4 * p].reshape(p, 4), f[4 * p : 7 * p].reshape(p, 3), f[7 * p : 8 * p].copy()
+        if p and ((np.linalg.norm(q, axis=1) < 0.5).any() or (sc < 1).any()):
+            raise ValueError("gbp message: a quaternion far from unit norm or a covariance scale below 1")
+        return cls(int(sat), int(step), targets, q, r, sc, ex, h, f[8 * p : 8 * p + 3].copy(), f[8 * p + 3 :].copy())
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, GbpMessage):
@@ -303,12 +349,14 @@ class GbpEstimator(OwnStateEstimator):
         p = len(t)
         q = np.zeros((p, 4), np.float32)
         r = np.zeros((p, 3), np.float32)
-        L = np.zeros((p, 21), np.float32)
+        sc = np.zeros(p, np.float32)
+        ex = np.zeros((p, 6), np.int8)
+        L = np.zeros((p, 21), np.float16)
         for a, j in enumerate(t):
             c = self.cav[j]
             q[a], r[a] = c.q_BI[0], c.r_H[0]
-            L[a] = np.linalg.cholesky(pose_block(c.P))[_TRI]
-        return GbpMessage(self.own, k, np.array(t, dtype=int), q, r, L, e.omega_BI_B[0].astype(np.float32),
+            sc[a], ex[a], L[a] = pack_cholesky(pose_block(c.P))
+        return GbpMessage(self.own, k, np.array(t, dtype=int), q, r, sc, ex, L, e.omega_BI_B[0].astype(np.float32),
                           e.v_H[0].astype(np.float32))
 
     # -- step ------------------------------------------------------------------------
