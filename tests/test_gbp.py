@@ -89,7 +89,7 @@ def test_plain_gbp_update_is_prior_information_plus_factor_message():
     A = rng.normal(size=(12, 12))
     e.est = dataclasses.replace(e.e, P=e.e.P + 1e-6 * A @ A.T)
     prior = e.e
-    post = e._fuse(prior, rel, {1: msg}, [1], own_belief=True)
+    post = e._fuse_all({-1: prior}, rel.canonical(), {1: msg})[0][-1]  # type: ignore[attr-defined]
     joint, jp, local = e._linearise(prior, rel, {1: msg}, [1])
     _, Hi, Hj = relative_residuals(joint, jp, local)
     Ho, Hp, R = stack_factors(local, Hi, Hj, 1)
@@ -226,7 +226,8 @@ def test_plain_gbp_is_overconfident_on_loops():
 def _study(**kw) -> Scenario:
     import yaml
 
-    d = yaml.safe_load(open("scenarios/estimators.yaml"))
+    with open("scenarios/estimators.yaml") as f:
+        d = yaml.safe_load(f)
     d.update(duration_s=25, estimator={"kind": "gbp"}, bound={"enabled": False})
     d.update(kw)
     return Scenario(**d)

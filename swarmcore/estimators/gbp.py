@@ -101,7 +101,7 @@ import numpy as np
 import scipy.linalg as sla
 from pydantic import Field
 
-from .. import kernels
+from .. import kernels, quat
 from ..graphs import scenario_graph
 from ..mekf import (
     BLOCK,
@@ -112,13 +112,11 @@ from ..mekf import (
     apply_correction,
     gate,
     predict,
-    relative_residuals,
-    update,
 )
 from .base import EstimateView, EstimatorParams, Received, StepInputs, StepReport
 from .ci import _logdet_cost, _whitened, ci_weight
 from .own import OwnStateEstimator, absolute_update
-from .views import POSE, ViewRows, pose_block, relative_pose_cov
+from .views import POSE, ViewRows, pose_block
 
 __all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message", "stack_factors", "pack_cholesky", "unpack_cholesky"]
 
@@ -147,7 +145,7 @@ def pack_cholesky(P: np.ndarray) -> tuple[np.float32, np.ndarray, np.ndarray]:
     ``P`` against the rounded one, rounded up): the rounding never makes a message claim more
     than its sender knows. :func:`unpack_cholesky` is its inverse."""
     tri = np.linalg.cholesky(P)[_TRI]
-    rowmax = np.array([np.abs(tri[_TRI_ROW == r]).max() for r in range(6)])
+    rowmax = np.array([np.abs(tri[r == _TRI_ROW]).max() for r in range(6)])
     e = np.clip(np.ceil(np.log2(np.maximum(rowmax, 1e-300))), -127, 127).astype(np.int8)
     u = (tri * np.exp2(-e.astype(float))[_TRI_ROW]).astype(np.float16)
     Lt = _rebuild(np.float32(1.0), e, u)
@@ -305,7 +303,9 @@ class GbpEstimator(OwnStateEstimator):
         self.cav: dict[int, SwarmEstimate] = {}
         self.unusable = 0
         self._joint_params: dict[int, FilterParams] = {}
-        self._edges: dict[int, tuple[SwarmEstimate, GbpMessage]] = {}  # peer → (edge belief, its message) of this step
+        # peer → its pose from this step's edge belief (q_BI, r_H, P_pose) and its message
+        self._edges: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, GbpMessage]] = {}
+        self._edge_prior: dict[int, SwarmEstimate] = {}
         f = sc.filter
         self.history_steps = math.ceil(f.history_s / sc.dt_s) if f.late == "replay" else 0
         self._kept: dict[int, _Kept] = {}
@@ -314,7 +314,7 @@ class GbpEstimator(OwnStateEstimator):
     # -- state -----------------------------------------------------------------------
     def start(self, prior: SwarmEstimate, step_pending: bool = True) -> None:
         super().start(prior, step_pending)
-        self.cav = {j: prior for j in self.neighbours}
+        self.cav = dict.fromkeys(self.neighbours, prior)
         self._kept.clear()
         self._edges = {}
 
@@ -417,6 +417,7 @@ class GbpEstimator(OwnStateEstimator):
                 if j == -1:
                     nis, dof = d2, dd
         self._edges = {}
+        self._edge_prior = dict(b)  # the cavities before this step's factors: the edges' own side
         me = self.own
         if peers_batch is None:
             peers_batch = RelativeMeasurements.concat([kept.heard[j].measurements for j in sorted(kept.heard)])
@@ -437,8 +438,6 @@ class GbpEstimator(OwnStateEstimator):
             b, acc, d2 = self._fuse_all(b, cand, msgs)
             nis, dof = nis + d2, dof + self.fp.rel_dof * acc
         self._set(b)
-        if acc:
-            self._edge_beliefs(cand, msgs)
         return acc, len(cand) - acc, nis, dof
 
     def _linearise(self, e: SwarmEstimate, rel: RelativeMeasurements, msgs: dict[int, GbpMessage], peers: list[int]):
@@ -470,71 +469,99 @@ class GbpEstimator(OwnStateEstimator):
         return joint, jp, local
 
     def _fuse_all(self, b: dict[int, SwarmEstimate], rel: RelativeMeasurements, msgs: dict[int, GbpMessage]):
-        """Gate the step's relative measurements against the own belief, then fuse their
-        factor messages into the own belief (all) and each cavity (all but its target's)."""
-        me = self.own
+        """Gate the step's relative measurements against the own belief, linearise their
+        factors once (at the own belief and the incoming cavities' means), and fuse their
+        messages into the own belief (all) and each cavity (all but its target's). A cavity
+        differs from the belief by ``d = x_c ⊟ x_b``: its residual is the belief's less
+        ``Ho d`` (the factor linearised at one point, as GBP does). The cavities take the
+        belief's ω: CI is consistent for any ω in (0, 1], the search only makes it tight.
+        Also keeps, for the view, each edge's factor belief of the neighbour."""
         peers = sorted(msgs)
-        joint, jp, local = self._linearise(b[-1], rel, msgs, peers)
-        _, _, _, d2, accepted = gate(joint, jp, local)
+        main = b[-1]
+        joint, jp, local = self._linearise(main, rel, msgs, peers)
+        y, Hi, Hj, d2, accepted = gate(joint, jp, local)
         if not accepted.any():
             return b, 0, 0.0
-        rel = rel.subset(accepted)
-        other = np.where(rel.observer == me, rel.target, rel.observer)
+        a = np.nonzero(accepted)[0]
+        local = local.subset(a)
+        yv = y[a].ravel()
+        Ho, Hp, R = stack_factors(local, Hi[a], Hj[a], len(peers))
+        Pp = [pose_block(joint.P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)]) for r in range(1, 1 + len(peers))]
+        bound = float(len(peers)) if self.params.correlated_peers else 1.0  # type: ignore[attr-defined]
+        C_p = bound * (Hp @ sla.block_diag(*Pp) @ Hp.T)
+        w = 1.0
+        if self.params.fusion == "ci":  # type: ignore[attr-defined]
+            W, lam = _whitened(main.P, Ho, R, C_p, True)
+            w_c = kernels.ci_det_weight(W, lam, True)
+            w = w_c if w_c is not None else ci_weight(_logdet_cost(W, lam, True))
+        self.last_omega = w
+        other = np.repeat(np.asarray(peers)[np.where(local.observer == 0, local.target, local.observer) - 1], 6)
         out = dict(b)
         for key, e in b.items():
             keep = other != key
             if not keep.any():
                 continue
-            sub = rel.subset(keep)
-            used = sorted({int(x) for x in other[keep]})
-            out[key] = self._fuse(e, sub, msgs, used, own_belief=key == -1)
+            d = _delta(e, main)
+            yk = yv[keep] - Ho[keep] @ d
+            out[key] = _ci_update(e, self.fp, Ho[keep], yk, R[np.ix_(keep, keep)], C_p[np.ix_(keep, keep)], w)
+        self._edge_beliefs(out, main, msgs, peers, other, Ho, Hp, R, yv, Pp)
         return out, int(accepted.sum()), float(d2[accepted].sum())
 
-    def _fuse(self, e: SwarmEstimate, rel: RelativeMeasurements, msgs: dict[int, GbpMessage], peers: list[int],
-              own_belief: bool) -> SwarmEstimate:
-        """One belief times the relative factors' messages (module docstring), with split
-        CI (``fusion: ci``) or as plain GBP (``kalman``)."""
-        joint, jp, local = self._linearise(e, rel, msgs, peers)
-        y, Hi, Hj = relative_residuals(joint, jp, local)
-        Ho, Hp, R = stack_factors(local, Hi, Hj, len(peers))
-        Pp = sla.block_diag(*[pose_block(joint.P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)])
-                              for r in range(1, 1 + len(peers))])
-        bound = float(len(peers)) if self.params.correlated_peers else 1.0  # type: ignore[attr-defined]
-        C_p = bound * (Hp @ Pp @ Hp.T)
-        w = 1.0
-        if self.params.fusion == "ci":  # type: ignore[attr-defined]
-            W, lam = _whitened(e.P, Ho, R, C_p, True)
-            w_c = kernels.ci_det_weight(W, lam, True)
-            w = w_c if w_c is not None else ci_weight(_logdet_cost(W, lam, True))
-        Pw = e.P / w
-        Cw = R + C_p / (1.0 - w) if w < 1.0 else R + C_p
-        PHt = Pw @ Ho.T
-        S = Ho @ PHt + Cw
-        K = np.linalg.solve(S, PHt.T).T
-        A = np.eye(BLOCK) - K @ Ho
-        P_post = A @ Pw @ A.T + K @ Cw @ K.T
-        if own_belief:
-            self.last_omega = w
-        return apply_correction(e, self.fp, K @ y.ravel(), P_post)
-
-    def _edge_beliefs(self, rel: RelativeMeasurements, msgs: dict[int, GbpMessage]) -> None:
-        """The factor beliefs of this step's edges (for the view): own cavity towards j
-        and j's cavity towards the own satellite, uncorrelated, updated jointly with the
-        pair's measurements."""
-        me = self.own
-        other = np.where(rel.observer == me, rel.target, rel.observer)
-        for j in sorted({int(x) for x in other}):
-            c = self.cav.get(j, self.e)
-            joint, jp, local = self._linearise(c, rel.subset(other == j), msgs, [j])
-            post, _ = update(joint, dataclasses.replace(jp, gate_threshold=None), None, local.canonical())
-            self._edges[j] = (post, msgs[j])
+    def _edge_beliefs(self, b: dict[int, SwarmEstimate], main: SwarmEstimate, msgs: dict[int, GbpMessage], peers: list[int],
+                      other: np.ndarray, Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, yv: np.ndarray, Pp: list[np.ndarray]) -> None:
+        """The factor belief of each edge of the step, ``f_ij · m_{i→f} · m_{j→f}`` (for the
+        view): the own cavity towards j (its prior of the step, taken from the kept
+        beliefs) and j's cavity towards the own satellite, uncorrelated, updated by the
+        pair's rows (Kalman, Joseph form) over both poses; the neighbour's part is kept."""
+        self._edges = {}
+        for r, j in enumerate(peers):
+            rows = other == j
+            if not rows.any():
+                continue
+            c = self._edge_prior.get(j, main)
+            Hr = np.hstack([Ho[np.ix_(rows, POSE)], Hp[rows, 6 * r : 6 * r + 6]])
+            yr = yv[rows] - Ho[rows] @ _delta(c, main)
+            P0 = sla.block_diag(pose_block(c.P), Pp[r])
+            PHt = P0 @ Hr.T
+            S = Hr @ PHt + R[np.ix_(rows, rows)]
+            K = np.linalg.solve(S, PHt.T).T
+            A = np.eye(12) - K @ Hr
+            P1 = A @ P0 @ A.T + K @ R[np.ix_(rows, rows)] @ K.T
+            dx = K @ yr
+            s = msgs[j]
+            q, rr, _ = s.pose(s.row(self.own))  # type: ignore[arg-type]
+            self._edges[j] = (quat.retract(q, dx[6:9]), rr + dx[9:12], P1[6:, 6:], s)
 
     def view(self) -> EstimateView:
-        """Its own belief; each neighbour whose factor it used this step from the edge
-        belief (with the cross-covariance and relative covariance of that belief)."""
+        """Its own belief, and each neighbour whose factor it used this step from that
+        edge's factor belief (module docstring), claimed uncorrelated with its own."""
         peers = sorted(self._edges)
         rows = ViewRows(self.own, peers, self.e)
         for j in peers:
-            post, _ = self._edges[j]
-            rows.set(j, post.q_BI[1], post.omega_BI_B[1], post.r_H[1], post.v_H[1], P_pose=pose_block(post.P[BLOCK:, BLOCK:]))
+            q, r, P, s = self._edges[j]
+            rows.set(j, q, s.omega_BI_B.astype(float), r, s.v_H.astype(float), P_pose=P)
         return rows.view(with_cross=False)
+
+
+def _delta(e: SwarmEstimate, ref: SwarmEstimate) -> np.ndarray:
+    """``e ⊟ ref`` of two one-satellite beliefs in the 12 error states ``[a, Δβ, Δr, Δv]``."""
+    d = np.empty(BLOCK)
+    d[0:3] = quat.local(e.q_BI[0], ref.q_BI[0])
+    d[3:6] = e.bias_B - ref.bias_B
+    d[6:9] = e.r_H[0] - ref.r_H[0]
+    d[9:12] = e.v_H[0] - ref.v_H[0]
+    return d
+
+
+def _ci_update(e: SwarmEstimate, fp: FilterParams, Ho: np.ndarray, y: np.ndarray, R: np.ndarray, C_p: np.ndarray,
+               w: float) -> SwarmEstimate:
+    """The split-CI update of the module docstring with weight ω (ω = 1: the plain GBP
+    product, a Kalman update): prior ``P/ω``, noise ``R + C_p/(1 − ω)``, Joseph form, the
+    multiplicative attitude reset."""
+    Pw = e.P / w
+    Cw = R + C_p / (1.0 - w) if w < 1.0 else R + C_p
+    PHt = Pw @ Ho.T
+    S = Ho @ PHt + Cw
+    K = np.linalg.solve(S, PHt.T).T
+    A = np.eye(BLOCK) - K @ Ho
+    return apply_correction(e, fp, K @ y, A @ Pw @ A.T + K @ Cw @ K.T)
