@@ -98,9 +98,8 @@ def test_plain_gbp_update_is_prior_information_plus_factor_message():
 
 
 def test_cavity_towards_a_neighbour_never_fuses_its_factors():
-    """Two satellites, plain GBP: the cavity belief towards the only neighbour is exactly
-    the own filter fed its own gyro and readings and nothing of the peer; the belief is
-    tighter. The message carries the cavity, not the belief."""
+    """Two satellites, plain GBP: the cavity belief towards the only neighbour is the own
+    filter fed its own gyro and readings and nothing of the peer; the belief is tighter. The message carries the cavity, not the belief."""
     sc = _sc(n_sats=2, duration_s=10, estimator={"kind": "gbp", "fusion": "kalman"}, graph={"kind": "complete", "absolute": [0]})
     wp = world_params(sc)
     truth = initial_truth(sc)
@@ -128,9 +127,10 @@ def test_cavity_towards_a_neighbour_never_fuses_its_factors():
             e.step(StepInputs(k, truth.t, gyro[i], absm[i], rel.subset(rel.observer == i), [Received(j, k, rel.subset(rel.observer == j), sent[j])]))
         ref = absolute_update(ref, fp, absm[0])[0]
         cav = ests[0].cav[1]  # type: ignore[attr-defined]
-        np.testing.assert_allclose(cav.P, ref.P, rtol=1e-12, atol=1e-18)
-        np.testing.assert_allclose(cav.r_H, ref.r_H, rtol=0, atol=1e-12)
-        np.testing.assert_allclose(cav.q_BI, ref.q_BI, rtol=0, atol=1e-15)
+        # the same to the linearisation of the dynamics at the belief's mean (module docstring)
+        np.testing.assert_allclose(cav.P, ref.P, rtol=1e-3, atol=1e-15)
+        np.testing.assert_allclose(cav.r_H, ref.r_H, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(quat.local(cav.q_BI, ref.q_BI), 0.0, atol=1e-10)
         assert np.trace(ests[0].e.P) < np.trace(cav.P)  # type: ignore[attr-defined]
         P = sent[0].pose(0)[2]  # the message of step k: the cavity's prior pose covariance, on the wire
         _at_or_above(P, P_sent[np.ix_(np.r_[0:3, 6:9], np.r_[0:3, 6:9])])

@@ -98,7 +98,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import scipy.linalg as sla
 from pydantic import Field
 
 from .. import kernels, quat
@@ -111,7 +110,7 @@ from ..mekf import (
     SwarmEstimate,
     apply_correction,
     gate,
-    predict,
+    state_jacobian_blocks,
 )
 from .base import EstimateView, EstimatorParams, Received, StepInputs, StepReport
 from .ci import _logdet_cost, _whitened, ci_weight
@@ -259,7 +258,7 @@ def stack_factors(local: RelativeMeasurements, Hi: np.ndarray, Hj: np.ndarray, n
         rows = slice(6 * r, 6 * r + 6)
         Ho[rows, POSE] = Ho6[r]
         Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
-    return Ho, Hp, sla.block_diag(*local.R_Bi) if k else np.zeros((0, 0))
+    return Ho, Hp, _block_diag(local.R_Bi)
 
 
 def factor_message(Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, P_cav: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -326,9 +325,19 @@ class GbpEstimator(OwnStateEstimator):
         self.cav = {j: v for j, v in b.items() if j != -1}
 
     def propagate(self, gyro_rate_B) -> None:
-        """The dynamics/gyro factor on the own belief and on every cavity belief."""
+        """The dynamics/gyro factor: the own belief by the filter's prediction
+        (:func:`swarmcore.mekf.predict`); each cavity by the same factor linearised at the
+        belief's mean, ``x_c⁺ = x_b⁺ ⊞ Φ (x_c ⊟ x_b)``, ``P_c⁺ = Φ P_c Φᵀ + Q`` (one Φ, Q a step
+        instead of one per cavity)."""
+        e = self.e
+        omega_own = e.omega_BI_B[0] if gyro_rate_B is None else np.asarray(gyro_rate_B, float) - e.bias_B
+        phi, Q, _ = state_jacobian_blocks(e, self.fp, omega_own)
+        F, Qo = phi[0], Q[0].copy()
+        if gyro_rate_B is None:
+            Qo[0:3, 0:3] += (self.fp.missing_gyro_rate_sigma * self.fp.dt) ** 2 * np.eye(3)
         super().propagate(gyro_rate_B)
-        self.cav = {j: predict(c, self.fp, gyro_rate_B) for j, c in self.cav.items()}
+        m = self.e
+        self.cav = {j: apply_correction(m, self.fp, F @ _delta(c, e), F @ c.P @ F.T + Qo) for j, c in self.cav.items()}
 
     def predict(self, k, gyro_rate_B) -> None:
         if not self._pending and self.e.step == k - 1 and k - 1 in self._kept:
@@ -488,7 +497,7 @@ class GbpEstimator(OwnStateEstimator):
         Ho, Hp, R = stack_factors(local, Hi[a], Hj[a], len(peers))
         Pp = [pose_block(joint.P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)]) for r in range(1, 1 + len(peers))]
         bound = float(len(peers)) if self.params.correlated_peers else 1.0  # type: ignore[attr-defined]
-        C_p = bound * (Hp @ sla.block_diag(*Pp) @ Hp.T)
+        C_p = bound * (Hp @ _block_diag(Pp) @ Hp.T)
         w = 1.0
         if self.params.fusion == "ci":  # type: ignore[attr-defined]
             W, lam = _whitened(main.P, Ho, R, C_p, True)
@@ -521,7 +530,7 @@ class GbpEstimator(OwnStateEstimator):
             c = self._edge_prior.get(j, main)
             Hr = np.hstack([Ho[np.ix_(rows, POSE)], Hp[rows, 6 * r : 6 * r + 6]])
             yr = yv[rows] - Ho[rows] @ _delta(c, main)
-            P0 = sla.block_diag(pose_block(c.P), Pp[r])
+            P0 = _block_diag([pose_block(c.P), Pp[r]])
             PHt = P0 @ Hr.T
             S = Hr @ PHt + R[np.ix_(rows, rows)]
             K = np.linalg.solve(S, PHt.T).T
@@ -541,6 +550,18 @@ class GbpEstimator(OwnStateEstimator):
             q, r, P, s = self._edges[j]
             rows.set(j, q, s.omega_BI_B.astype(float), r, s.v_H.astype(float), P_pose=P)
         return rows.view(with_cross=False)
+
+
+def _block_diag(blocks) -> np.ndarray:
+    """The block-diagonal matrix of square blocks of one size (scipy's costs more at 6×6)."""
+    m = len(blocks)
+    if not m:
+        return np.zeros((0, 0))
+    b = blocks[0].shape[0]
+    out = np.zeros((m * b, m * b))
+    for r, blk in enumerate(blocks):
+        out[r * b : (r + 1) * b, r * b : (r + 1) * b] = blk
+    return out
 
 
 def _delta(e: SwarmEstimate, ref: SwarmEstimate) -> np.ndarray:
