@@ -14,73 +14,82 @@ everything older is marginalised into a Gaussian prior, so a variable's belief i
 * the **absolute factor** of its own star tracker and GPS (anchors only);
 * one **relative factor** per relative pose measurement between i and a graph neighbour
   j (either observer): ``z_ij = h(x_i, x_j) + v``, ``v ~ N(0, R)``, linearised at the
-  current means, ``y = z ⊟ h(x̂_i, x̂_j) ≈ H_i δx_i + H_j δx_j + v`` (Jacobians
-  :func:`swarmcore.mekf.relative_residuals`, those of every filter of the project).
+  current means, ``y = z ⊟ h(x̂_i, x̂_j) ≈ H_i δx_i + H_j δx_j + v`` (Jacobian blocks of
+  :func:`swarmcore.mekf.relative_residuals`, those of every filter of the project, stacked
+  by :func:`stack_factors`).
 
 **Messages.** Variable → factor: the belief of ``x_j`` with the factor's own incoming
-message removed, ``m_{j→f}(x_j) = b_j(x_j) / m_{f→j}(x_j)``. Over a time window, the
-message ``f_ij`` sent at every earlier step reaches ``x_j^k`` through the dynamics
-factors too, so removing only the last one still double counts; what removes every one of
-them is a *cavity belief*: agent j runs, beside its own belief, one belief per graph
-neighbour i that fuses every factor of j except the ``f_ij`` (all steps), ``b_j^{∖i}``.
-Its pose marginal (6×6: the relative factor touches only ``[a, Δr]``) is j's message to
-i, and j broadcasts one per neighbour each step (:class:`GbpMessage`). Factor → variable
-(computed by i, which holds its copy of ``f_ij``): the factor times the incoming
-message, ``x_j`` marginalised out — for the linearised factor a pseudo-measurement of
-``x_i`` alone,
+message removed, ``m_{j→f}(x_j) = b_j(x_j) / m_{f→j}(x_j)``. Over a time window the
+messages of ``f_ij`` of every earlier step reach ``x_j^k`` through the dynamics factors
+too, so dividing out only the last one still double counts; what removes all of them is a
+*cavity belief*: agent j runs, beside its belief ``b_j``, one belief per graph neighbour i
+that takes every factor of j but the ``f_ij`` (of all steps), ``b_j^{∖i}``. Its pose
+marginal (6×6: the relative factor touches only ``[a, Δr]``) is j's message to i; j
+broadcasts one per neighbour each step (:class:`GbpMessage`). Factor → variable (computed
+by i, which holds its copy of ``f_ij``): the factor times the incoming message, ``x_j``
+marginalised out — for the linearised factor a pseudo-measurement of ``x_i`` alone,
 
-    y ≈ H_i δx_i + n,      n ~ N(0, R + H_j P_j^{∖i} H_jᵀ),
+    y ≈ H_i δx_i + n,      n ~ N(0, S),      S = R + H_j P_j^{∖i} H_jᵀ,
 
-i.e. in information form ``Λ_{f→i} = H_iᵀ S⁻¹ H_i``, ``η_{f→i} = H_iᵀ S⁻¹ (y + H_i δx̂)``
-with ``S = R + H_j P_j^{∖i} H_jᵀ`` (all measurements of the pair at a step stacked, the
-pair's rows correlated through ``P_j^{∖i}``). The belief is the product of the prior and
-every factor message, ``Λ_i = Λ_prior + Σ_f Λ_{f→i}`` — applied as the equivalent
-Kalman update (Joseph form, multiplicative attitude reset), the same as the full filter's
-updates. Each cavity belief ``b_i^{∖l}`` takes every message but those of ``f_il``. One
-GBP iteration per step (the factors of step k are new at k: there is nothing to iterate
-on the same step without a second exchange).
+in information form ``Λ_{f→i} = H_iᵀ S⁻¹ H_i``, ``η_{f→i} = H_iᵀ S⁻¹ (y + H_i δx̂_i)``
+(:func:`factor_message`; a pair's measurements of one step stacked, correlated through
+``P_j^{∖i}``). The belief is the product of its prior and every factor message,
+``Λ_i = Λ_prior + Σ_f Λ_{f→i}``, applied as the equivalent Kalman update (Joseph form,
+multiplicative attitude reset). Each cavity ``b_i^{∖l}`` takes every message but those of
+``f_il``. The factors are linearised once a step, at the belief's mean: a cavity that sits
+at ``d = x_c ⊟ x_b`` from it gets the residual ``y − H_i d``; likewise the cavities are
+predicted by the belief's dynamics factor, ``x_c⁺ = x_b⁺ ⊞ Φ d``, ``P_c⁺ = Φ P_c Φᵀ + Q``.
+One GBP iteration per step: the factors of step k are new at k, and a second iteration
+would need a second exchange in the step.
 
-**Why a conservative device.** With ``Λ`` summed as above the update is exact on a tree.
-The study's graph is loopy (each satellite measures its three nearest: triangles), and in
-time the cavity belief of j towards i still holds i's own information that went round a
-loop ``i → l → j``: GBP's means converge on loopy Gaussian graphs but its covariances come
-out overconfident (Weiss & Freeman, Neural Computation 2001), and in a filter that grows
-step after step. The incoming factor messages are therefore fused by **split covariance
-intersection** (Julier & Uhlmann 2001, as :mod:`.ci`; ``fusion: ci``, the default):
+**Why a conservative device.** Unrolled in time the factor graph has a loop at every step
+even when the measurement graph is a tree: ``x_i^{k−1} — f_ij^{k−1} — x_j^{k−1} — x_j^k —
+f_ij^k — x_i^k — x_i^{k−1}``. j's cavity of step k still holds what j's side knew at k−1,
+which i already received through ``f_ij^{k−1}``; on the study's graph (each satellite
+measures its three nearest: triangles) information also goes round ``i → l → j → i``.
+GBP's means are right on loopy Gaussian graphs but its covariances come out overconfident
+(Weiss & Freeman, Neural Computation 2001), and in a filter that compounds step after
+step. Measured with plain GBP (``fusion: kalman``) on ``scenarios/estimators.yaml``:
+NEES/dof 121 (own position error 34 mm, diverging), and 2.9 with the graph made a chain.
+The incoming factor messages are therefore fused by **split covariance intersection**
+(Julier & Uhlmann 2001; :mod:`.ci`; ``fusion: ci``, the default):
 
     P⁺⁻¹ = ω P⁻¹ + (1 − ω) H_iᵀ C(ω)⁻¹ H_i,   C(ω) = R + H_j P_j^{∖i} H_jᵀ / (1 − ω),
 
-with ω minimising ``det P⁺`` (:func:`swarmcore.kernels.ci_det_weight`): consistent
-whatever the unknown correlation between ``b_i`` and the incoming cavities, and, because
-the cavities carry less of i's own information than the beliefs ``ci`` fuses, less
-pessimistic (ω closer to 1). The camera noise R is independent and not inflated. The
-neighbours' cavities are taken as independent of each other (GBP's assumption; with
-``correlated_peers: true`` their stack is bounded by ``m · blockdiag`` as in ``ci``).
-``fusion: kalman`` is plain GBP (ω = 1): the Robot Web's own update, kept to measure what
-the loops cost in consistency. (Damping the messages, the other usual remedy, slows the
-means but does not bound the covariance; a sliding window with conservative
-marginalisation needs a second message per step.)
+ω minimising ``det P⁺`` for the belief (:func:`swarmcore.kernels.ci_det_weight`), and the
+same ω for its cavities (CI is consistent for every ω in (0, 1]; the search only makes
+it tight). It is consistent whatever the unknown correlation between ``b_i`` and the
+incoming cavities; the camera noise R is independent and not inflated. The incoming
+cavities carry less of i's own information than the beliefs ``ci`` fuses (no direct
+echo of ``f_ij``), which is what ``gbp`` gains over ``ci``. The neighbours' cavities are
+taken as independent of each other (GBP's assumption; ``correlated_peers: true`` bounds
+their stack by ``m · blockdiag`` as ``ci`` does). ``fusion: kalman`` is plain GBP (ω = 1),
+kept to measure what the loops cost. Not chosen: message damping (it slows the means but
+bounds no covariance), and a sliding window of several states with conservative
+marginalisation (its iterations need more than one exchange a step).
 
 **Why GBP and not ADMM/iMESA.** Consensus ADMM (MESA, iMESA, RSS 2024) reaches the
-centralised MAP by iterating to a consensus on shared variables — several exchanges per
-step with their duals — and gives no covariance without a further step; the lockstep
-radio gives one exchange per step and every estimator here must claim a covariance. GBP
-gives a belief (mean and covariance) after every single exchange and degrades gracefully
-when messages are lost or late (Murai et al.).
+centralised MAP by iterating to consensus on shared variables — several exchanges a step,
+with their dual variables — and gives no covariance without a further computation; the
+lockstep radio gives one exchange a step, and every estimator here must claim a
+covariance that NEES can hold it to. GBP gives a belief (mean and covariance) after every
+single exchange, uses only the messages that arrive, and needs no global step size or
+consensus schedule (Murai et al.).
 
 **The view.** Its own row is its belief. A neighbour j whose factor it used at the step is
-claimed from the factor's belief ``b_f(x_i, x_j) ∝ f_ij · m_{i→f} · m_{j→f}`` (the edge
-marginal of BP: its own cavity towards j, j's cavity towards i, and the pair's
-measurements, joint update with zero prior correlation), which gives j's pose and its
-cross-covariance with i; the relative pose covariance is that of the edge belief.
+claimed from that factor's belief ``b_f(x_i, x_j) ∝ f_ij · m_{i→f} · m_{j→f}`` (BP's edge
+marginal: its own cavity towards j and j's cavity towards i, uncorrelated, updated by the
+pair's measurements): j's pose and covariance, claimed uncorrelated with its own belief
+(as ``ci`` claims its peers).
 
 **Wire.** :class:`GbpMessage` travels as bytes (:meth:`GbpEstimator.encode`, the plug-in
 path: ``EstimatorMessage.opaque``): per target its cavity quaternion and position (float32) and
 the lower Cholesky factor of its 6×6 pose covariance (so the receiver's covariance is PSD
 by construction) as 21 float16 with a power-of-two scale per row and a float32 factor
 κ ≥ 1 that keeps the rebuilt covariance at or above the sender's (:func:`pack_cholesky`);
-the sender's rate and velocity once; 82 B per neighbour and 34 B a message. The payload is quantised at :meth:`transmit`, so the in-process
-message is the decoded one, bit for bit.
+the sender's rate and velocity once; 82 B per neighbour and 34 B a message. The payload
+is quantised at :meth:`transmit`, so the in-process message is the decoded one, bit for
+bit.
 
 **Late deliveries** (``filter.late: replay``, as ``ci``): each step's beliefs, readings,
 measurements and what it heard are kept for ``filter.history_s``; a message of step s
