@@ -140,7 +140,10 @@ class GbpParams(EstimatorParams):
     fusion: str = Field("ci", pattern="^(ci|kalman)$",
                         description="how the incoming factor messages are fused: ci (split covariance intersection, consistent "
                         "on loopy graphs) or kalman (plain GBP, overconfident on loops)")
-    correlated_peers: bool = Field(False, description="bound the neighbours' cavities' mutual correlation (m × blockdiag)")
+    peers: str = Field("bound", pattern="^(sequential|bound|independent)$",
+                       description="how the neighbours' messages' unknown mutual correlation is handled: sequential (one CI per "
+                       "neighbour, in id order), bound (one CI, their stack bounded by m × blockdiag) or independent (one CI, "
+                       "taken as independent of each other: overconfident on dense graphs)")
 
 
 _TRI_ROW = _TRI[0]  # the row of each packed entry
@@ -506,23 +509,34 @@ class GbpEstimator(OwnStateEstimator):
         yv = y[a].ravel()
         Ho, Hp, R = stack_factors(local, Hi[a], Hj[a], len(peers))
         Pp = [pose_block(joint.P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)]) for r in range(1, 1 + len(peers))]
-        bound = float(len(peers)) if self.params.correlated_peers else 1.0  # type: ignore[attr-defined]
-        C_p = bound * (Hp @ _block_diag(Pp) @ Hp.T)
-        w = 1.0
-        if self.params.fusion == "ci":  # type: ignore[attr-defined]
-            W, lam = _whitened(main.P, Ho, R, C_p, True)
-            w_c = kernels.ci_det_weight(W, lam, True)
-            w = w_c if w_c is not None else ci_weight(_logdet_cost(W, lam, True))
-        self.last_omega = w
+        mode = self.params.peers  # type: ignore[attr-defined]
+        ci = self.params.fusion == "ci"  # type: ignore[attr-defined]
+        C_p = (float(len(peers)) if mode == "bound" else 1.0) * (Hp @ _block_diag(Pp) @ Hp.T)
         other = np.repeat(np.asarray(peers)[np.where(local.observer == 0, local.target, local.observer) - 1], 6)
         out = dict(b)
-        for key, e in b.items():
-            keep = other != key
-            if not keep.any():
-                continue
-            d = _delta(e, main)
-            yk = yv[keep] - Ho[keep] @ d
-            out[key] = _ci_update(e, self.fp, Ho[keep], yk, R[np.ix_(keep, keep)], C_p[np.ix_(keep, keep)], w)
+        if ci and mode == "sequential":
+            order = [j for j in peers if (other == j).any()]
+            ws: dict[int, float] = {}
+            for key, e in b.items():  # the own belief first (-1): it sets each message's ω
+                for j in order:
+                    if j == key:
+                        continue
+                    rows = other == j
+                    Hr, Rr, Cr = Ho[rows], R[np.ix_(rows, rows)], C_p[np.ix_(rows, rows)]
+                    if key == -1:
+                        ws[j] = _ci_weight(e.P, Hr, Rr, Cr)
+                    e = _ci_update(e, self.fp, Hr, yv[rows] - Hr @ _delta(e, main), Rr, Cr, ws[j])
+                out[key] = e
+            self.last_omega = min(ws.values(), default=1.0)
+        else:
+            w = _ci_weight(main.P, Ho, R, C_p) if ci else 1.0
+            self.last_omega = w
+            for key, e in b.items():
+                keep = other != key
+                if not keep.any():
+                    continue
+                yk = yv[keep] - Ho[keep] @ _delta(e, main)
+                out[key] = _ci_update(e, self.fp, Ho[keep], yk, R[np.ix_(keep, keep)], C_p[np.ix_(keep, keep)], w)
         self._edge_beliefs(out, main, msgs, peers, other, Ho, Hp, R, yv, Pp)
         return out, int(accepted.sum()), float(d2[accepted].sum())
 
@@ -582,6 +596,13 @@ def _delta(e: SwarmEstimate, ref: SwarmEstimate) -> np.ndarray:
     d[6:9] = e.r_H[0] - ref.r_H[0]
     d[9:12] = e.v_H[0] - ref.v_H[0]
     return d
+
+
+def _ci_weight(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray) -> float:
+    """The split-CI ω minimising ``det P⁺`` (compiled search, or its numpy twin)."""
+    W, lam = _whitened(P, Ho, R, C_p, True)
+    w = kernels.ci_det_weight(W, lam, True)
+    return w if w is not None else ci_weight(_logdet_cost(W, lam, True))
 
 
 def _ci_update(e: SwarmEstimate, fp: FilterParams, Ho: np.ndarray, y: np.ndarray, R: np.ndarray, C_p: np.ndarray,
