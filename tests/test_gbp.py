@@ -262,3 +262,21 @@ def test_late_messages_are_replayed_or_dropped_and_counted():
     assert dl["used"] == 0 and dl["dropped"] > 0
     assert rpos < 0.7 * dpos, (rpos, dpos)
     assert rnees < 1.4
+
+
+@pytest.mark.parametrize("peers", ["bound", "sequential", "independent"])
+def test_every_peers_option_flies(peers):
+    """The three ways of handling the neighbours' mutual correlation (module docstring) fly
+    and claim finite estimates; an unknown one is refused when the scenario is loaded."""
+    sc = _sc(n_sats=4, duration_s=12, estimator={"kind": "gbp", "peers": peers}, bound={"enabled": False})
+    s = simulate(sc, wire_size=batch_wire_size("t", codec_for(sc).to_msg)).summary()
+    assert np.isfinite(s["nees"]["mean"]) and s["rms"]["self"]["pos_m"] < 0.1
+
+
+def test_unknown_options_are_refused_naming_the_field():
+    from swarmcore.estimators import IncompatibleScenario, configure
+
+    with pytest.raises(IncompatibleScenario, match="estimator.peers"):
+        configure(GbpEstimator, _sc(estimator={"kind": "gbp", "peers": "all"}))
+    with pytest.raises(IncompatibleScenario, match="estimator.fusion"):
+        configure(GbpEstimator, _sc(estimator={"kind": "gbp", "fusion": "admm"}))
