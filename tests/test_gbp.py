@@ -276,7 +276,7 @@ def test_every_peers_option_flies(peers):
 def test_unknown_options_are_refused_naming_the_field():
     from swarmcore.estimators import IncompatibleScenario, configure
 
-    with pytest.raises(IncompatibleScenario, match="estimator.peers"):
+    with pytest.raises(IncompatibleScenario, match=r"estimator\.peers"):
         configure(GbpEstimator, _sc(estimator={"kind": "gbp", "peers": "all"}))
-    with pytest.raises(IncompatibleScenario, match="estimator.fusion"):
+    with pytest.raises(IncompatibleScenario, match=r"estimator\.fusion"):
         configure(GbpEstimator, _sc(estimator={"kind": "gbp", "fusion": "admm"}))
