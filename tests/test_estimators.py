@@ -126,7 +126,7 @@ def test_estimator_kind_and_parameters_are_validated_naming_the_field():
     assert configure(CIEstimator, _sc(estimator={"kind": "ci", "split": False})).split is False  # type: ignore[attr-defined]
 
 
-@pytest.mark.parametrize("kind", ["ci", "pairwise"])
+@pytest.mark.parametrize("kind", ["ci", "pairwise", "gbp"])
 def test_estimator_messages_cross_the_bus_bit_for_bit(kind):
     sc = _sc(estimator={"kind": kind})
     truth = initial_truth(sc)
@@ -262,7 +262,7 @@ def test_decentralized_estimators_are_not_overconfident():
     assert pw_own <= 1.4 and pw_rel <= 1.4
 
 
-@pytest.mark.parametrize("kind", ["ci", "pairwise", "full"])
+@pytest.mark.parametrize("kind", ["ci", "pairwise", "gbp", "full"])
 def test_an_agent_restarted_in_process_remembers_nothing_of_its_first_life(kind):
     """A restarted ``sat_agent`` is a new process: the in-process outage must start a new
     estimator too. The first life's peers (their step-k messages, pairwise factors) must

@@ -56,7 +56,7 @@ def test_distributed_run_equals_in_process_run(tmp_path):
         assert 0 < s["min"] <= s["p50"] <= s["p95"] <= s["max"] and s["p50"] < 100.0, (sender, s)
 
 
-@pytest.mark.parametrize("estimator", ["ci", "pairwise"])
+@pytest.mark.parametrize("estimator", ["ci", "pairwise", "gbp"])
 def test_graph_radio_run_equals_in_process_run(tmp_path, estimator):
     """An estimator that hears only its graph neighbours (radio "graph"): each agent is sent
     only their batches (batches/<i>), and the numbers are still the simulator's, bit for bit."""

@@ -4,7 +4,8 @@ Built in: ``full`` (:mod:`.full`, the full-swarm MEKF), ``central`` (:mod:`.full
 full-swarm MEKF that also applies every anchor's absolute reading: the centralized
 reference, in-process only), ``ci``
 (:mod:`.ci`, covariance intersection), ``pairwise`` (:mod:`.pairwise`, Luft et al.'s
-pairwise cross-covariance factors). Plug-ins from other packages are found by the runtime
+pairwise cross-covariance factors), ``gbp`` (:mod:`.gbp`, Gaussian belief propagation on
+the swarm's factor graph, a Robot Web). Plug-ins from other packages are found by the runtime
 (:mod:`swarmrt.estimators`, entry-point group ``swarm_coloc.estimators``).
 """
 
@@ -25,6 +26,7 @@ from .base import (
 )
 from .ci import CIEstimator
 from .full import CentralEstimator, FullEstimator
+from .gbp import GbpEstimator
 from .pairwise import PairwiseEstimator
 
 __all__ = [
@@ -42,7 +44,7 @@ __all__ = [
 ]
 
 #: The estimators that ship with the core, by ``estimator.kind``.
-BUILTIN: dict[str, type[Estimator]] = {c.kind: c for c in (FullEstimator, CIEstimator, PairwiseEstimator, CentralEstimator)}
+BUILTIN: dict[str, type[Estimator]] = {c.kind: c for c in (FullEstimator, CIEstimator, PairwiseEstimator, GbpEstimator, CentralEstimator)}
 
 
 def estimator_class(kind: str, extra: Mapping[str, type[Estimator]] | None = None) -> type[Estimator]:

@@ -1,0 +1,626 @@
+"""``gbp``: Gaussian belief propagation on the swarm's factor graph (a Robot Web).
+
+After Murai, Ortiz, Saeedi, Kelly and Davison, "A Robot Web for Distributed Many-Device
+Localisation" (IEEE T-RO 2024): each device holds its own variables and the factors that
+touch them, and talks only to the devices it shares a factor with, by GBP messages. Here
+the variable of satellite i at step k is its own 12 error states
+``x_i = [a_i (rad, B_i), Δβ_i (rad/s), Δr_H,i (m), Δv_H,i (m/s)]`` (the own block of the
+full filter: gyro in dynamic-model-replacement mode), the window is one step long and
+everything older is marginalised into a Gaussian prior, so a variable's belief is a
+12-state MEKF (:class:`~swarmcore.estimators.own.OwnStateEstimator`). Its factors at k:
+
+* the **dynamics/gyro factor** ``x_i^k = Φ_i x_i^{k−1} + w``, ``w ~ N(0, Q_i)`` — the
+  prediction of the marginalised window, :func:`swarmcore.mekf.predict`;
+* the **absolute factor** of its own star tracker and GPS (anchors only);
+* one **relative factor** per relative pose measurement between i and a graph neighbour
+  j (either observer): ``z_ij = h(x_i, x_j) + v``, ``v ~ N(0, R)``, linearised at the
+  current means, ``y = z ⊟ h(x̂_i, x̂_j) ≈ H_i δx_i + H_j δx_j + v`` (Jacobian blocks of
+  :func:`swarmcore.mekf.relative_residuals`, those of every filter of the project, stacked
+  by :func:`stack_factors`).
+
+**Messages.** Variable → factor: the belief of ``x_j`` with the factor's own incoming
+message removed, ``m_{j→f}(x_j) = b_j(x_j) / m_{f→j}(x_j)``. Over a time window the
+messages of ``f_ij`` of every earlier step reach ``x_j^k`` through the dynamics factors
+too, so dividing out only the last one still double counts; what removes all of them is a
+*cavity belief*: agent j runs, beside its belief ``b_j``, one belief per graph neighbour i
+that takes every factor of j but the ``f_ij`` (of all steps), ``b_j^{∖i}``. Its pose
+marginal (6×6: the relative factor touches only ``[a, Δr]``) is j's message to i; j
+broadcasts one per neighbour each step (:class:`GbpMessage`). Factor → variable (computed
+by i, which holds its copy of ``f_ij``): the factor times the incoming message, ``x_j``
+marginalised out — for the linearised factor a pseudo-measurement of ``x_i`` alone,
+
+    y ≈ H_i δx_i + n,      n ~ N(0, S),      S = R + H_j P_j^{∖i} H_jᵀ,
+
+in information form ``Λ_{f→i} = H_iᵀ S⁻¹ H_i``, ``η_{f→i} = H_iᵀ S⁻¹ (y + H_i δx̂_i)``
+(:func:`factor_message`; a pair's measurements of one step stacked, correlated through
+``P_j^{∖i}``). The belief is the product of its prior and every factor message,
+``Λ_i = Λ_prior + Σ_f Λ_{f→i}``, applied as the equivalent Kalman update (Joseph form,
+multiplicative attitude reset). Each cavity ``b_i^{∖l}`` takes every message but those of
+``f_il``. The factors are linearised once a step, at the belief's mean: a cavity that sits
+at ``d = x_c ⊟ x_b`` from it gets the residual ``y − H_i d``; likewise the cavities are
+predicted by the belief's dynamics factor, ``x_c⁺ = x_b⁺ ⊞ Φ d``, ``P_c⁺ = Φ P_c Φᵀ + Q``.
+One GBP iteration per step: the factors of step k are new at k, and a second iteration
+would need a second exchange in the step.
+
+**Why a conservative device.** Unrolled in time the factor graph has a loop at every step
+even when the measurement graph is a tree: ``x_i^{k−1} — f_ij^{k−1} — x_j^{k−1} — x_j^k —
+f_ij^k — x_i^k — x_i^{k−1}``. j's cavity of step k still holds what j's side knew at k−1,
+which i already received through ``f_ij^{k−1}``; on the study's graph (each satellite
+measures its three nearest: triangles) information also goes round ``i → l → j → i``.
+GBP's means are right on loopy Gaussian graphs but its covariances come out overconfident
+(Weiss & Freeman, Neural Computation 2001), and in a filter that compounds step after
+step. Measured with plain GBP (``fusion: kalman``) on ``scenarios/estimators.yaml``:
+NEES/dof 119 (own position error 34 mm in the second half, seed 40), and 2.9 with the
+graph made a chain (a tree).
+The incoming factor messages are therefore fused by **split covariance intersection**
+(Julier & Uhlmann 2001; :mod:`.ci`; ``fusion: ci``, the default):
+
+    P⁺⁻¹ = ω P⁻¹ + (1 − ω) H_iᵀ C(ω)⁻¹ H_i,   C(ω) = R + H_j P_j^{∖i} H_jᵀ / (1 − ω),
+
+ω minimising ``det P⁺`` for the belief (:func:`swarmcore.kernels.ci_det_weight`), and the
+same ω for its cavities (CI is consistent for every ω in (0, 1]; the search only makes
+it tight). It is consistent whatever the unknown correlation between ``b_i`` and the
+incoming cavities; the camera noise R is independent and not inflated. The incoming
+cavities carry less of i's own information than the beliefs ``ci`` fuses (no direct
+echo of ``f_ij``): what ``gbp`` can gain over ``ci`` (measured: docs/estimators.md). The loops correlate
+the neighbours' cavities with each other as well, which CI between the belief and their
+stack does not cover: ``peers: bound`` (the default) bounds the stacked covariance of the
+m neighbours' cavities by ``m · blockdiag(P_1, …, P_m)`` (for any correlation,
+``Var(Σ x_k) ≤ m Σ Var(x_k)``; as ``ci`` does), i.e. ``C(ω) = R + m H_j P_j H_jᵀ/(1 − ω)``;
+``peers: sequential`` fuses one neighbour at a time, each by its own CI (consistent too,
+less accurate on the study's graph); ``peers: independent`` takes them as independent of
+each other, GBP's own assumption — consistent on the sparse study graph (NEES/dof 0.68)
+but overconfident on a complete graph (``scenarios/baseline.yaml``, 250 s: NEES/dof 2.2). ``fusion: kalman`` is plain GBP (ω = 1),
+kept to measure what the loops cost. Not chosen: message damping (it slows the means but
+bounds no covariance), and a sliding window of several states with conservative
+marginalisation (its iterations need more than one exchange a step).
+
+**Why GBP and not ADMM/iMESA.** Consensus ADMM (MESA, iMESA, RSS 2024) reaches the
+centralised MAP by iterating to consensus on shared variables — several exchanges a step,
+with their dual variables — and gives no covariance without a further computation; the
+lockstep radio gives one exchange a step, and every estimator here must claim a
+covariance that NEES can hold it to. GBP gives a belief (mean and covariance) after every
+single exchange, uses only the messages that arrive, and needs no global step size or
+consensus schedule (Murai et al.).
+
+**The view.** Its own row is its belief. A neighbour j whose factor it used at the step is
+claimed from that factor's belief ``b_f(x_i, x_j) ∝ f_ij · m_{i→f} · m_{j→f}`` (BP's edge
+marginal: its own cavity towards j and j's cavity towards i, uncorrelated, updated by the
+pair's measurements): j's pose and covariance, claimed uncorrelated with its own belief
+(as ``ci`` claims its peers).
+
+**Wire.** :class:`GbpMessage` travels as bytes (:meth:`GbpEstimator.encode`, the plug-in
+path: ``EstimatorMessage.opaque``): per target its cavity quaternion and position (float32) and
+the lower Cholesky factor of its 6×6 pose covariance (so the receiver's covariance is PSD
+by construction) as 21 float16 with a power-of-two scale per row and a float32 factor
+κ ≥ 1 that keeps the rebuilt covariance at or above the sender's (:func:`pack_cholesky`);
+the sender's rate and velocity once; 82 B per neighbour and 34 B a message. The payload
+is quantised at :meth:`transmit`, so the in-process message is the decoded one, bit for
+bit.
+
+**Late deliveries** (``filter.late: replay``, as ``ci``): each step's beliefs, readings,
+measurements and what it heard are kept for ``filter.history_s``; a message of step s
+arriving at k is filed under s and the beliefs (own and cavities) are re-run from s.
+Older than the history, or with ``drop``: dropped. Counted either way (``late_used``,
+``late_dropped``, over the measurements involving the agent).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import struct
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from pydantic import Field
+
+from .. import kernels, quat
+from ..graphs import scenario_graph
+from ..mekf import (
+    BLOCK,
+    AbsoluteMeasurement,
+    FilterParams,
+    RelativeMeasurements,
+    SwarmEstimate,
+    apply_correction,
+    gate,
+    state_jacobian_blocks,
+)
+from .base import EstimateView, EstimatorParams, Received, StepInputs, StepReport
+from .ci import _logdet_cost, _whitened, ci_weight
+from .own import OwnStateEstimator, absolute_update
+from .views import POSE, ViewRows, pose_block
+
+__all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message", "stack_factors", "pack_cholesky", "unpack_cholesky"]
+
+#: Variance of a peer's rate and velocity states in a joint linearisation (the relative
+#: factor has zero Jacobian columns there: any positive value gives the same result).
+_UNUSED_VAR = 1.0
+_TRI = np.tril_indices(6)
+_HEAD = struct.Struct("<iiH")  # sat, step, number of targets
+
+
+class GbpParams(EstimatorParams):
+    fusion: str = Field("ci", pattern="^(ci|kalman)$",
+                        description="how the incoming factor messages are fused: ci (split covariance intersection, consistent "
+                        "on loopy graphs) or kalman (plain GBP, overconfident on loops)")
+    peers: str = Field("bound", pattern="^(sequential|bound|independent)$",
+                       description="how the neighbours' messages' unknown mutual correlation is handled: sequential (one CI per "
+                       "neighbour, in id order), bound (one CI, their stack bounded by m × blockdiag) or independent (one CI, "
+                       "taken as independent of each other: overconfident on dense graphs)")
+
+
+_TRI_ROW = _TRI[0]  # the row of each packed entry
+
+
+def pack_cholesky(P: np.ndarray) -> tuple[np.float32, np.ndarray, np.ndarray]:
+    """A 6×6 covariance as ``(κ, e, u)``: the packed rows of its lower Cholesky factor,
+    each row ``r`` scaled by ``2^−e_r`` (int8; its largest entry within [½, 1)) and rounded
+    to float16 ``u``, and the float32 ``κ ≥ 1`` by which the rebuilt factor is multiplied so
+    that the rebuilt covariance is at or above ``P`` (the largest generalised eigenvalue of
+    ``P`` against the rounded one, rounded up): the rounding never makes a message claim more
+    than its sender knows. :func:`unpack_cholesky` is its inverse."""
+    tri = np.linalg.cholesky(P)[_TRI]
+    rowmax = np.array([np.abs(tri[r == _TRI_ROW]).max() for r in range(6)])
+    e = np.clip(np.ceil(np.log2(np.maximum(rowmax, 1e-300))), -127, 127).astype(np.int8)
+    u = (tri * np.exp2(-e.astype(float))[_TRI_ROW]).astype(np.float16)
+    Lt = _rebuild(np.float32(1.0), e, u)
+    W = np.linalg.solve(Lt, np.linalg.solve(Lt, P).T)
+    kappa = max(1.0, float(np.sqrt(np.linalg.eigvalsh(0.5 * (W + W.T)).max())))
+    k32 = np.float32(kappa)
+    if float(k32) < kappa * (1.0 + 1e-9):
+        k32 = np.nextafter(np.float32(kappa * (1.0 + 1e-9)), np.float32(np.inf))
+    return k32, e, u
+
+
+def _rebuild(kappa: np.float32, e: np.ndarray, u: np.ndarray) -> np.ndarray:
+    L = np.zeros((6, 6))
+    L[_TRI] = u.astype(float) * np.exp2(e.astype(float))[_TRI_ROW] * float(kappa)
+    return L
+
+
+def unpack_cholesky(kappa: np.float32, e: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """The covariance :func:`pack_cholesky` packed (PSD by construction, ⪰ the sender's)."""
+    L = _rebuild(kappa, e, u)
+    return L @ L.T
+
+
+@dataclass(frozen=True, eq=False)
+class GbpMessage:
+    """What a ``gbp`` agent broadcasts at step k: for each graph neighbour (``targets``) its
+    cavity belief's pose towards it (the variable → factor message).
+
+    ``q_BI`` (p, 4) and ``r_H`` (p, 3) m in float32; the 6×6 ``[a, Δr]`` covariance as
+    :func:`pack_cholesky` packs it: ``L_scale`` (p,) float32 κ, ``L_exp`` (p, 6) int8 row
+    exponents, ``L_unit`` (p, 21) float16; ``omega_BI_B`` (3,) rad/s and ``v_H`` (3,) m/s of
+    its own belief in float32. What :meth:`pose` rebuilds from these is what the
+    receiver uses, in-process and across the bus alike."""
+
+    sat: int
+    step: int
+    targets: np.ndarray  # (p,) int
+    q_BI: np.ndarray  # (p, 4) float32
+    r_H: np.ndarray  # (p, 3) float32
+    L_scale: np.ndarray  # (p,) float32
+    L_exp: np.ndarray  # (p, 6) int8
+    L_unit: np.ndarray  # (p, 21) float16
+    omega_BI_B: np.ndarray  # (3,) float32
+    v_H: np.ndarray  # (3,) float32
+
+    @staticmethod
+    def size_of(p: int) -> int:
+        """Encoded bytes for p targets."""
+        return _HEAD.size + 2 * p + 4 * (8 * p + 6) + 6 * p + 2 * 21 * p
+
+    def row(self, target: int) -> int | None:
+        hit = np.nonzero(self.targets == target)[0]
+        return int(hit[0]) if hit.size else None
+
+    def pose(self, r: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Row r's (q_BI, r_H, P_pose) in float64 (q normalised, P :func:`unpack_cholesky`)."""
+        q = self.q_BI[r].astype(float)
+        return q / np.linalg.norm(q), self.r_H[r].astype(float), unpack_cholesky(self.L_scale[r], self.L_exp[r], self.L_unit[r])
+
+    def encode(self) -> bytes:
+        p = int(self.targets.size)
+        f32 = (np.ascontiguousarray(a, "<f4").tobytes() for a in (self.q_BI, self.r_H, self.L_scale, self.omega_BI_B, self.v_H))
+        return b"".join([_HEAD.pack(self.sat, self.step, p), np.asarray(self.targets, "<u2").tobytes(), *f32,
+                         np.ascontiguousarray(self.L_exp, "i1").tobytes(), np.ascontiguousarray(self.L_unit, "<f2").tobytes()])
+
+    @classmethod
+    def decode(cls, data: bytes) -> GbpMessage:
+        if len(data) < _HEAD.size:
+            raise ValueError(f"gbp message: {len(data)} bytes, shorter than its header")
+        sat, step, p = _HEAD.unpack_from(data)
+        if len(data) != cls.size_of(p):
+            raise ValueError(f"gbp message: {len(data)} bytes for {p} targets, expected {cls.size_of(p)}")
+        o = _HEAD.size
+        targets = np.frombuffer(data, "<u2", p, o).astype(int)
+        o += 2 * p
+        f = np.frombuffer(data, "<f4", 8 * p + 6, o).astype(np.float32)
+        o += 4 * (8 * p + 6)
+        ex = np.frombuffer(data, "i1", 6 * p, o).astype(np.int8).reshape(p, 6)
+        o += 6 * p
+        h = np.frombuffer(data, "<f2", 21 * p, o).astype(np.float16).reshape(p, 21)
+        if not (np.isfinite(f).all() and np.isfinite(h).all()):
+            raise ValueError("gbp message: non-finite values")
+        q, r, sc = f[: 4 * p].reshape(p, 4), f[4 * p : 7 * p].reshape(p, 3), f[7 * p : 8 * p].copy()
+        if p and ((np.linalg.norm(q, axis=1) < 0.5).any() or (sc < 1).any()):
+            raise ValueError("gbp message: a quaternion far from unit norm or a covariance scale below 1")
+        return cls(int(sat), int(step), targets, q, r, sc, ex, h, f[8 * p : 8 * p + 3].copy(), f[8 * p + 3 :].copy())
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, GbpMessage):
+            return NotImplemented
+        return self.encode() == other.encode()
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+def stack_factors(local: RelativeMeasurements, Hi: np.ndarray, Hj: np.ndarray, n_peers: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linearised relative factors of one belief (row 0 of the joint ``local`` is the own
+    satellite, rows 1… its neighbours): ``y ≈ Ho δx_i + Hp δp + v``, with ``Ho`` (6m × 12)
+    on the own 12 error states, ``Hp`` (6m × 6 n_peers) on the neighbours' ``[a, Δr]`` and
+    ``R`` (6m × 6m) the camera noise, from the Jacobian blocks of
+    :func:`swarmcore.mekf.relative_residuals` (``Hi`` on the observer, ``Hj`` on the target)."""
+    mine_obs = local.observer == 0
+    Ho6 = np.where(mine_obs[:, None, None], Hi, Hj)
+    Hq6 = np.where(mine_obs[:, None, None], Hj, Hi)
+    peer_row = np.where(mine_obs, local.target, local.observer) - 1
+    k = len(local)
+    Ho = np.zeros((6 * k, BLOCK))
+    Hp = np.zeros((6 * k, 6 * n_peers))
+    for r in range(k):
+        rows = slice(6 * r, 6 * r + 6)
+        Ho[rows, POSE] = Ho6[r]
+        Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
+    return Ho, Hp, _block_diag(local.R_Bi)
+
+
+def factor_message(Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, P_cav: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The factor → variable message of linearised relative factors in information form
+    (module docstring): ``(Λ, S)`` with ``S = R + Hp P_cav Hpᵀ`` the noise of the
+    pseudo-measurement of the own state and ``Λ = Hoᵀ S⁻¹ Ho`` its information (12×12)."""
+    S = R + Hp @ P_cav @ Hp.T
+    return Ho.T @ np.linalg.solve(S, Ho), S
+
+
+@dataclass
+class _Kept:
+    """What step s was given (for a replay when a late message of s comes)."""
+
+    prior: dict[int, SwarmEstimate]  # -1: the own belief; l: the cavity towards l
+    absolute: AbsoluteMeasurement | None
+    own: RelativeMeasurements
+    heard: dict[int, Received]
+    gyro_next: np.ndarray | None = None
+
+
+class GbpEstimator(OwnStateEstimator):
+    kind = "gbp"
+    radio = "graph"  # factors only with graph neighbours, messages only from them
+    Params = GbpParams
+
+    @classmethod
+    def encode(cls, message: Any) -> bytes:
+        if not isinstance(message, GbpMessage):
+            raise TypeError(f"gbp: cannot encode {type(message).__name__}")
+        return message.encode()
+
+    @classmethod
+    def decode(cls, data: bytes) -> Any:
+        return GbpMessage.decode(data)
+
+    def __init__(self, sc, own: int, params: GbpParams | None = None):
+        super().__init__(sc, own, params)
+        G = scenario_graph(sc)
+        self.neighbours = sorted(int(j) for j in np.nonzero(G[own] | G[:, own])[0] if j != own)
+        self.cav: dict[int, SwarmEstimate] = {}
+        self.unusable = 0
+        self._joint_params: dict[int, FilterParams] = {}
+        # peer → its pose from this step's edge belief (q_BI, r_H, P_pose) and its message
+        self._edges: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, GbpMessage]] = {}
+        self._edge_prior: dict[int, SwarmEstimate] = {}
+        f = sc.filter
+        self.history_steps = math.ceil(f.history_s / sc.dt_s) if f.late == "replay" else 0
+        self._kept: dict[int, _Kept] = {}
+        self.last_omega = 1.0
+
+    # -- state -----------------------------------------------------------------------
+    def start(self, prior: SwarmEstimate, step_pending: bool = True) -> None:
+        super().start(prior, step_pending)
+        self.cav = dict.fromkeys(self.neighbours, prior)
+        self._kept.clear()
+        self._edges = {}
+
+    def _beliefs(self) -> dict[int, SwarmEstimate]:
+        return {-1: self.e, **self.cav}
+
+    def _set(self, b: dict[int, SwarmEstimate]) -> None:
+        self.est = b[-1]
+        self.cav = {j: v for j, v in b.items() if j != -1}
+
+    def propagate(self, gyro_rate_B) -> None:
+        """The dynamics/gyro factor: the own belief by the filter's prediction
+        (:func:`swarmcore.mekf.predict`); each cavity by the same factor linearised at the
+        belief's mean, ``x_c⁺ = x_b⁺ ⊞ Φ (x_c ⊟ x_b)``, ``P_c⁺ = Φ P_c Φᵀ + Q`` (one Φ, Q a step
+        instead of one per cavity)."""
+        e = self.e
+        omega_own = e.omega_BI_B[0] if gyro_rate_B is None else np.asarray(gyro_rate_B, float) - e.bias_B
+        phi, Q, _ = state_jacobian_blocks(e, self.fp, omega_own)
+        F, Qo = phi[0], Q[0].copy()
+        if gyro_rate_B is None:
+            Qo[0:3, 0:3] += (self.fp.missing_gyro_rate_sigma * self.fp.dt) ** 2 * np.eye(3)
+        super().propagate(gyro_rate_B)
+        m = self.e
+        self.cav = {j: apply_correction(m, self.fp, F @ _delta(c, e), F @ c.P @ F.T + Qo) for j, c in self.cav.items()}
+
+    def predict(self, k, gyro_rate_B) -> None:
+        if not self._pending and self.e.step == k - 1 and k - 1 in self._kept:
+            self._kept[k - 1].gyro_next = gyro_rate_B
+        super().predict(k, gyro_rate_B)
+
+    def coast_to(self, k, gyro_of) -> None:
+        if self.e.step < k - 1:
+            self._kept.clear()
+        super().coast_to(k, gyro_of)
+
+    # -- radio -----------------------------------------------------------------------
+    def transmit(self, k: int) -> GbpMessage:
+        e = self.e
+        if e.step != k:
+            raise ValueError(f"gbp estimator of satellite {self.own}: transmit({k}) with its estimate at step {e.step}")
+        t = sorted(self.cav)
+        p = len(t)
+        q = np.zeros((p, 4), np.float32)
+        r = np.zeros((p, 3), np.float32)
+        sc = np.zeros(p, np.float32)
+        ex = np.zeros((p, 6), np.int8)
+        L = np.zeros((p, 21), np.float16)
+        for a, j in enumerate(t):
+            c = self.cav[j]
+            q[a], r[a] = c.q_BI[0], c.r_H[0]
+            sc[a], ex[a], L[a] = pack_cholesky(pose_block(c.P))
+        return GbpMessage(self.own, k, np.array(t, dtype=int), q, r, sc, ex, L, e.omega_BI_B[0].astype(np.float32),
+                          e.v_H[0].astype(np.float32))
+
+    # -- step ------------------------------------------------------------------------
+    def step(self, inputs: StepInputs) -> StepReport:
+        k = inputs.step
+        self.begin_step(k, inputs.gyro_rate_B)
+        rep = StepReport()
+        late = inputs.late()
+        if late:
+            first = self._take_late(late, rep)
+            if first is not None:
+                self._replay(first, k)
+                rep.replayed_steps = k - first
+        kept = _Kept(self._beliefs(), inputs.absolute, inputs.own, {r.sender: r for r in inputs.on_time()})
+        if self.history_steps:
+            self._kept[k] = kept
+            for old in [s for s in self._kept if s <= k - self.history_steps]:
+                del self._kept[old]
+        acc, rej, nis, dof = self._update(kept, count=True, peers_batch=inputs.peer_measurements)
+        rep.gate_accepted, rep.gate_rejected = acc, rej
+        rep.nis, rep.nis_dof = (nis, dof) if dof else (float("nan"), 0)
+        rep.extra["unusable"] = self.unusable
+        rep.extra["omega"] = self.last_omega
+        self._pending = False
+        return rep
+
+    def _take_late(self, late: list[Received], rep: StepReport) -> int | None:
+        first = None
+        for r in late:
+            kept = self._kept.get(r.step)
+            involving = int(np.count_nonzero(r.measurements.target == self.own))
+            if kept is None or r.sender in kept.heard:
+                rep.late_dropped += involving
+                continue
+            kept.heard[r.sender] = r
+            involving += int(np.count_nonzero(kept.own.target == r.sender))
+            rep.late_used += involving
+            first = r.step if first is None else min(first, r.step)
+        return first
+
+    def _replay(self, first: int, k: int) -> None:
+        self._set(self._kept[first].prior)
+        for s in range(first, k):
+            kept = self._kept[s]
+            kept.prior = self._beliefs()
+            self._update(kept, count=False)
+            self.propagate(kept.gyro_next)
+
+    def _update(self, kept: _Kept, count: bool, peers_batch: RelativeMeasurements | None = None) -> tuple[int, int, float, int]:
+        """The factors of one step on the own belief and every cavity: absolute (Kalman),
+        then the relative factors' messages (module docstring). Returns accepted,
+        rejected, NIS and its dof (of the own belief)."""
+        b = self._beliefs()
+        nis, dof = 0.0, 0
+        if kept.absolute is not None:
+            for j, e in b.items():
+                b[j], d2, dd = absolute_update(e, self.fp, kept.absolute)
+                if j == -1:
+                    nis, dof = d2, dd
+        self._edges = {}
+        self._edge_prior = dict(b)  # the cavities before this step's factors: the edges' own side
+        me = self.own
+        if peers_batch is None:
+            peers_batch = RelativeMeasurements.concat([kept.heard[j].measurements for j in sorted(kept.heard)])
+        cand = RelativeMeasurements.concat([kept.own, peers_batch.subset(peers_batch.target == me)])
+        msgs: dict[int, GbpMessage] = {}
+        if len(cand):
+            other = np.where(cand.observer == me, cand.target, cand.observer)
+            for j in np.unique(other).tolist():
+                r = kept.heard.get(j)
+                if r is not None and isinstance(r.payload, GbpMessage) and r.payload.row(me) is not None:
+                    msgs[j] = r.payload
+            ok = np.isin(other, np.fromiter(msgs, dtype=int, count=len(msgs)))
+            if count:
+                self.unusable += int((~ok).sum())
+            cand = cand.subset(ok).canonical()
+        acc = 0
+        if len(cand):
+            b, acc, d2 = self._fuse_all(b, cand, msgs)
+            nis, dof = nis + d2, dof + self.fp.rel_dof * acc
+        self._set(b)
+        return acc, len(cand) - acc, nis, dof
+
+    def _linearise(self, e: SwarmEstimate, rel: RelativeMeasurements, msgs: dict[int, GbpMessage], peers: list[int]):
+        """The relative factors linearised at belief ``e`` and the incoming cavities: joint
+        residuals, the own and peers' Jacobian blocks, and the joint estimate."""
+        me = self.own
+        m = 1 + len(peers)
+        row = {me: 0, **{j: r + 1 for r, j in enumerate(peers)}}
+        P = np.zeros((BLOCK * m, BLOCK * m))
+        P[:BLOCK, :BLOCK] = e.P
+        qs, rs = [e.q_BI[0]], [e.r_H[0]]
+        ws, vs = [e.omega_BI_B[0]], [e.v_H[0]]
+        for r, j in enumerate(peers, start=1):
+            s = msgs[j]
+            q, rr, Pp = s.pose(s.row(me))  # type: ignore[arg-type]
+            blk = np.diag(np.full(BLOCK, _UNUSED_VAR))
+            blk[np.ix_(POSE, POSE)] = Pp
+            P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)] = blk
+            qs.append(q)
+            rs.append(rr)
+            ws.append(s.omega_BI_B.astype(float))
+            vs.append(s.v_H.astype(float))
+        joint = SwarmEstimate(e.step, e.t, np.array(qs), np.array(ws), np.array(rs), np.array(vs), e.bias_B, P)
+        if m not in self._joint_params:
+            self._joint_params[m] = dataclasses.replace(self.fp, n=m, own=0, max_iterations=1)
+        jp = self._joint_params[m]
+        local = RelativeMeasurements(np.array([row[int(i)] for i in rel.observer]), np.array([row[int(j)] for j in rel.target]),
+                                     rel.q_BjBi, rel.r_ij_Bi, rel.R_Bi)
+        return joint, jp, local
+
+    def _fuse_all(self, b: dict[int, SwarmEstimate], rel: RelativeMeasurements, msgs: dict[int, GbpMessage]):
+        """Gate the step's relative measurements against the own belief, linearise their
+        factors once (at the own belief and the incoming cavities' means), and fuse their
+        messages into the own belief (all) and each cavity (all but its target's). A cavity
+        differs from the belief by ``d = x_c ⊟ x_b``: its residual is the belief's less
+        ``Ho d`` (the factor linearised at one point, as GBP does). The cavities take the
+        belief's ω (per message with ``peers: sequential``): CI is consistent for any ω in
+        (0, 1], the search only makes it tight.
+        Also keeps, for the view, each edge's factor belief of the neighbour."""
+        peers = sorted(msgs)
+        main = b[-1]
+        joint, jp, local = self._linearise(main, rel, msgs, peers)
+        y, Hi, Hj, d2, accepted = gate(joint, jp, local)
+        if not accepted.any():
+            return b, 0, 0.0
+        a = np.nonzero(accepted)[0]
+        local = local.subset(a)
+        yv = y[a].ravel()
+        Ho, Hp, R = stack_factors(local, Hi[a], Hj[a], len(peers))
+        Pp = [pose_block(joint.P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)]) for r in range(1, 1 + len(peers))]
+        mode = self.params.peers  # type: ignore[attr-defined]
+        ci = self.params.fusion == "ci"  # type: ignore[attr-defined]
+        C_p = (float(len(peers)) if mode == "bound" else 1.0) * (Hp @ _block_diag(Pp) @ Hp.T)
+        other = np.repeat(np.asarray(peers)[np.where(local.observer == 0, local.target, local.observer) - 1], 6)
+        out = dict(b)
+        if ci and mode == "sequential":
+            order = [j for j in peers if (other == j).any()]
+            ws: dict[int, float] = {}
+            for key, e in b.items():  # the own belief first (-1): it sets each message's ω
+                for j in order:
+                    if j == key:
+                        continue
+                    rows = other == j
+                    Hr, Rr, Cr = Ho[rows], R[np.ix_(rows, rows)], C_p[np.ix_(rows, rows)]
+                    if key == -1:
+                        ws[j] = _ci_weight(e.P, Hr, Rr, Cr)
+                    e = _ci_update(e, self.fp, Hr, yv[rows] - Hr @ _delta(e, main), Rr, Cr, ws[j])
+                out[key] = e
+            self.last_omega = min(ws.values(), default=1.0)
+        else:
+            w = _ci_weight(main.P, Ho, R, C_p) if ci else 1.0
+            self.last_omega = w
+            for key, e in b.items():
+                keep = other != key
+                if not keep.any():
+                    continue
+                yk = yv[keep] - Ho[keep] @ _delta(e, main)
+                out[key] = _ci_update(e, self.fp, Ho[keep], yk, R[np.ix_(keep, keep)], C_p[np.ix_(keep, keep)], w)
+        self._edge_beliefs(out, main, msgs, peers, other, Ho, Hp, R, yv, Pp)
+        return out, int(accepted.sum()), float(d2[accepted].sum())
+
+    def _edge_beliefs(self, b: dict[int, SwarmEstimate], main: SwarmEstimate, msgs: dict[int, GbpMessage], peers: list[int],
+                      other: np.ndarray, Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, yv: np.ndarray, Pp: list[np.ndarray]) -> None:
+        """The factor belief of each edge of the step, ``f_ij · m_{i→f} · m_{j→f}`` (for the
+        view): the own cavity towards j (its prior of the step, taken from the kept
+        beliefs) and j's cavity towards the own satellite, uncorrelated, updated by the
+        pair's rows (Kalman, Joseph form) over both poses; the neighbour's part is kept."""
+        self._edges = {}
+        for r, j in enumerate(peers):
+            rows = other == j
+            if not rows.any():
+                continue
+            c = self._edge_prior.get(j, main)
+            Hr = np.hstack([Ho[np.ix_(rows, POSE)], Hp[rows, 6 * r : 6 * r + 6]])
+            yr = yv[rows] - Ho[rows] @ _delta(c, main)
+            P0 = _block_diag([pose_block(c.P), Pp[r]])
+            PHt = P0 @ Hr.T
+            S = Hr @ PHt + R[np.ix_(rows, rows)]
+            K = np.linalg.solve(S, PHt.T).T
+            A = np.eye(12) - K @ Hr
+            P1 = A @ P0 @ A.T + K @ R[np.ix_(rows, rows)] @ K.T
+            dx = K @ yr
+            s = msgs[j]
+            q, rr, _ = s.pose(s.row(self.own))  # type: ignore[arg-type]
+            self._edges[j] = (quat.retract(q, dx[6:9]), rr + dx[9:12], P1[6:, 6:], s)
+
+    def view(self) -> EstimateView:
+        """Its own belief, and each neighbour whose factor it used this step from that
+        edge's factor belief (module docstring), claimed uncorrelated with its own."""
+        peers = sorted(self._edges)
+        rows = ViewRows(self.own, peers, self.e)
+        for j in peers:
+            q, r, P, s = self._edges[j]
+            rows.set(j, q, s.omega_BI_B.astype(float), r, s.v_H.astype(float), P_pose=P)
+        return rows.view(with_cross=False)
+
+
+def _block_diag(blocks) -> np.ndarray:
+    """The block-diagonal matrix of square blocks of one size (scipy's costs more at 6×6)."""
+    m = len(blocks)
+    if not m:
+        return np.zeros((0, 0))
+    b = blocks[0].shape[0]
+    out = np.zeros((m * b, m * b))
+    for r, blk in enumerate(blocks):
+        out[r * b : (r + 1) * b, r * b : (r + 1) * b] = blk
+    return out
+
+
+def _delta(e: SwarmEstimate, ref: SwarmEstimate) -> np.ndarray:
+    """``e ⊟ ref`` of two one-satellite beliefs in the 12 error states ``[a, Δβ, Δr, Δv]``."""
+    d = np.empty(BLOCK)
+    d[0:3] = quat.local(e.q_BI[0], ref.q_BI[0])
+    d[3:6] = e.bias_B - ref.bias_B
+    d[6:9] = e.r_H[0] - ref.r_H[0]
+    d[9:12] = e.v_H[0] - ref.v_H[0]
+    return d
+
+
+def _ci_weight(P: np.ndarray, Ho: np.ndarray, R: np.ndarray, C_p: np.ndarray) -> float:
+    """The split-CI ω minimising ``det P⁺`` (compiled search, or its numpy twin)."""
+    W, lam = _whitened(P, Ho, R, C_p, True)
+    w = kernels.ci_det_weight(W, lam, True)
+    return w if w is not None else ci_weight(_logdet_cost(W, lam, True))
+
+
+def _ci_update(e: SwarmEstimate, fp: FilterParams, Ho: np.ndarray, y: np.ndarray, R: np.ndarray, C_p: np.ndarray,
+               w: float) -> SwarmEstimate:
+    """The split-CI update of the module docstring with weight ω (ω = 1: the plain GBP
+    product, a Kalman update): prior ``P/ω``, noise ``R + C_p/(1 − ω)``, Joseph form, the
+    multiplicative attitude reset."""
+    Pw = e.P / w
+    Cw = R + C_p / (1.0 - w) if w < 1.0 else R + C_p
+    PHt = Pw @ Ho.T
+    S = Ho @ PHt + Cw
+    K = np.linalg.solve(S, PHt.T).T
+    A = np.eye(BLOCK) - K @ Ho
+    return apply_correction(e, fp, K @ y, A @ Pw @ A.T + K @ Cw @ K.T)
