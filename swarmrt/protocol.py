@@ -156,9 +156,15 @@ class Outbox:
             reply = yield action
 
     def again(self, ev: Event) -> list[Send]:
-        """The sends to repeat for event ``ev`` (none unless the bus came back)."""
-        if ev.kind == "resync" or (ev.kind == "bus" and ev.alive):
+        """The sends to repeat for event ``ev`` (none unless the bus came back): every step
+        kept when this role's own bus or the recorder came back (the recorder may be up to
+        ``recorder_max_lag_steps`` behind); the current and previous step when another
+        peer's token did (no step ends while a peer's token is held, so that is all it can
+        lack), which keeps a failover's resends small."""
+        if (ev.kind == "bus" and ev.alive) or (ev.kind == "resync" and ev.role == "recorder"):
             return [*(s for step in self._earlier for s in step), *self.sends]
+        if ev.kind == "resync":
+            return [*self.previous, *self.sends]
         return []
 
 
