@@ -50,7 +50,6 @@ cross-covariance (that is what it claims about the relative pose).
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from typing import Literal
 
@@ -61,7 +60,6 @@ from scipy.linalg.lapack import dpotrf as _potrf
 from .. import kernels
 from ..mekf import (
     BLOCK,
-    AbsoluteMeasurement,
     FilterParams,
     RelativeMeasurements,
     SwarmEstimate,
@@ -69,7 +67,7 @@ from ..mekf import (
     gate,
 )
 from .base import EstimateView, EstimatorParams, Received, StepInputs, StepReport
-from .own import OwnStateEstimator
+from .own import Kept, ReplayingEstimator
 from .views import POSE, ViewRows, pose_block
 
 __all__ = ["CIEstimator", "CIParams", "CiState", "ci_weight"]
@@ -160,19 +158,7 @@ def _logdet(S: np.ndarray) -> float:
     return float(2.0 * np.log(np.diagonal(c)).sum())
 
 
-@dataclass
-class _Kept:
-    """What step s was given, kept for replaying it when a late delivery of s comes."""
-
-    prior: SwarmEstimate  # the prior of step s (after prediction, before any update)
-    absolute: AbsoluteMeasurement | None
-    own: RelativeMeasurements
-    heard: dict[int, Received]  # sender → its delivery of step s (on time, or arrived late)
-    peers_batch: RelativeMeasurements | None  # the on-time peers' measurements in one batch (None: gather from heard)
-    gyro_next: np.ndarray | None = None  # the gyro sample of s → s+1
-
-
-class CIEstimator(OwnStateEstimator):
+class CIEstimator(ReplayingEstimator):
     kind = "ci"
     radio = "graph"  # it fuses only measurements involving its satellite, with their other end's estimate
     Params = CIParams
@@ -185,9 +171,6 @@ class CIEstimator(OwnStateEstimator):
         self._used: list[int] = []  # the peers whose measurements it fused at the current step
         self.unusable = 0  # measurements whose peer estimate did not come
         self._joint_params: dict[int, FilterParams] = {}  # satellites in the joint → its parameters
-        f = sc.filter
-        self.history_steps = math.ceil(f.history_s / sc.dt_s) if f.late == "replay" else 0
-        self._kept: dict[int, _Kept] = {}  # step → what it was given (replay)
 
     def transmit(self, k: int) -> CiState:
         e = self.e
@@ -196,31 +179,9 @@ class CIEstimator(OwnStateEstimator):
         return CiState(self.own, k, e.q_BI[0].copy(), e.omega_BI_B[0].copy(), e.r_H[0].copy(), e.v_H[0].copy(),
                        pose_block(e.P))
 
-    def predict(self, k, gyro_rate_B) -> None:
-        if not self._pending and self.e.step == k - 1 and k - 1 in self._kept:
-            self._kept[k - 1].gyro_next = gyro_rate_B
-        super().predict(k, gyro_rate_B)
-
-    def coast_to(self, k, gyro_of) -> None:
-        if self.e.step < k - 1:
-            self._kept.clear()  # a gap: replay does not cross steps it missed
-        super().coast_to(k, gyro_of)
-
     def step(self, inputs: StepInputs) -> StepReport:
-        k = inputs.step
-        self.begin_step(k, inputs.gyro_rate_B)
         rep = StepReport()
-        late = inputs.late()
-        if late:
-            first = self._take_late(late, rep)
-            if first is not None:
-                self._replay(first, k)
-                rep.replayed_steps = k - first
-        kept = _Kept(self.e, inputs.absolute, inputs.own, {r.sender: r for r in inputs.on_time()}, inputs.peer_measurements)
-        if self.history_steps:
-            self._kept[k] = kept
-            for old in [s for s in self._kept if s <= k - self.history_steps]:
-                del self._kept[old]
+        kept = self.step_inputs(inputs, rep, inputs.peer_measurements)
         acc, rej, nis, dof = self._update(kept, count=True)
         rep.gate_accepted, rep.gate_rejected = acc, rej
         rep.nis, rep.nis_dof = (nis, dof) if dof else (float("nan"), 0)
@@ -228,33 +189,7 @@ class CIEstimator(OwnStateEstimator):
         self._pending = False
         return rep
 
-    def _take_late(self, late: list[Received], rep: StepReport) -> int | None:
-        """File each late delivery under the step it was taken at; returns the earliest step
-        to replay from (None: nothing kept to replay)."""
-        first = None
-        for r in late:
-            kept = self._kept.get(r.step)
-            involving = int(np.count_nonzero(r.measurements.target == self.own))
-            if kept is None or r.sender in kept.heard:
-                rep.late_dropped += involving
-                continue
-            kept.heard[r.sender] = r
-            kept.peers_batch = None  # gathered again from what it heard
-            involving += int(np.count_nonzero(kept.own.target == r.sender))  # its own measurements of the sender
-            rep.late_used += involving
-            first = r.step if first is None else min(first, r.step)
-        return first
-
-    def _replay(self, first: int, k: int) -> None:
-        """Re-run steps ``first`` … k−1 from their kept priors and inputs: the prior of step k."""
-        self.est = self._kept[first].prior
-        for s in range(first, k):
-            kept = self._kept[s]
-            kept.prior = self.est
-            self._update(kept, count=False)
-            self.propagate(kept.gyro_next)
-
-    def _update(self, kept: _Kept, count: bool) -> tuple[int, int, float, int]:
+    def _update(self, kept: Kept, count: bool) -> tuple[int, int, float, int]:
         """One step's update from what it was given: the own readings (Kalman), then every
         relative measurement involving it whose peer's estimate came (CI). Returns accepted,
         rejected, NIS and its degrees of freedom. ``count``: the live pass (not a replay)

@@ -108,7 +108,6 @@ Older than the history, or with ``drop``: dropped. Counted either way (``late_us
 from __future__ import annotations
 
 import dataclasses
-import math
 import struct
 from dataclasses import dataclass
 from typing import Any
@@ -120,7 +119,6 @@ from .. import kernels, quat
 from ..graphs import scenario_graph
 from ..mekf import (
     BLOCK,
-    AbsoluteMeasurement,
     FilterParams,
     RelativeMeasurements,
     SwarmEstimate,
@@ -128,9 +126,9 @@ from ..mekf import (
     gate,
     state_jacobian_blocks,
 )
-from .base import EstimateView, EstimatorParams, Received, StepInputs, StepReport
+from .base import EstimateView, EstimatorParams, StepInputs, StepReport
 from .ci import _logdet_cost, _whitened, ci_weight
-from .own import OwnStateEstimator, absolute_update
+from .own import Kept, ReplayingEstimator, absolute_update
 from .views import POSE, ViewRows, pose_block
 
 __all__ = ["GbpEstimator", "GbpParams", "GbpMessage", "factor_message", "stack_factors", "pack_cholesky", "unpack_cholesky"]
@@ -288,18 +286,7 @@ def factor_message(Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, P_cav: np.ndar
     return Ho.T @ np.linalg.solve(S, Ho), S
 
 
-@dataclass
-class _Kept:
-    """What step s was given (for a replay when a late message of s comes)."""
-
-    prior: dict[int, SwarmEstimate]  # -1: the own belief; l: the cavity towards l
-    absolute: AbsoluteMeasurement | None
-    own: RelativeMeasurements
-    heard: dict[int, Received]
-    gyro_next: np.ndarray | None = None
-
-
-class GbpEstimator(OwnStateEstimator):
+class GbpEstimator(ReplayingEstimator):
     kind = "gbp"
     radio = "graph"  # factors only with graph neighbours, messages only from them
     Params = GbpParams
@@ -324,9 +311,6 @@ class GbpEstimator(OwnStateEstimator):
         # peer → its pose from this step's edge belief (q_BI, r_H, P_pose) and its message
         self._edges: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray, GbpMessage]] = {}
         self._edge_prior: dict[int, SwarmEstimate] = {}
-        f = sc.filter
-        self.history_steps = math.ceil(f.history_s / sc.dt_s) if f.late == "replay" else 0
-        self._kept: dict[int, _Kept] = {}
         self.last_omega = 1.0
 
     # -- state -----------------------------------------------------------------------
@@ -336,10 +320,11 @@ class GbpEstimator(OwnStateEstimator):
         self._kept.clear()
         self._edges = {}
 
-    def _beliefs(self) -> dict[int, SwarmEstimate]:
+    def snapshot(self) -> dict[int, SwarmEstimate]:
+        """The own belief (key -1) and every cavity (key: its neighbour)."""
         return {-1: self.e, **self.cav}
 
-    def _set(self, b: dict[int, SwarmEstimate]) -> None:
+    def restore(self, b: dict[int, SwarmEstimate]) -> None:
         self.est = b[-1]
         self.cav = {j: v for j, v in b.items() if j != -1}
 
@@ -357,16 +342,6 @@ class GbpEstimator(OwnStateEstimator):
         super().propagate(gyro_rate_B)
         m = self.e
         self.cav = {j: apply_correction(m, self.fp, F @ _delta(c, e), F @ c.P @ F.T + Qo) for j, c in self.cav.items()}
-
-    def predict(self, k, gyro_rate_B) -> None:
-        if not self._pending and self.e.step == k - 1 and k - 1 in self._kept:
-            self._kept[k - 1].gyro_next = gyro_rate_B
-        super().predict(k, gyro_rate_B)
-
-    def coast_to(self, k, gyro_of) -> None:
-        if self.e.step < k - 1:
-            self._kept.clear()
-        super().coast_to(k, gyro_of)
 
     # -- radio -----------------------------------------------------------------------
     def transmit(self, k: int) -> GbpMessage:
@@ -389,20 +364,8 @@ class GbpEstimator(OwnStateEstimator):
 
     # -- step ------------------------------------------------------------------------
     def step(self, inputs: StepInputs) -> StepReport:
-        k = inputs.step
-        self.begin_step(k, inputs.gyro_rate_B)
         rep = StepReport()
-        late = inputs.late()
-        if late:
-            first = self._take_late(late, rep)
-            if first is not None:
-                self._replay(first, k)
-                rep.replayed_steps = k - first
-        kept = _Kept(self._beliefs(), inputs.absolute, inputs.own, {r.sender: r for r in inputs.on_time()})
-        if self.history_steps:
-            self._kept[k] = kept
-            for old in [s for s in self._kept if s <= k - self.history_steps]:
-                del self._kept[old]
+        kept = self.step_inputs(inputs, rep)  # (its replay gathers the peers' batch from what it heard)
         acc, rej, nis, dof = self._update(kept, count=True, peers_batch=inputs.peer_measurements)
         rep.gate_accepted, rep.gate_rejected = acc, rej
         rep.nis, rep.nis_dof = (nis, dof) if dof else (float("nan"), 0)
@@ -411,33 +374,11 @@ class GbpEstimator(OwnStateEstimator):
         self._pending = False
         return rep
 
-    def _take_late(self, late: list[Received], rep: StepReport) -> int | None:
-        first = None
-        for r in late:
-            kept = self._kept.get(r.step)
-            involving = int(np.count_nonzero(r.measurements.target == self.own))
-            if kept is None or r.sender in kept.heard:
-                rep.late_dropped += involving
-                continue
-            kept.heard[r.sender] = r
-            involving += int(np.count_nonzero(kept.own.target == r.sender))
-            rep.late_used += involving
-            first = r.step if first is None else min(first, r.step)
-        return first
-
-    def _replay(self, first: int, k: int) -> None:
-        self._set(self._kept[first].prior)
-        for s in range(first, k):
-            kept = self._kept[s]
-            kept.prior = self._beliefs()
-            self._update(kept, count=False)
-            self.propagate(kept.gyro_next)
-
-    def _update(self, kept: _Kept, count: bool, peers_batch: RelativeMeasurements | None = None) -> tuple[int, int, float, int]:
+    def _update(self, kept: Kept, count: bool, peers_batch: RelativeMeasurements | None = None) -> tuple[int, int, float, int]:
         """The factors of one step on the own belief and every cavity: absolute (Kalman),
         then the relative factors' messages (module docstring). Returns accepted,
         rejected, NIS and its dof (of the own belief)."""
-        b = self._beliefs()
+        b = self.snapshot()
         nis, dof = 0.0, 0
         if kept.absolute is not None:
             for j, e in b.items():
@@ -465,7 +406,7 @@ class GbpEstimator(OwnStateEstimator):
         if len(cand):
             b, acc, d2 = self._fuse_all(b, cand, msgs)
             nis, dof = nis + d2, dof + self.fp.rel_dof * acc
-        self._set(b)
+        self.restore(b)
         return acc, len(cand) - acc, nis, dof
 
     def _linearise(self, e: SwarmEstimate, rel: RelativeMeasurements, msgs: dict[int, GbpMessage], peers: list[int]):
