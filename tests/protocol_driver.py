@@ -4,7 +4,7 @@ real Zenoh session, done by hand so tests can say exactly what arrives and when.
 
 from __future__ import annotations
 
-from swarmrt.bus.messages import Recorded
+from swarmrt.bus.messages import Keys, Recorded
 from swarmrt.protocol import Event, Query, Send, Wait
 
 
@@ -80,7 +80,7 @@ class Driver:
             if isinstance(action, Send):
                 self.sent.append(action)
                 if self.recorder_keeps_up and action.key.endswith("/clock") and not action.msg.done:
-                    self.m.handle(Event(action.key.rsplit("/", 1)[0] + "/recorded", "recorded", None,
+                    self.m.handle(Event(Keys(action.msg.run).recorded(), "recorded", None,
                                         msg=Recorded(run=action.msg.run, sender="recorder", k=action.msg.k, t_s=action.msg.t_s)))
             elif isinstance(action, Query):
                 self.queries.append(action)

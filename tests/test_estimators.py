@@ -234,12 +234,14 @@ def test_a_cold_start_takes_its_own_readings_as_the_posterior():
     assert e.cold_start(inputs) and not e.prior_pending and e.view().ids.tolist() == [2]
 
 
-def _own_and_relative_nees(kind: str, seeds=range(6)) -> tuple[float, float]:
+def _own_and_relative_nees(estimator: str | dict, seeds=range(6), **over) -> tuple[float, float]:
     """Mean NEES/dof of every filter's own and relative estimates over the second half
-    (n = 5, 40 s, complete graph), over ``seeds``."""
+    (n = 5, 40 s, complete graph), over ``seeds``. ``estimator``: its kind, or the whole
+    ``estimator`` section; ``over``: other scenario fields."""
     own, rel = [], []
     for seed in seeds:
-        sc = _sc(n_sats=5, duration_s=40, seed=100 + seed, estimator={"kind": kind})
+        est = {"kind": estimator} if isinstance(estimator, str) else estimator
+        sc = _sc(n_sats=5, duration_s=40, seed=100 + seed, estimator=est, **over)
         res = simulate(sc, wire_size=batch_wire_size("t", codec_for(sc).to_msg))
         K = res.nees.shape[0]
         idx = np.arange(5)

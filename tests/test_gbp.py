@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from numdiff import EUCLIDEAN, numerical_jacobian, swarm_state
 from scipy.stats import chi2
+from test_estimators import _own_and_relative_nees
 
 from swarmcore import quat
 from swarmcore.estimators import BUILTIN, Received, StepInputs, builtin_estimator
@@ -190,17 +191,9 @@ def test_gbp_is_a_builtin_on_the_graph_radio():
 
 
 def _nees(fusion: str, seeds) -> tuple[float, float, int]:
-    own, rel, count = [], [], 0
-    for seed in seeds:
-        sc = _sc(n_sats=5, duration_s=40, seed=100 + seed, estimator={"kind": "gbp", "fusion": fusion}, bound={"enabled": False})
-        res = simulate(sc, wire_size=batch_wire_size("t", codec_for(sc).to_msg))
-        K = res.nees.shape[0]
-        idx = np.arange(5)
-        own.append(np.nanmean(res.nees[K // 2 :, idx, idx]))
-        assert res.rel_nees is not None
-        rel.append(np.nanmean(res.rel_nees[K // 2 :]))
-        count += 5
-    return float(np.mean(own)) / 6, float(np.mean(rel)) / 6, count
+    """Own and relative NEES/dof (test_estimators' measure) and the number of filters."""
+    own, rel = _own_and_relative_nees({"kind": "gbp", "fusion": fusion}, seeds, bound={"enabled": False})
+    return own, rel, 5 * len(seeds)
 
 
 def test_gbp_is_consistent_over_monte_carlo():
