@@ -162,14 +162,16 @@ def _truth_messages(sc: Scenario, steps) -> list:
     return out
 
 
-def _mcap_messages(sc: Scenario, truth_steps=range(K)) -> list:
-    """The (topic, schema, data, log ns, publish ns) a reader yields, of a run with links."""
-    msgs = _truth_messages(sc, truth_steps)
-    for k in range(K):
+def _mcap_messages(sc: Scenario, truth_steps=range(K), steps: int = K) -> list:
+    """The (topic, schema, data, log ns, publish ns) a reader yields, of a run with links
+    (that recorded its first ``steps`` steps)."""
+    msgs = _truth_messages(sc, [k for k in truth_steps if k < steps])
+    for k in range(steps):
         for i in LIVE[k]:
             msgs += [(KEYS.sensors(i), _sensors(k, i)), (KEYS.meas(i), _meas(k, i))]
             msgs.append((KEYS.rx(i), _rx(k, i, RX_1[k] if i == 1 else [])))
-    msgs.append((KEYS.rx(1), _rx(3, 1, RX_1[3])))  # sent again after a bus gap: read once
+    if steps == K:
+        msgs.append((KEYS.rx(1), _rx(3, 1, RX_1[3])))  # sent again after a bus gap: read once
     return [(topic, m.DESCRIPTOR.full_name, encode(m), 1000 + t, 1000 + t) for t, (topic, m) in enumerate(msgs)]
 
 
@@ -208,3 +210,14 @@ def test_a_recording_that_misses_a_truth_has_the_bound_up_to_it():
     whole = load_recording("mem", N, K, messages=_mcap_messages(sc), scenario=sc).bound
     assert np.array_equal(r.bound.pos_m2[:2], whole.pos_m2[:2]) and np.isnan(r.bound.pos_m2[2:]).all()
     assert np.isfinite(r.summary()["bound"]["rms"]["pos_m"])
+
+
+def test_an_interrupted_run_has_the_bound_of_the_steps_it_recorded():
+    sc = _sc(bound={"filter": 1}, links={"enabled": True})
+    r = load_recording("mem", N, None, messages=_mcap_messages(sc, steps=3), scenario=sc)  # K from the truth, as outcome.py
+    assert r.K == 3 and r.bound is not None and r.bound.pos_m2.shape == (3, N)
+    assert np.isfinite(r.bound.pos_m2).all()
+    whole = load_recording("mem", N, K, messages=_mcap_messages(sc), scenario=sc).bound
+    # Steps 0 and 1 had everything they ever get by step 2 (step 2's late batch came at step 3).
+    assert np.array_equal(r.bound.pos_m2[:2], whole.pos_m2[:2]) and not np.array_equal(r.bound.pos_m2[2], whole.pos_m2[2])
+    assert np.array_equal(r.bound.pos_m2, _expected_bound(sc, r.truth, 3).pos_m2)
