@@ -108,8 +108,6 @@ class BoundInputs:
     own absolute reading. An agent of a distributed run never hears its peers' absolute
     readings (they do not travel on the radio), so filter f's bound counts only its own."""
 
-    KINDS = ("meas", "sensors", "batches", "rx")  # the messages it reads
-
     def __init__(self, n: int, K: int, f: int | None):
         self.n, self.K, self.f = n, K, f
         self.own: dict[tuple[int, int], RelativeMeasurements] = {}  # (step, observer) → its batch
@@ -163,6 +161,8 @@ class BoundInputs:
                 for s, _o, rel in sorted(self.heard.get(k, ()), key=lambda x: (x[0], x[1])):
                     b.measured_at(s, rel)
                 b.absolute_at(k, [f] if f in self.absolute.get(k, ()) else [])
+
+
 _USED = ("truth", "est", "select", "meas", "fault", "links", "rejoin")
 
 
@@ -230,7 +230,7 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
             bus.gaps.append({"observer": g.observer, "down_unix_ns": g.down_unix_ns, "up_unix_ns": g.up_unix_ns or None,
                              "duration_s": (g.up_unix_ns - g.down_unix_ns) / 1e9 if g.up_unix_ns else None,
                              "last_step_before": g.last_step_before, "first_step_after": g.first_step_after})
-        if bound is not None and kind in ("sensors", "batches", "rx") and bound.wants(kind, sat):
+        if bound is not None and kind in ("sensors", "batches", "rx") and bound.wants(kind, sat):  # (meas: below)
             with contextlib.suppress(MessageError):
                 mb = decode(kind, data, n_sats=n)
                 ident = (topic, mb.k, len(data), hash(data))
