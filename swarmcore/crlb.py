@@ -156,7 +156,8 @@ def measurement_information(est: SwarmEstimate, params: FilterParams, relative: 
 
 def posterior_crlb(sc, truth, relative: Sequence[RelativeMeasurements | None], absolute: np.ndarray,
                    gyros: Sequence[int] | None = None, kind: str = "central") -> BoundArrays:
-    """The bound along the run's truth (:class:`swarmcore.result.TruthArrays`, K steps).
+    """The bound along the run's truth (:class:`swarmcore.result.TruthArrays`, K steps: the
+    truth's, ``sc.steps`` for a whole run, fewer for the steps an interrupted one recorded).
 
     ``relative[k]``: the relative measurements counted at step k (each with its R);
     ``absolute`` (K, n) bool: whose absolute reading is counted at step k (its star tracker
@@ -164,7 +165,7 @@ def posterior_crlb(sc, truth, relative: Sequence[RelativeMeasurements | None], a
     attitude (None: every one)."""
     from .world import world_params
 
-    n, K = sc.n_sats, sc.steps
+    n, K = sc.n_sats, int(truth.q_BI.shape[0])
     params = bound_params(sc)
     wp = world_params(sc)
     star = wp.star_sigma if wp.star_enabled else None

@@ -212,10 +212,11 @@ def bound_summary(r: RunResult) -> dict:
                 "per_sat": [{"sat": i, "att_rad": float(att[i]), "pos_m": float(pos[i])} for i in range(n)]}
 
     def ratio(err, bnd, start):
-        """(F, n) time-RMS of err over time-RMS of √bnd on the steps err exists; NaN elsewhere."""
+        """(F, n) time-RMS of err over time-RMS of √bnd on the steps both exist (a recording's
+        bound ends at its first step without truth); NaN elsewhere."""
         e = err[start:]
         bb = np.broadcast_to(bnd[start:], e.shape)
-        have = np.isfinite(e)
+        have = np.isfinite(e) & np.isfinite(bb)
         cnt = have.sum(axis=0)
         num = np.sqrt(np.where(have, e**2, 0.0).sum(axis=0) / np.maximum(cnt, 1))
         den = np.sqrt(np.where(have, bb, 0.0).sum(axis=0) / np.maximum(cnt, 1))

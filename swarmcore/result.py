@@ -180,7 +180,7 @@ class RunResult:
     taken: np.ndarray  # (K, n, n) bool: relative measurements in the batches put on the radio
     links: LinkArrays | None = None  # runs with links
     bus: BusRecord | None = None  # distributed runs (the recording's)
-    bound: BoundArrays | None = None  # the Cramér–Rao bound (in-process runs with bound.enabled: swarmcore.crlb)
+    bound: BoundArrays | None = None  # the Cramér–Rao bound (bound.enabled: swarmcore.crlb; a recording read with its scenario)
 
     @property
     def K(self) -> int:
@@ -356,8 +356,23 @@ class RunBuilder:
             return None
         from .mekf import RelativeMeasurements
 
-        rel = [RelativeMeasurements.concat(b) for b in (self._bound_rel or [[] for _ in range(self.K)])]
+        # Along the truth from step 0 to the first step without one (a recording that misses
+        # steps: the recursion cannot cross them); NaN from there on.
+        missing = np.flatnonzero(~np.isfinite(self.truth.q_BI).all(axis=(1, 2)))
+        K = int(missing[0]) if missing.size else self.K
+        if K == 0:
+            return None
+        rel = [RelativeMeasurements.concat(b) for b in (self._bound_rel or [[] for _ in range(self.K)])[:K]]
         absolute = self._bound_abs if self._bound_abs is not None else np.zeros((self.K, self.n), dtype=bool)
+        tr = self.truth
+        truth = tr if K == self.K else TruthArrays(*(x[:K] for x in (tr.q_BI, tr.omega_BI_B_rad_s, tr.r_H_m, tr.v_H_m_s,
+                                                                      tr.bias_B_rad_s)))
         f = scenario.bound.filter
-        return posterior_crlb(scenario, self.truth, rel, absolute, gyros=None if f is None else [f],
-                              kind="central" if f is None else f"filter {f}")
+        b = posterior_crlb(scenario, truth, rel, absolute[:K], gyros=None if f is None else [f],
+                           kind="central" if f is None else f"filter {f}")
+        if K < self.K:
+            for name in ("att_rad2", "pos_m2", "rel_pos_m2", "att_axes_rad2", "pos_axes_m2"):
+                x = getattr(b, name)
+                if x is not None:
+                    setattr(b, name, np.concatenate([x, np.full((self.K - K, *x.shape[1:]), np.nan)]))
+        return b

@@ -17,12 +17,13 @@ from google.protobuf.message import DecodeError
 
 from swarm.record.mcaplog import iter_messages
 from swarmcore.links import LinkCounters
+from swarmcore.mekf import RelativeMeasurements
 from swarmcore.result import BusRecord, BusTimes, RunBuilder, RunResult
 from swarmcore.scenario import Scenario
-from swarmrt.bus.convert import array, pairs_from_select
+from swarmrt.bus.convert import absolute_from_sensors, array, pairs_from_select, relative_from_batches, relative_from_step
 from swarmrt.bus.messages import BusGap, Liveliness, Malformed, MessageError, as_dict, decode, parse_key
 
-__all__ = ["BusTimes", "RecordingError", "load_recording"]
+__all__ = ["BoundInputs", "BusTimes", "RecordingError", "load_recording"]
 
 
 class RecordingError(ValueError):
@@ -88,6 +89,80 @@ def _rows(values, width: int = 3) -> np.ndarray:
 
 
 _NS_MAX = 2**63  # Unix nanoseconds as int64 (the year 2262)
+
+
+class BoundInputs:
+    """What the Cramér–Rao bound (``scenario.bound``, :mod:`swarmcore.crlb`) of a recorded run
+    counts, gathered message by message as the recording is read (:meth:`add`), then handed
+    to a :class:`~swarmcore.result.RunBuilder` (:meth:`count`) in the order the in-process
+    simulator hands its own (``swarmcore.sim._count_for_bound``), so that a lockstep run's
+    bound is ``swarm sim``'s to the bit.
+
+    Centralized (``bound.filter`` None): every relative measurement an observer put on the
+    bus (``meas/<i>``, at its step, observers ascending) and every absolute reading the
+    world gave (``sat/<i>/sensors`` with a star tracker or GPS reading). Of filter f, at each
+    step the world counted f live (it sent f its sensors): f's own batch (``meas/<f>``), then
+    what its radio brought it: the ideal radio's batches of the step (``batches``, f's own
+    rows skipped, or ``batches/<f>``) or the link model's deliveries (``rx/<f>``, each batch
+    counted at the step it was taken, in (step, observer) order, late ones too), and its
+    own absolute reading. An agent of a distributed run never hears its peers' absolute
+    readings (they do not travel on the radio), so filter f's bound counts only its own."""
+
+    def __init__(self, n: int, K: int, f: int | None):
+        self.n, self.K, self.f = n, K, f
+        self.own: dict[tuple[int, int], RelativeMeasurements] = {}  # (step, observer) → its batch
+        self.heard: dict[int, list[tuple[int, int, RelativeMeasurements]]] = {}  # step → (taken at, observer, batch) delivered
+        self.absolute: dict[int, set[int]] = {}  # step → satellites given an absolute reading
+        self.sensed: dict[int, set[int]] = {}  # step → satellites the world sent their sensors (live)
+
+    def wants(self, kind: str, sat: int | None) -> bool:
+        """Whether the message of ``kind`` on satellite ``sat``'s key (None: a key of no
+        satellite) counts: the centralized bound reads every batch and reading, filter f's
+        only its own and what was delivered to it."""
+        f = self.f
+        if kind in ("meas", "sensors"):
+            return f is None or sat == f
+        if kind == "rx":
+            return f is not None and sat == f
+        if kind == "batches":
+            return f is not None and (sat is None or sat == f)
+        return False
+
+    def add(self, kind: str, m) -> None:
+        """A decoded message of ``kind`` (one :meth:`wants`)."""
+        k = int(m.k)
+        if kind == "meas":
+            self.own[(k, int(m.observer))] = relative_from_batches([m])
+        elif kind == "sensors":
+            self.sensed.setdefault(k, set()).add(int(m.sat))
+            if absolute_from_sensors(m) is not None:
+                self.absolute.setdefault(k, set()).add(int(m.sat))
+        elif kind == "batches":  # one message of the step's batches: in observer order already
+            self.heard.setdefault(k, []).append((k, -1, relative_from_step(m, skip=self.f)))
+        elif kind == "rx":
+            got = self.heard.setdefault(k, [])
+            for it in m.items:
+                if it.batch.observer != self.f and 0 <= it.batch.k < self.K:
+                    got.append((int(it.batch.k), int(it.batch.observer), relative_from_batches([it.batch])))
+
+    def count(self, b) -> None:
+        """Hand what was gathered to ``b`` (its ``measured_at`` and ``absolute_at``), step
+        by step as the simulator does."""
+        f = self.f
+        for k in range(self.K):
+            if f is None:
+                for i in range(self.n):
+                    if (k, i) in self.own:
+                        b.measured_at(k, self.own[(k, i)])
+                b.absolute_at(k, sorted(self.absolute.get(k, ())))
+            elif f in self.sensed.get(k, ()):
+                if (k, f) in self.own:
+                    b.measured_at(k, self.own[(k, f)])
+                for s, _o, rel in sorted(self.heard.get(k, ()), key=lambda x: (x[0], x[1])):
+                    b.measured_at(s, rel)
+                b.absolute_at(k, [f] if f in self.absolute.get(k, ()) else [])
+
+
 _USED = ("truth", "est", "select", "meas", "fault", "links", "rejoin")
 
 
@@ -98,11 +173,15 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
     :func:`~swarm.record.mcaplog.iter_messages` yields them, for a caller that has read them
     already (and loads them more than one way, as the fuzz target); by default the file is
     read here, twice if n or K is not given (once for the shape, once for the contents).
-    ``scenario``: the scenario it ran (the result's, for :meth:`~swarmcore.result.RunResult.summary`)."""
+    ``scenario``: the scenario it ran (the result's, for :meth:`~swarmcore.result.RunResult.summary`);
+    with it, the result has the run's Cramér–Rao bound (:class:`BoundInputs`) when the
+    scenario's ``bound`` is on."""
     if n is None or K is None:
         n0, K0 = _shape(path, n, messages)
         n, K = n or n0, K or K0
     b = RunBuilder(K, n)
+    bound = BoundInputs(n, K, scenario.bound.filter) if scenario is not None and scenario.bound_on and scenario.n_sats == n else None
+    bound_seen: set[tuple[str, int, int, int]] = set()  # as ``seen``, for the messages only the bound reads
     bus = BusRecord()
     posteriors = []  # (k, f, message): scored once every truth is in
     counts: dict[str, int] = {}
@@ -111,10 +190,10 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
     for topic, schema, data, log_ns, pub_ns in _read(path, messages):
         _check_format(topic, schema)
         try:
-            _run, kind, _sat = parse_key(topic)
+            _run, kind, sat = parse_key(topic)
         except MessageError:
             # Our alive / _malformed channels, and the derived Foxglove ones.
-            kind = topic if topic.startswith("/") else topic.rsplit("/", 1)[-1]
+            kind, sat = topic if topic.startswith("/") else topic.rsplit("/", 1)[-1], None
         if kind == "_not_recorded":  # the recorder's flood cap: one record per key it cut, the count its payload
             with contextlib.suppress(DecodeError, ValueError):
                 m = Malformed.FromString(data)
@@ -151,6 +230,13 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
             bus.gaps.append({"observer": g.observer, "down_unix_ns": g.down_unix_ns, "up_unix_ns": g.up_unix_ns or None,
                              "duration_s": (g.up_unix_ns - g.down_unix_ns) / 1e9 if g.up_unix_ns else None,
                              "last_step_before": g.last_step_before, "first_step_after": g.first_step_after})
+        if bound is not None and kind in ("sensors", "batches", "rx") and bound.wants(kind, sat):  # (meas: below)
+            with contextlib.suppress(MessageError):
+                mb = decode(kind, data, n_sats=n)
+                ident = (topic, mb.k, len(data), hash(data))
+                if ident not in bound_seen and 0 <= mb.k < K:
+                    bound_seen.add(ident)
+                    bound.add(kind, mb)
         if kind not in _USED:
             continue
         try:
@@ -197,6 +283,8 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
             bus.select_ms.append(m.select_ms)
         elif kind == "meas":
             b.taken_at(k, m.observer, np.asarray(m.target, dtype=int))
+            if bound is not None and bound.wants(kind, m.observer):
+                bound.add(kind, m)
         elif kind == "fault":
             d = as_dict(m)
             bus.faults.append({**{f: d[f] for f in ("k", "t_s", "action", "phase", "sender", "target", "camera", "state", "rate",
@@ -215,4 +303,6 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
     if bus_rows:
         sender, kinds, ks, pub, log = zip(*bus_rows)
         bus.times = BusTimes(np.array(sender), np.array(kinds), np.array(ks), np.array(pub, dtype=np.int64), np.array(log, dtype=np.int64))
+    if bound is not None:
+        bound.count(b)
     return b.result(scenario, bus)

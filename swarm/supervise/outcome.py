@@ -51,7 +51,7 @@ def summary_of_steps_recorded(path: Path, sc: Scenario, log=None) -> dict:
     from swarm.record.recording import load_recording
 
     try:
-        return load_recording(path, sc.n_sats, None).summary(sc)  # K from the recorded truth
+        return load_recording(path, sc.n_sats, None, scenario=sc).summary(sc)  # K from the recorded truth
     except (ValueError, FileNotFoundError) as exc:
         if log is not None:
             log(f"no step to summarise: {exc}")
@@ -70,7 +70,7 @@ def run_outcome(sc: Scenario, recording: Path, *, run: str, world_exit_code: int
     why = broken if sig is None else None
     summary: dict = {}
     if sig is None and why is None:
-        rec = load_recording(recording, sc.n_sats, sc.steps)
+        rec = load_recording(recording, sc.n_sats, sc.steps, scenario=sc)  # with it, the run's bound (sc.bound)
         summary = rec.summary(sc)
         if (gaps := np.flatnonzero(~np.isfinite(rec.t_s))).size:
             # The world ran every step, the recording does not hold them all: the recorder
