@@ -89,7 +89,9 @@ def chaos(
     sc = _load(scenario, sets)
     known = COMPOSE_KINDS if compose else CLUSTER_KINDS if cluster is not None else KINDS
     if bad := [k for k in kinds or () if k not in known]:
-        console.print(f"[red]error:[/red] --kind {bad[0]!r}: one of {', '.join(known)}", highlight=False)
+        why = (" (it acts on the nodes of a Ray cluster: add --cluster local-ray:N or ray://HOST:PORT)"
+               if bad[0] in CLUSTER_KINDS and cluster is None else "")
+        console.print(f"[red]error:[/red] --kind {bad[0]!r}: one of {', '.join(known)}{why}", highlight=False)
         raise typer.Exit(2)
     try:
         episodes = draw_schedule(sc, faults, seed, settle, tuple(kinds) if kinds else None, routers=nodes or routers, compose=compose,
