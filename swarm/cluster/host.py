@@ -24,7 +24,9 @@ deletes the node's private directory (its credentials, its logs once collected).
 Credentials: :meth:`make_keys` (on the head) makes the run's keys and hands out, as
 separate Ray objects, each node's share: a worker node's router gets the password
 dictionary of the agents and the mesh (never the world's, the recorder's or the CLI's),
-each agent only its own file, on the node it runs on.
+each agent only its own file, on the node it runs on; with TLS (a cluster over several
+hosts) each node's router its own certificate and key (the CA's key deleted once they are
+signed, the routers' keys forgotten here once handed out).
 """
 
 from __future__ import annotations

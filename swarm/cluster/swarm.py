@@ -15,7 +15,11 @@ actor starts and signals the processes there. What it adds:
   Ray objects the driver never fetches: a node gets its router's dictionary (the head's
   whole; a worker's, the agents' and the mesh's only), the credentials of the roles and
   agents it runs, nothing else; the driver gets the supervisor's, the CLI's and the
-  observer's (``swarm fault --run-dir`` works as for a local run).
+  observer's (``swarm fault --run-dir`` works as for a local run). When the cluster spans
+  hosts (two nodes or more, :func:`cluster_tls`) every Zenoh link is TLS: the head makes a CA
+  and one certificate per node's router (its address), node i gets its own router's key
+  only, and the routers listen on ``tls/`` endpoints alone (plus a loopback TCP one for
+  ``--agent`` programs without TLS).
 * **hosts that fail**: ``kill-node N`` takes node N down (on a local cluster every process of
   its namespace SIGKILLed, the raylet included; on real hosts its actor SIGKILLs the run's
   processes there and its raylet); its agents are started again on the surviving nodes (the
