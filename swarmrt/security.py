@@ -78,18 +78,23 @@ def _write_private(path: Path, text: str) -> None:
         f.write(text)
 
 
-def make_keys(out: str | Path, n_sats: int, tls_hosts: list[str] | None = None) -> Path:
+def make_keys(out: str | Path, n_sats: int, tls_hosts: list[str] | None = None,
+              router_hosts: list[list[str]] | None = None) -> Path:
     """Make a keys directory for a swarm of ``n_sats`` satellites (fresh random passwords;
-    ``tls_hosts``: also a CA and a router certificate valid for those names/addresses)."""
+    ``tls_hosts``: also a CA and a router certificate valid for those names/addresses;
+    ``router_hosts``: a CA and one certificate per router of a cluster run, router i's
+    (``router-<i>.pem``, ``router-<i>.key``) valid for the names of ``router_hosts[i]``: each
+    node is given its own router's key only, as ``router.pem``/``router.key``)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     os.chmod(out, 0o700)
     names = [*IDENTITIES, *agent_identities(n_sats)]
     pw = {name: secrets.token_urlsafe(24) for name in names}
     _write_private(out / "passwords", "".join(f"{n}:{p}\n" for n, p in pw.items()))
-    tls = bool(tls_hosts)
-    if tls_hosts:
-        _make_tls(out, tls_hosts)
+    tls = bool(tls_hosts) or bool(router_hosts)
+    if tls_hosts or router_hosts:
+        certs = ([("router", tls_hosts)] if tls_hosts else []) + [(f"router-{i}", h) for i, h in enumerate(router_hosts or [])]
+        _make_tls(out, certs)
     for name in names:
         cred = {"user": name, "password": pw[name], **({"ca": "ca.pem"} if tls else {})}
         _write_private(out / f"{name}.json", json.dumps(cred) + "\n")
@@ -99,13 +104,13 @@ def make_keys(out: str | Path, n_sats: int, tls_hosts: list[str] | None = None) 
     return out
 
 
-def _make_tls(out: Path, hosts: list[str]) -> None:
-    """A CA and a router certificate signed by it (openssl, as any operator would; the CA's
-    key is deleted once it has signed: new hosts mean new keys)."""
+def _make_tls(out: Path, certs: list[tuple[str, list[str]]]) -> None:
+    """A CA and, for each (name, hosts) of ``certs``, a router certificate ``<name>.pem``
+    (key ``<name>.key``) valid for ``hosts``, signed by it (openssl, as any operator would;
+    the CA's key is deleted once it has signed them all: new hosts mean new keys)."""
     openssl = shutil.which("openssl")
     if openssl is None:
         raise RuntimeError("TLS keys need the openssl command (Debian: apt-get install openssl)")
-    san = ",".join(f"IP:{h}" if re.fullmatch(r"[0-9.]+|[0-9a-fA-F:]+:[0-9a-fA-F:]*", h) else f"DNS:{h}" for h in hosts)
 
     def run(*args: str) -> None:
         p = subprocess.run([openssl, *args], capture_output=True, text=True)
@@ -117,19 +122,23 @@ def _make_tls(out: Path, hosts: list[str]) -> None:
         run("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-days", "825",
             "-subj", "/CN=swarm-coloc CA", "-keyout", str(out / "ca.key"), "-out", str(out / "ca.pem"),
             "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign")
-        run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", f"/CN={hosts[0]}",
-            "-keyout", str(out / "router.key"), "-out", str(out / "router.csr"))
-        ext = out / "router.ext"
-        ext.write_text(f"subjectAltName={san}\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n")
-        run("x509", "-req", "-in", str(out / "router.csr"), "-CA", str(out / "ca.pem"), "-CAkey", str(out / "ca.key"),
-            "-CAcreateserial", "-days", "825", "-extfile", str(ext), "-out", str(out / "router.pem"))
+        for name, hosts in certs:
+            san = ",".join(f"IP:{h}" if re.fullmatch(r"[0-9.]+|[0-9a-fA-F:]+:[0-9a-fA-F:]*", h) else f"DNS:{h}" for h in hosts)
+            run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", f"/CN={hosts[0]}",
+                "-keyout", str(out / f"{name}.key"), "-out", str(out / f"{name}.csr"))
+            ext = out / f"{name}.ext"
+            ext.write_text(f"subjectAltName={san}\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n")
+            run("x509", "-req", "-in", str(out / f"{name}.csr"), "-CA", str(out / "ca.pem"), "-CAkey", str(out / "ca.key"),
+                "-CAcreateserial", "-days", "825", "-extfile", str(ext), "-out", str(out / f"{name}.pem"))
     finally:
         os.umask(old)
-    for f in ("ca.key", "router.csr", "router.ext", "ca.srl"):
+        (out / "ca.key").unlink(missing_ok=True)  # whatever happened: the CA signs nothing more
+    for f in ("ca.srl", *(f"{name}.{x}" for name, _h in certs for x in ("csr", "ext"))):
         (out / f).unlink(missing_ok=True)
-    for f in ("ca.pem", "router.pem"):
+    for f in ("ca.pem", *(f"{name}.pem" for name, _h in certs)):
         os.chmod(out / f, 0o644)  # public
-    os.chmod(out / "router.key", 0o600)
+    for name, _h in certs:
+        os.chmod(out / f"{name}.key", 0o600)
 
 
 # -- the router -----------------------------------------------------------------------------

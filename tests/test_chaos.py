@@ -12,13 +12,18 @@ import numpy as np
 import pytest
 
 from swarm.studies.chaos import (
+    CLUSTER_KINDS,
     KINDS,
+    NODE_KINDS,
+    PARTITION_HEAD_S,
+    PARTITION_S,
     RECONVERGED_STEPS,
     Episode,
     _reconverged_at,
     chaos_scenario,
     check_run,
     draw_schedule,
+    node_placement,
     schedule_digest,
 )
 from swarmcore.scenario import Scenario
@@ -67,6 +72,90 @@ def test_schedule_rules_hold(seed, routers):
     assert [f.at_step for f in sc2.faults] == sorted(f.at_step for f in sc2.faults)
     assert len(sc2.faults) == sum(len(e.specs()) for e in eps)
     Scenario.model_validate(sc2.model_dump())
+
+
+@pytest.mark.parametrize("seed", range(25))
+def test_cluster_schedules_kill_nodes_and_cut_them_apart_within_their_rules(seed):
+    """swarm chaos --cluster over 3 namespaced nodes: kill-node never takes the head (the
+    world, recorder, selector), a node dies once, nothing is cut off at or after its death;
+    a node episode overlaps only camera and link ones; each kill names the agents on the
+    node then (spread placement, the earlier kills' moves); written into the scenario, they
+    are valid fault entries."""
+    sc = _sc(n_sats=12, duration_s=40)
+    eps = draw_schedule(sc, 8, seed=seed, nodes=3, partitions=True)
+    assert all(e.kind in CLUSTER_KINDS for e in eps) and all(e.kind != "failover" for e in eps)
+    kills = [e for e in eps if e.kind == "kill-node"]
+    assert all(e.target in (1, 2) and e.start == e.end for e in kills), kills
+    assert len({e.target for e in kills}) == len(kills)
+    moved, _ = node_placement(sc, 3, [e.target for e in kills])
+    assert [e.sats for e in kills] == moved
+    if kills:  # spread: satellite i on node i mod 3 until the first kill
+        assert kills[0].sats == tuple(i for i in range(12) if i % 3 == kills[0].target)
+    for e in eps:
+        if e.kind == "partition-nodes":
+            assert e.target != e.peer and {e.target, e.peer} <= {0, 1, 2} and e.start == e.end
+            lo, hi = PARTITION_HEAD_S if 0 in (e.target, e.peer) else PARTITION_S
+            assert lo <= e.down_s <= hi
+            assert not any(k.target in (e.target, e.peer) and k.start <= e.end + 1 for k in kills), (e, kills)
+        if e.kind in NODE_KINDS:
+            for o in eps:
+                if o is not e and e.start <= o.end + 1 and o.start <= e.end + 1:
+                    assert o.kind in ("camera", "link", "isolate"), (e, o)
+    sc2 = chaos_scenario(sc, eps)
+    Scenario.model_validate(sc2.model_dump())
+    assert sum(f.action in NODE_KINDS for f in sc2.faults) == sum(e.kind in NODE_KINDS for e in eps)
+
+
+def test_node_placement_moves_a_dead_nodes_agents_to_the_least_loaded_survivor():
+    sc = _sc(n_sats=12, duration_s=40)
+    moved, place = node_placement(sc, 3, [2, 1])
+    # Node 2's 2, 5, 8, 11 go to nodes 0 and 1 in turn (4 each, the lower index on a tie), then
+    # node 1's own four and the two it took to node 0.
+    assert moved == [(2, 5, 8, 11), (1, 4, 5, 7, 10, 11)]
+    assert set(place.values()) == {0}
+    _, place = node_placement(_sc(n_sats=4, emulator={"placement": {"agents": [1, 1, 1, 0]}}), 3, [1])
+    assert place == {0: 2, 1: 0, 2: 2, 3: 0}
+
+
+def test_node_kinds_need_a_cluster_and_partitions_a_local_one():
+    sc = _sc(n_sats=6, duration_s=40)
+    assert all(e.kind not in NODE_KINDS for seed in range(10) for e in draw_schedule(sc, 8, seed=seed))
+    with pytest.raises(ValueError, match="Ray cluster"):
+        draw_schedule(sc, 2, seed=1, kinds=("kill-node",))
+    with pytest.raises(ValueError, match="2 nodes or more"):
+        draw_schedule(sc, 2, seed=1, kinds=("kill-node",), nodes=1)
+    with pytest.raises(ValueError, match="local cluster"):
+        draw_schedule(sc, 2, seed=1, kinds=("partition-nodes",), nodes=3)
+    with pytest.raises(ValueError, match="failover"):
+        draw_schedule(sc, 2, seed=1, kinds=("failover",), nodes=3, routers=3)
+    # Real hosts: kill-node drawn, never partition-nodes.
+    kinds = {e.kind for seed in range(20) for e in draw_schedule(sc, 8, seed=seed, nodes=3)}
+    assert "kill-node" in kinds and "partition-nodes" not in kinds
+    # Every node holds a vital role: nothing to kill.
+    with pytest.raises(ValueError, match="every node"):
+        draw_schedule(_sc(n_sats=6, duration_s=40, emulator={"placement": {"recorder": 1}}), 2, seed=1,
+                      kinds=("kill-node",), nodes=2)
+
+
+def test_the_command_line_asks_for_a_cluster_and_draws_for_its_nodes():
+    """`swarm chaos --kind kill-node` without --cluster says what is missing; with
+    `--cluster local-ray:3` (namespaced nodes: root) the schedule is drawn for 3 nodes and
+    names the agents a killed node takes with it (nothing runs: --schedule-only)."""
+    import os
+
+    from swarm.cluster.netns import can_make_hosts
+
+    env = dict(os.environ, COLUMNS="200")
+    p = subprocess.run([sys.executable, "-m", "swarm.cli", "chaos", "scenarios/demo.yaml", "--kind", "kill-node", "--schedule-only"],
+                       capture_output=True, text=True, timeout=120, env=env)
+    assert p.returncode == 2 and "add --cluster" in p.stderr, p.stderr
+    if can_make_hosts() is not None:
+        return  # (a local cluster's shape needs namespaces; the rest is drawn as in the tests above)
+    p = subprocess.run([sys.executable, "-m", "swarm.cli", "chaos", "scenarios/demo.yaml", "--cluster", "local-ray:3", "--faults",
+                        "2", "--seed", "1", "--kind", "kill-node", "--duration", "40", "--set", "n_sats=6", "--schedule-only"],
+                       capture_output=True, text=True, timeout=120, env=env)
+    assert p.returncode == 0, p.stderr
+    assert "over 3 Ray node(s)" in p.stderr and "kill-node" in p.stderr and "agents 2, 5 move" in p.stderr, p.stderr
 
 
 def test_no_selector_faults_without_a_selector_and_kinds_filter():

@@ -13,6 +13,7 @@ namespace or Ray session of it is left. Needs root (namespaces); slow (a cluster
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -23,6 +24,7 @@ import uuid
 from pathlib import Path
 
 import pytest
+import zenoh
 from test_run_signals import _read_json, _wait_for_step, wait_until
 
 from swarm.api import load_scenario, run, simulate
@@ -99,13 +101,50 @@ def _faults(summary: dict, action: str) -> list[dict]:
     return [f for f in summary.get("faults", []) if f["action"] == action and f["phase"] == "done"]
 
 
+def _tls_only(sw) -> dict:
+    """While the run flies (on_start): every router of the cluster speaks TLS only. A session
+    with a valid credential but plain TCP to a router's port is refused; the same credential
+    over TLS with the run's CA is let in (the control: the refusal is not some other fault)."""
+    from forgery import _open
+
+    info = json.loads((sw.out / "run.json").read_text())
+    seen = {"tls": info["tls"], "routers": list(info["routers"]), "refused": [], "admitted": []}
+    for j, ep in enumerate(info["routers"]):
+        # A credential that router knows: the driver's observer on the head's; on a worker's
+        # (whose dictionary has its agents and the mesh only), one of its agents', read from
+        # that node's private folder (a test on one machine can; nothing else does).
+        cred = (Path(info["keys"]) / "observer.json" if j == 0 else
+                next(Path("/tmp").glob(f"swarm-node-{info['run']}-{j}-*/keys/agent-{j}.json")))
+        scheme, _, addr = ep.partition("/")
+        try:
+            _open(f"tcp/{addr}", str(cred), timeout_ms=2000).close()
+        except zenoh.ZError:
+            seen["refused"].append(f"tcp/{addr}")
+        if scheme == "tls":
+            with contextlib.suppress(zenoh.ZError):
+                _open(ep, str(cred), timeout_ms=20_000).close()
+                seen["admitted"].append(ep)
+    sw.tls_check = seen
+    return seen
+
+
 def test_twelve_satellites_over_three_nodes_equal_swarm_sim_through_a_partition(cluster, tmp_path):
+    """Bit for bit `swarm sim` through a 10 s partition of nodes 1 and 2; the routers' mesh and
+    every process's link to its router are TLS (a plain-TCP peer is refused by every router)."""
     sc = twelve(faults=[{"at_step": 4, "action": "partition-nodes", "target": 1, "peer": 2, "down_s": 10.0}])
     t0 = time.monotonic()
-    res = run(sc, out=tmp_path / "run", cluster=cluster, log=print)
+    checked: dict = {}
+    res = run(sc, out=tmp_path / "run", cluster=cluster, log=print, on_start=lambda sw: checked.update(_tls_only(sw)))
     wall = time.monotonic() - t0
     assert res.outcome.exit_code == 0, res.outcome
     info = json.loads((tmp_path / "run" / "run.json").read_text())
+    print(f"TLS: {checked}")
+    assert checked["tls"] and all(ep.startswith("tls/") for ep in info["routers"]), checked
+    assert checked["refused"] == [f"tcp/{ep.split('/', 1)[1]}" for ep in info["routers"]], checked
+    assert checked["admitted"] == info["routers"], checked
+    logs = tmp_path / "run" / "logs"
+    for name in ("router", "router-1", "router-2"):  # each router loaded its own node's certificate
+        assert "TLS certificate loaded" in (logs / f"{name}.log").read_text(errors="replace"), name
     print(f"12 satellites over 3 nodes: {wall:.1f} s wall; start-up {info['startup_s']}")
     # Every node took part, each with the address of its own namespace, agents spread over all.
     assert [n["ip"] for n in info["nodes"]] == cluster.node_ips
@@ -151,6 +190,28 @@ def test_a_node_killed_mid_run_its_agents_restart_elsewhere_and_the_run_complete
     assert res.summary["steps"] == sc.steps
 
 
+def test_an_agent_without_tls_connects_on_its_hosts_loopback(cluster, tmp_path):
+    """`--agent I=COMMAND` on a TLS cluster: a program of another language may have no Zenoh
+    TLS transport (the Rust agent has none), so each router also listens on its host's
+    loopback and such an agent connects there (no other host reaches it). Flown here by the
+    contract's Python agent (`python -m sat_agent.from_env`, the program-of-another-language
+    path: the host actor runs the command under the lifeline); it flies every step and the
+    run equals `swarm sim` bit for bit."""
+    sc = twelve(n_sats=4, duration_s=12)
+    res = run(sc, out=tmp_path / "run", cluster=cluster, agents={1: f"{sys.executable} -m sat_agent.from_env"}, log=print)
+    assert res.outcome.exit_code == 0, res.outcome
+    info = json.loads((tmp_path / "run" / "run.json").read_text())
+    assert info["tls"] and all(ep.startswith("tls/") for ep in info["routers"])
+    assert info["placement"]["agent-1"] == 1 and res.recording.alive[:, 1].all()
+    log = (tmp_path / "run" / "logs" / "agent-1.log").read_text(errors="replace")
+    assert "tcp/127.0.0.1:" in log and "tls/" not in log, log[-2000:]
+    native = (tmp_path / "run" / "logs" / "agent-2.log").read_text(errors="replace")
+    assert f"tls/{cluster.node_ips[2]}:" in native, native[-2000:]
+    ref = simulate(sc).summary
+    for key in NUMBERS:
+        assert res.summary[key] == ref[key], key
+
+
 def test_a_foreign_agent_is_owned_by_its_nodes_host(cluster, tmp_path):
     """`--agent I=COMMAND` over the cluster: satellite 1 flown by the Rust agent, started by
     node 1's host actor under the lifeline (it owns it), its credential only there; it flies
@@ -166,3 +227,49 @@ def test_a_foreign_agent_is_owned_by_its_nodes_host(cluster, tmp_path):
     assert res.recording.alive[:, 1].all()
     log = (tmp_path / "run" / "logs" / "agent-1.log").read_text(errors="replace")
     assert log.strip(), "the Rust agent's log came back from node 1"
+
+
+def test_a_chaos_campaign_over_the_cluster_kills_a_node_and_holds_its_invariants(cluster, tmp_path):
+    """`swarm chaos --cluster ray://HEAD:10001` (the module's cluster, as real hosts are
+    reached: kill-node is its host actor's SIGKILL of the run's processes and of its raylet):
+    seed 2 draws a camera episode, node 2 killed at step 13 (its agents 2, 5, 8, 11 moved to
+    the survivors) and agent 9 killed and restarted after it. The campaign's invariants hold,
+    the exit status is 0, and the node-faults table names each agent's new node."""
+    from swarm.cluster.swarm import cluster_shape
+
+    # The module's earlier tests may have just started node 2 again: wait until Ray has it.
+    wait_until(lambda: cluster_shape(cluster.address)[0] == 3, 120, "the cluster's 3 nodes alive")
+    scen = tmp_path / "cluster12.yaml"
+    scen.write_text(json.dumps(twelve().model_dump(mode="json")))
+    out = tmp_path / "chaos"
+    cmd = [sys.executable, "-m", "swarm.cli", "chaos", str(scen), "--cluster", cluster.address, "--faults", "3", "--seed", "2",
+           "--kind", "kill-node", "--kind", "kill-agent", "--kind", "camera", "--out", str(out)]
+    t0 = time.monotonic()
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=1200, env=dict(os.environ, COLUMNS="200"))
+    finally:  # a node killed by the campaign comes back for the module's other tests
+        info = json.loads((out / "run" / "run.json").read_text()) if (out / "run" / "run.json").exists() else {"nodes": []}
+        for nd in info["nodes"]:
+            if not nd["alive"]:
+                cluster.kill(nd["index"])  # whatever its death left in its namespace
+                cluster.restart(nd["index"])
+    print(p.stdout[-3000:], p.stderr[-8000:])
+    print(f"campaign: {time.monotonic() - t0:.1f} s wall")
+    doc = json.loads((out / "chaos.json").read_text())
+    assert p.returncode == 0 and doc["ok"], [i for i in doc["invariants"] if not i["ok"]]
+    assert [i["name"][0] for i in doc["invariants"]] == ["a", "b", "c", "d", "e"]
+    assert doc["extra"]["cluster"]["nodes"] == 3
+    kills = [e for e in doc["schedule"] if e["kind"] == "kill-node"]
+    assert [(e["start"], e["target"], e["sats"]) for e in kills] == [(13, 2, [2, 5, 8, 11])]
+    assert doc["fired"]["kill-node"] == {"scheduled": 1, "fired": 1} and doc["recovery"]["kill-node"]["n"] == 1
+    # The node-faults table (chaos.json and the terminal) names the node and each agent's new place.
+    lines = [f["detail"] for f in doc["extra"]["cluster"]["node_faults"] if f["action"] == "kill-node"]
+    assert lines[-1].startswith(f"node 2 ({cluster.node_ips[2]}) killed") and "4 agent(s)" in lines[-1], lines
+    for i in (2, 5, 8, 11):
+        line = next(x for x in lines if x.startswith(f"node 2: agent {i} → node "))
+        j = int(line.split("→ node ")[1].split()[0])
+        assert j in (0, 1) and info["placement"][f"agent-{i}"] == j and cluster.node_ips[j] in line
+        assert f"agent {i} → node {j}" in p.stderr  # (the CLI writes to stderr)
+    assert [nd["alive"] for nd in info["nodes"]] == [True, True, False]
+    assert info.get("left_on_nodes") == {}
+    assert not list(Path("/tmp").glob(f"swarm-node-{info['run']}-*")) and not Path(info["keys"]).exists()

@@ -24,7 +24,9 @@ deletes the node's private directory (its credentials, its logs once collected).
 Credentials: :meth:`make_keys` (on the head) makes the run's keys and hands out, as
 separate Ray objects, each node's share: a worker node's router gets the password
 dictionary of the agents and the mesh (never the world's, the recorder's or the CLI's),
-each agent only its own file, on the node it runs on.
+each agent only its own file, on the node it runs on; with TLS (a cluster over several
+hosts) each node's router its own certificate and key (the CA's key deleted once they are
+signed, the routers' keys forgotten here once handed out).
 """
 
 from __future__ import annotations
@@ -95,6 +97,7 @@ class NodeHost:
         self.out: Path = self.dir / "out"  # the run folder here (the driver's own when the file system is shared)
         self.shared_out = False
         self.endpoints: list[str] = []  # how this node's processes reach its router
+        self.local_endpoints: list[str] = []  # its loopback TCP endpoint for agents without TLS (set_endpoints)
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
         self.procs: dict[str, Any] = {}  # name → Popen | ForkedAgent (the current one)
@@ -144,17 +147,25 @@ class NodeHost:
                 f.write(text)
         return sorted(keys)
 
-    def make_keys(self, n_sats: int, shares: list[list[str]], tls_hosts: list[str] | None = None) -> Any:
+    def make_keys(self, n_sats: int, shares: list[list[str]], router_hosts: list[list[str]] | None = None) -> Any:
         """(On the head.) The run's credentials, made here; returns one dict of files per
         entry of ``shares`` (each a list of the file names that node gets), as separate Ray
-        objects (``num_returns``), and keeps the whole set for :meth:`key_share`."""
+        objects (``num_returns``), and keeps the set for :meth:`key_share`. ``router_hosts``:
+        TLS between the nodes (a cluster over several hosts): a CA and a certificate per
+        node's router, valid for that node's names (:func:`swarmrt.security.make_keys`); the
+        CA's key is gone once they are signed, and the routers' keys once handed out (node i's
+        share has its own router's only), so nothing here can sign or serve as another node."""
         from swarmrt.security import make_keys
 
         d = Path(tempfile.mkdtemp(prefix=f"swarm-keys-{self.run}-", dir=self.dir))
-        make_keys(d, n_sats, tls_hosts=tls_hosts)
-        self._all_keys = {p.name: p.read_text() for p in d.iterdir() if p.is_file()}
-        shutil.rmtree(d, ignore_errors=True)
+        try:
+            make_keys(d, n_sats, router_hosts=router_hosts)
+            self._all_keys = {p.name: p.read_text() for p in d.iterdir() if p.is_file()}
+        finally:
+            shutil.rmtree(d, ignore_errors=True)
         out = tuple(self.key_share(names) for names in shares)
+        for name in [n for n in self._all_keys if n.startswith("router-") and n.endswith(".key")]:
+            del self._all_keys[name]
         return out if len(out) > 1 else out[0]
 
     def key_share(self, names: list[str]) -> dict[str, str]:
@@ -163,7 +174,10 @@ class NodeHost:
         router: its clients are agents, its peers routers)."""
         out = {}
         for n in names:
-            if n == "passwords:agents":
+            if n.startswith("router-tls:"):  # node i's router's certificate and key, under the names router.json gives
+                i = int(n.removeprefix("router-tls:"))
+                out["router.pem"], out["router.key"] = self._all_keys[f"router-{i}.pem"], self._all_keys[f"router-{i}.key"]
+            elif n == "passwords:agents":
                 lines = [ln for ln in self._all_keys["passwords"].splitlines()
                          if ln.startswith("agent-") or ln.startswith("mesh:")]
                 out["passwords"] = "".join(f"{ln}\n" for ln in lines)
@@ -173,9 +187,10 @@ class NodeHost:
                 raise KeyError(f"no key file {n}")
         return out
 
-    def free_port(self) -> int:
+    def free_port(self, host: str | None = None) -> int:
+        """A free TCP port on this node's address (or on ``host``: 127.0.0.1)."""
         with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.bind((self.ip, 0))
+            s.bind((host or self.ip, 0))
             return s.getsockname()[1]
 
     # -- processes ----------------------------------------------------------------------
@@ -230,8 +245,12 @@ class NodeHost:
         # Local clients reach the router on the first endpoint (this node's own).
         return self._track(name, p)
 
-    def set_endpoints(self, endpoints: list[str]) -> None:
+    def set_endpoints(self, endpoints: list[str], local: list[str] | None = None) -> None:
+        """How this node's processes reach its router (``endpoints``); ``local``: a loopback
+        TCP endpoint of it, for agents of another language that have no TLS (when the cluster's
+        links are TLS): reachable from this host only."""
         self.endpoints = list(endpoints)
+        self.local_endpoints = list(local or [])
 
     def spawn_role(self, name: str, identity: str, extra: list[str] | None = None) -> int:
         """World, selector or recorder (``python -m MODULE``) under the lifeline."""
@@ -254,7 +273,7 @@ class NodeHost:
             from swarmrt.node import load_role_scenario
 
             sc = load_role_scenario(str(self.scenario_file))
-            bus = BusConfig(mode="client", connect=list(self.endpoints),
+            bus = BusConfig(mode="client", connect=list(self.local_endpoints or self.endpoints),
                             credential_file=str(self.keys_dir / f"{name}.json") if self.keys_dir is not None else None)
             env = foreign_agent_env(sc, i, self.run, bus, self.dir, restart)
             with open(self._log(name), "ab" if name in self.procs else "wb") as logf:
@@ -386,9 +405,10 @@ class NodeHost:
         return p.stat().st_size if p.exists() else -1
 
     # -- the end ----------------------------------------------------------------------
-    def shutdown(self, grace: float = 5.0) -> None:
+    def shutdown(self, grace: float = 5.0) -> list[tuple[str, int]]:
         """Stop whatever still runs here, the fork server too, and delete this node's
-        folder (its credentials)."""
+        folder (its credentials). Returns the processes still running after it (name, pid):
+        none, unless a SIGKILL did not take within 10 s."""
         with self._lock:
             names = list(self.procs)
         self.terminate(names, grace)
@@ -396,6 +416,11 @@ class NodeHost:
             if p.poll() is None:
                 with contextlib.suppress(ProcessLookupError, PermissionError):
                     os.killpg(p.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 10.0
+        for _name, p in self._all:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
+        left = [(n, p.pid) for n, p in self._all if p.poll() is None]
         if self._forkserver is not None:
             self._forkserver.close()
             self._forkserver = None
@@ -405,9 +430,8 @@ class NodeHost:
         self._closed = True
         with self._cond:
             self._cond.notify_all()
-        if not self.shared_out:
-            pass  # the driver has fetched what it needs before this
         shutil.rmtree(self.dir, ignore_errors=True)
+        return left
 
     def die(self) -> str:
         """kill-node on a cluster of real hosts: SIGKILL everything this node runs for the

@@ -31,6 +31,13 @@ netem         ``netem i``: +50–400 ms (± a quarter),     ``netem i clear``
               (``--compose`` only)
 partition     ``partition i``: agent i's container off the  ``heal i``
               bus network (``--compose`` only)
+kill-node     ``kill-node j`` (a Ray node of a cluster run:     (its agents started again on the
+              its raylet and everything on it; never the    surviving nodes, the fewest agents
+              head's or a node with the world, recorder     first: the same step, the world
+              or selector; ``swarm chaos --cluster``)       waits for them)
+partition-    ``partition-nodes a b``: every packet         (healed ``down_s`` later: 2–10 s,
+nodes         between two nodes dropped (iptables; local    1–4 s when one is the head)
+              namespaced clusters only)
 stall         ``stall-<role>``: SIGSTOP, SIGCONT after       (the SIGCONT)
               ``down_s`` wall seconds; role drawn from
               agent i (1–6 s), world (1–15 s), recorder
@@ -46,14 +53,24 @@ breaks the run by design (docs/faults-and-chaos.md, "A stalled process"); ``test
 ``failover`` is drawn only for a run with two routers (``swarm chaos --routers 2``); ``link`` and
 ``isolate`` only for a scenario whose radio runs the link model (``links.enabled``); ``netem``
 and ``partition`` only under compose (``swarm chaos --compose``: one container per role, the
-faults carried out with Docker, stalls with ``docker pause``), where ``failover`` is not drawn.
+faults carried out with Docker, stalls with ``docker pause``), where ``failover`` is not drawn;
+``kill-node`` and ``partition-nodes`` only for a run over a Ray cluster of two nodes or more
+(``swarm chaos --cluster``; ``partition-nodes`` only on a local namespaced one, ``local-ray:N``
+as root), where ``failover`` is not drawn either (each process has its node's router only).
+A kill-node episode records the satellites whose agents were on the node when it dies
+(``sats``: the placement, ``spread`` or the scenario's list, with the moves of the kills
+before it, as :class:`swarm.cluster.swarm.RaySwarm` moves them: the surviving node with the
+fewest agents, the lowest index on a tie); those are the pairs it affects.
 
 Episodes overlap in time, within rules that keep the run meaningful: at most
 ``max(1, (n − 1) // 2)`` agents down at once (a restarted agent needs a live peer), no two
 process or drop episodes on one agent at once (a restarted agent forgets its drop rate,
 the world's radio would not), one selector episode and one router episode (restart or
 failover: a router is always there to come back to) at a time, and every recovery at least
-``settle`` steps before the end (so reconvergence can be seen).
+``settle`` steps before the end (so reconvergence can be seen). A node episode (kill-node,
+partition-nodes) overlaps no other episode but camera and link ones (world-side: an agent
+episode would race the node's agents being moved, a stall or a router fault the wait for
+them), each node dies at most once, and a node is not cut off after (or while) it dies.
 
 **The invariants** (:func:`check_run`), each ``ok`` with its evidence:
 
@@ -87,7 +104,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -96,12 +113,21 @@ import numpy as np
 from swarmcore.scenario import FaultSpec, Scenario
 from swarmcore.streams import stream
 
-__all__ = ["KINDS", "COMPOSE_KINDS", "Command", "Episode", "draw_schedule", "chaos_scenario", "schedule_digest", "check_run", "Invariant", "CampaignReport",
+__all__ = ["KINDS", "COMPOSE_KINDS", "CLUSTER_KINDS", "NODE_KINDS", "node_placement", "Command", "Episode", "draw_schedule", "chaos_scenario", "schedule_digest", "check_run", "Invariant", "CampaignReport",
            "FIRED_COLUMNS", "fired_rows",
            "RECONVERGED_STEPS", "CONSISTENT_FRACTION", "SIGNIFICANCE", "NEES_3SIGMA_6DOF", "NUMBERS", "same_numbers"]
 
 #: The episode kinds a local run (``swarm run``) can carry out.
 KINDS = ("kill-agent", "stop-agent", "camera", "drop", "selector", "router", "failover", "stall", "link", "isolate")
+#: Kinds on the nodes of a Ray cluster (``swarm chaos --cluster``, two nodes or more).
+NODE_KINDS = ("kill-node", "partition-nodes")
+#: What a cluster campaign can carry out (every client has its node's router only: no failover).
+CLUSTER_KINDS = tuple(k for k in KINDS if k != "failover") + NODE_KINDS
+#: Kinds a node episode may overlap (the world carries them out: no agent process involved).
+_BESIDE_NODE_KINDS = ("camera", "link", "isolate")
+#: partition-nodes: how long two nodes stay cut apart (wall s), and when one is the head (its
+#: world waits for the other's agents meanwhile: kept well under the Zenoh lease of 10 s).
+PARTITION_S, PARTITION_HEAD_S = (2.0, 10.0), (1.0, 4.0)
 #: Kinds on the radio's link model (scenarios with links.enabled).
 _LINK_KINDS = ("link", "isolate")
 #: Kinds on a container's network: compose campaigns only.
@@ -163,6 +189,7 @@ class Episode:
     impair: str | None = None  # link: dead, delay or loss
     delay_s: float | None = None  # link (delay): latency added (s)
     netem: str | None = None  # netem: tc netem arguments
+    sats: tuple[int, ...] | None = None  # kill-node: the satellites whose agents were on the node when it died
 
     def commands(self) -> list[Command]:
         """Every fault command of the episode, in order (a scenario's entries where they can
@@ -199,6 +226,10 @@ class Episode:
                    else {"rate": self.rate})
             return [FaultSpec(at_step=a, action="link", target=i, peer=self.peer, **bad),
                     FaultSpec(at_step=b, action="link", target=i, peer=self.peer, state="on")]
+        if self.kind == "kill-node":
+            return [FaultSpec(at_step=a, action="kill-node", target=i)]
+        if self.kind == "partition-nodes":
+            return [FaultSpec(at_step=a, action="partition-nodes", target=i, peer=self.peer, down_s=self.down_s)]
         if self.kind in _NETWORK_KINDS:
             raise ValueError(f"a {self.kind} episode acts on a container's network: no scenario entry holds it (commands())")
         raise ValueError(f"unknown episode kind {self.kind!r} (known: {', '.join(KINDS)})")
@@ -210,16 +241,23 @@ class Episode:
     def affects(self, n: int) -> tuple[list[int], list[int]]:
         """(filters whose every estimate it affects, satellites whose estimate by every
         filter it affects)."""
+        if self.kind == "kill-node":
+            return list(self.sats or ()), list(self.sats or ())
+        if self.kind == "partition-nodes":
+            return list(range(n)), []  # every agent waits while the mesh routes around (or the head is cut off)
         if self.target is None or (self.kind == "stall" and self.role != "agent") or self.kind in _LINK_KINDS:
             return list(range(n)), []
         return [self.target], [self.target]
 
 
 def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = None, kinds: tuple[str, ...] | None = None,
-                  max_tries: int = 500, routers: int = 1, compose: bool = False) -> list[Episode]:
+                  max_tries: int = 500, routers: int = 1, compose: bool = False, nodes: int = 0,
+                  partitions: bool = False) -> list[Episode]:
     """``n_faults`` episodes for scenario ``sc`` run with ``routers`` routers, as local
-    processes or (``compose``) under docker compose (see the module docstring), the same for
-    the same arguments. Raises ValueError, saying why, when they do not fit."""
+    processes, (``compose``) under docker compose, or (``nodes`` ≥ 1) over a Ray cluster of
+    that many nodes (``partitions``: a local namespaced one, where two nodes can be cut
+    apart); see the module docstring. The same for the same arguments. Raises ValueError,
+    saying why, when they do not fit."""
     if n_faults < 0:
         raise ValueError(f"--faults {n_faults}: a count of faults (0 or more)")
     K, n = sc.steps, sc.n_sats
@@ -234,10 +272,25 @@ def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = N
         raise ValueError("failover kills one of two routers: run the campaign with --routers 2")
     if kinds and not sc.links.enabled and (asked := [k for k in kinds if k in _LINK_KINDS]):
         raise ValueError(f"{', '.join(asked)} act on the radio's link model: a scenario with links.enabled: true")
-    known = COMPOSE_KINDS if compose else KINDS
+    known = COMPOSE_KINDS if compose else CLUSTER_KINDS if nodes else KINDS
     if kinds and not compose and (asked := [k for k in kinds if k in _NETWORK_KINDS]):
         raise ValueError(f"{', '.join(asked)} act on a container's network: a campaign under compose (--compose)")
-    allowed = tuple(kinds or (k for k in known if (k != "failover" or routers >= 2) and (k not in _LINK_KINDS or sc.links.enabled)))
+    if kinds and (asked := [k for k in kinds if k in NODE_KINDS]):
+        if nodes < 2:
+            raise ValueError(f"{', '.join(asked)} act on the nodes of a Ray cluster: a campaign with --cluster over 2 nodes or more"
+                             + (f" (this cluster has {nodes})" if nodes else ""))
+        if "partition-nodes" in asked and not partitions:
+            raise ValueError("partition-nodes cuts two nodes apart with iptables in their namespaces: a local cluster "
+                             "(--cluster local-ray:N as root), not one of real hosts")
+    if kinds and nodes and "failover" in kinds:
+        raise ValueError("failover: not over a cluster (each process has its own node's router only)")
+    pl = sc.emulator.placement
+    vital = {pl.world, pl.recorder, *([pl.selector] if sc.selection.strategy != "none" else [])}
+    killable = [j for j in range(nodes) if j not in vital]
+    allowed = tuple(kinds or (k for k in known if (k != "failover" or routers >= 2) and (k not in _LINK_KINDS or sc.links.enabled)
+                              and (k != "kill-node" or (nodes >= 2 and killable)) and (k != "partition-nodes" or (nodes >= 2 and partitions))))
+    if "kill-node" in allowed and not killable:
+        raise ValueError(f"kill-node: every node of the {nodes} holds the world, the recorder or the selector (emulator.placement)")
     if sc.selection.strategy == "none":
         allowed = tuple(k for k in allowed if k != "selector")  # no selector to kill
     if unknown := [k for k in allowed if k not in known]:
@@ -262,6 +315,13 @@ def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = N
         rate = round(float(rng.uniform(0.2, 0.8)), 2) if kind == "drop" else None
         down_s = round(float(rng.uniform(0.5, 2.0)), 2) if kind == "router" else None
         router = int(rng.integers(2)) if kind == "failover" else None
+        if kind == "kill-node":
+            target, end = killable[int(rng.integers(len(killable)))], start
+        elif kind == "partition-nodes":
+            target = int(rng.integers(nodes))
+            peer_node = int((target + 1 + rng.integers(nodes - 1)) % nodes)
+            lo, hi = PARTITION_HEAD_S if 0 in (target, peer_node) else PARTITION_S
+            down_s, end = round(float(rng.uniform(lo, hi)), 2), start
         role = None
         if kind == "stall":
             roles = [r for r in STALL_ROLES if r != "selector" or sc.selection.strategy != "none"]
@@ -271,6 +331,8 @@ def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = N
             target = int(rng.integers(n)) if role == "agent" else None
             router = int(rng.integers(routers)) if role == "router" else None
         peer = impair = delay_s = None
+        if kind == "partition-nodes":
+            peer = peer_node
         if kind in _LINK_KINDS:
             target = int(rng.integers(n))
             if kind == "link":
@@ -292,7 +354,35 @@ def draw_schedule(sc: Scenario, n_faults: int, seed: int, settle: int | None = N
                      netem=netem)
         if _fits(ep, out, max_down):
             out.append(ep)
-    return sorted(out, key=lambda e: (e.start, e.end, e.kind, e.target if e.target is not None else -1))
+    out.sort(key=lambda e: (e.start, e.end, e.kind, e.target if e.target is not None else -1))
+    if any(e.kind == "kill-node" for e in out):
+        kills = [e for e in out if e.kind == "kill-node"]
+        moved, _place = node_placement(sc, nodes, [int(e.target) for e in kills])  # type: ignore[arg-type]
+        sats = {id(e): m for e, m in zip(kills, moved, strict=True)}
+        out = [replace(e, sats=sats[id(e)]) if id(e) in sats else e for e in out]
+    return out
+
+
+def node_placement(sc: Scenario, nodes: int, killed: list[int]) -> tuple[list[tuple[int, ...]], dict[int, int]]:
+    """Where the agents of a cluster run of ``nodes`` nodes are as the nodes ``killed`` die,
+    in that order: (for each kill, the satellites whose agents were on the node; satellite →
+    node at the end). As :class:`swarm.cluster.swarm.RaySwarm` places and moves them: the
+    scenario's ``emulator.placement.agents`` (``spread``: satellite i on node i mod N), then
+    each agent of a dead node, by satellite, to the surviving node with the fewest agents
+    (the lowest index on a tie)."""
+    pl = sc.emulator.placement.agents
+    place = {i: (i % nodes if pl == "spread" else int(pl[i])) for i in range(sc.n_sats)}
+    dead: set[int] = set()
+    out: list[tuple[int, ...]] = []
+    for j in killed:
+        dead.add(j)
+        sats = tuple(sorted(i for i, k in place.items() if k == j))
+        for i in sats:
+            alive = [h for h in range(nodes) if h not in dead]
+            load = {h: sum(1 for k in place.values() if k == h) for h in alive}
+            place[i] = min(alive, key=lambda h: (load[h], h))
+        out.append(sats)
+    return out, place
 
 
 def _overlap(a: Episode, b: Episode, gap: int = 1) -> bool:
@@ -302,6 +392,8 @@ def _overlap(a: Episode, b: Episode, gap: int = 1) -> bool:
 
 def _fits(ep: Episode, placed: list[Episode], max_down: int) -> bool:
     for o in placed:
+        if not _node_fits(ep, o) or not _node_fits(o, ep):
+            return False
         if not _overlap(ep, o):
             continue
         if ep.kind in _LINK_KINDS and o.kind in _LINK_KINDS and (
@@ -327,6 +419,24 @@ def _fits(ep: Episode, placed: list[Episode], max_down: int) -> bool:
     return True
 
 
+def _node_fits(ep: Episode, o: Episode) -> bool:
+    """The rules of a node episode ``ep`` against another ``o`` (module docstring)."""
+    if ep.kind not in NODE_KINDS:
+        return True
+    if _overlap(ep, o) and o.kind not in _BESIDE_NODE_KINDS:
+        return False
+    if ep.kind == "kill-node":
+        if o.kind == "kill-node" and o.target == ep.target:
+            return False  # a node dies once
+        # Nothing acts on the node's processes at or after its death: no partition of it, no
+        # stall of its router (the router of node j is router j).
+        on_it = ((o.kind == "partition-nodes" and ep.target in (o.target, o.peer))
+                 or (o.kind == "stall" and o.role == "router" and o.router == ep.target))
+        if on_it and o.end + 1 >= ep.start:
+            return False
+    return True
+
+
 def _on_a_router(e: Episode) -> bool:
     return e.kind in _ROUTER_KINDS or (e.kind == "stall" and e.role == "router")
 
@@ -344,7 +454,9 @@ def chaos_scenario(sc: Scenario, episodes: list[Episode]) -> Scenario:
 
 def schedule_digest(episodes: list[Episode]) -> str:
     """SHA-256 of the schedule as canonical JSON (equal schedules, equal digests)."""
-    doc = json.dumps([asdict(e) for e in episodes], sort_keys=True, separators=(",", ":"))
+    # (``sats`` only where set: a schedule without node episodes keeps the digest it had.)
+    doc = json.dumps([{k: v for k, v in asdict(e).items() if k != "sats" or v is not None} for e in episodes],
+                     sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(doc.encode()).hexdigest()
 
 
@@ -401,11 +513,20 @@ def fired_rows(fired: dict[str, dict[str, int]], recovery: dict[str, dict[str, A
     return rows
 
 
-def _leftover_processes(run_dir: Path, info: dict) -> list[str]:
+def _leftover_processes(run_dir: Path, info: dict) -> tuple[list[str], int]:
     """Processes of the run still running: its recorded pids (started no later than
     ``run.json`` was last written: a pid reused since is another process), and any naming
-    its run id."""
+    its run id. A cluster run's processes on other hosts (``run.json``'s ``nodes`` whose
+    hostname is not this one's) cannot be seen from here: they are left out (their count is
+    returned; their host actors' last word is ``left_on_nodes``)."""
+    import socket
+
     import psutil
+
+    here = socket.gethostname()
+    away = {int(nd["index"]) for nd in (info.get("nodes") or []) if nd.get("hostname") not in (None, here)}
+    on = info.get("process_nodes") or {}
+    remote = sum(1 for name in (info.get("pids") or {}) if on.get(name) in away)
 
     def running(p: psutil.Process) -> bool:
         try:
@@ -419,6 +540,8 @@ def _leftover_processes(run_dir: Path, info: dict) -> list[str]:
         written = float("inf")
     left = []
     for name, pid in (info.get("pids") or {}).items():
+        if on.get(name) in away:
+            continue
         try:
             p = psutil.Process(pid)
             if running(p) and p.create_time() <= written + 1.0:
@@ -430,7 +553,7 @@ def _leftover_processes(run_dir: Path, info: dict) -> list[str]:
         for p in psutil.process_iter(["pid", "cmdline"]):
             if run in " ".join(p.info["cmdline"] or ()) and running(p) and f"pid {p.pid})" not in " ".join(left):
                 left.append(f"pid {p.pid} ({' '.join((p.info['cmdline'] or [])[:4])} ...)")
-    return left
+    return left, remote
 
 
 def _clocks(path: Path, n: int) -> dict[int, tuple[set[int], int]]:
@@ -514,12 +637,13 @@ def _percentile(xs: list[float], q: float) -> float | None:
 
 def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: int, exit_code: int,
               n_faults: int | None = None, settle: int | None = None, kinds: tuple[str, ...] | None = None,
-              routers: int = 1, compose: bool = False) -> CampaignReport:
+              routers: int = 1, compose: bool = False, nodes: int = 0, partitions: bool = False) -> CampaignReport:
     """Check a finished chaos run in ``run_dir`` (``swarm run``'s folder: ``run.json``,
     ``run.mcap``, ``summary.json``; under compose the recorder's, and a ``run.json`` the
     campaign wrote) against the invariants of the module docstring. ``sc``: the scenario it
     ran (the schedule's faults in it, those a scenario can hold); ``exit_code``: what ``swarm
-    run`` (under compose: the world's container) returned."""
+    run`` (under compose: the world's container) returned; ``nodes``, ``partitions``: the
+    cluster it was drawn for (:func:`draw_schedule`)."""
     from swarm.record.recording import load_recording
     from swarmrt.protocol import DROP_ESTIMATE, message_dropped
 
@@ -537,9 +661,12 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
                              f"compose project {info['compose_project']}: {info.get('containers', 0)} containers, none left"
                              if not left else f"containers left: {', '.join(left)}"))
     else:
-        left = _leftover_processes(run_dir, info)
+        left, remote = _leftover_processes(run_dir, info)
+        left += [f"{name} (pid {pid}, node {j}, as its host reported)" for j, procs in (info.get("left_on_nodes") or {}).items()
+                 for name, pid in procs]
+        where = (f" (on this machine; the {remote} on other hosts as their host actors reported at the end)" if remote else "")
         inv.append(Invariant("a. every process ended", not left and bool(info),
-                             f"{len(info.get('pids') or {})} processes in run.json, none left running" if not left and info
+                             f"{len(info.get('pids') or {})} processes in run.json, none left running{where}" if not left and info
                              else ("no run.json" if not info else f"still running: {', '.join(left)}")))
 
     # (c, first half) the recording, to its last complete step.
@@ -700,7 +827,7 @@ def check_run(run_dir: str | Path, sc: Scenario, episodes: list[Episode], seed: 
 
     # (e) the schedule again from the seed.
     again = draw_schedule(sc.model_copy(update={"faults": []}), len(episodes) if n_faults is None else n_faults, seed, settle, kinds,
-                          routers=routers, compose=compose)
+                          routers=routers, compose=compose, nodes=nodes, partitions=partitions)
     same = schedule_digest(again) == schedule_digest(episodes)
     inv.append(Invariant("e. same seed, same schedule", same, f"schedule sha256 {schedule_digest(episodes)[:16]}… drawn again: "
                          + ("equal" if same else f"DIFFERENT ({schedule_digest(again)[:16]}…)")))
