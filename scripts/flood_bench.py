@@ -1,17 +1,20 @@
-"""A stolen agent credential floods its own keys for a whole run: what the router's size
+"""A stolen agent credential floods its own keys for a whole run: what the router's ingress
+gate (``swarm.supervise.gate``: a rate limit per identity with a burst allowance) and its size
 limits (``swarmrt.security.size_limits``, Zenoh ``low_pass_filter``) change.
 
-For each setting (limits on, the default; off, ``SWARM_ROUTER_SIZE_LIMITS=off``) it runs
-the same lockstep swarm twice on loopback, security on: once quiet, once while a session
-holding agent 1's credential puts, as fast as it can, garbage one byte over its estimate
-limit on ``est/1`` and over the report limit on ``health/1`` (the keys that identity may put;
-every other key the access rules already refuse it), and once more with garbage exactly at
-the limits (it passes the router; the recorder's flood cap bounds what it writes). Printed
-and written (``--out``): puts
-sent and bytes, the recording's size, messages the recorder counted malformed, the run's
-wall time, and whether the flooded run's numbers equal the in-process run's bit for bit.
+For each cell it runs the same lockstep swarm on loopback, security on, the gate on or off
+(``SWARM_ROUTER_GATE``): quiet, or while a process holding agent 1's credential, connected
+where agent 1 connects, puts as fast as it can on ``est/1`` and ``health/1`` (the keys that
+identity may put; every other key the access rules already refuse it) garbage exactly at the
+size limits (it passes the router's size filter), one byte over them (the filter drops it), or
+16 bytes (the most messages per byte). The flooder runs at ``--nice`` (19 by default: it
+stands for a machine elsewhere, whose CPU the swarm would not share). Printed and written
+(``--out``): puts offered and bytes, what the gate let in and how long it held agent 1 back,
+whether it held anyone else, the recording's size, malformed messages recorded and over the
+recorder's flood cap, the run's wall time, and whether the numbers equal the in-process
+run's bit for bit. ``--repeat R`` interleaves the cells R times and reports each cell's median.
 
-    .venv/bin/python scripts/flood_bench.py --duration 30 --out runs/bench/flood.json
+    .venv/bin/python scripts/flood_bench.py --duration 10 --repeat 3 --out runs/bench/flood.json
 """
 
 from __future__ import annotations
@@ -19,6 +22,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
+import statistics
+import subprocess
 import sys
 import threading
 import time
@@ -32,95 +38,139 @@ from swarm.simulation import simulate_scenario
 from swarm.supervise.launch import LocalSwarm
 from swarm.supervise.outcome import run_outcome
 from swarmrt.bus.messages import Keys
+from swarmrt.bus.session import BusConfig
 from swarmrt.scenario_files import load_scenario
 from swarmrt.security import size_limit_of
 
 NUMBERS = ("rms", "rms_second_half", "per_pair", "nees", "gate")
 
 
-def _flood(sw: LocalSwarm, n_sats: int, stop: threading.Event, sent: dict, over: int) -> None:
-    """``over``: bytes over each key's size limit (1: every put dropped by the router; 0: at
-    the limit, every put passes the router and reaches the recorder, which takes it for
-    malformed: its flood cap bounds what it writes)."""
-    keys = Keys(sw.run)
-    targets = [(keys.est(1), b"\xff" * (size_limit_of("est", n_sats) + over)),
-               (keys.health(1), b"\xfe" * (size_limit_of("health", n_sats) + over))]
-    with zenoh.open(sw.bus_as("agent-1").zenoh_config()) as s:
-        pubs = [(s.declare_publisher(k), p) for k, p in targets]
-        while not stop.is_set() and sw.procs["world"].poll() is None:
+def _flooder(spec: dict) -> None:
+    """The flood, in a process of its own (``--flooder SPEC``): puts as fast as it can until
+    SIGTERM, then prints its counts as JSON."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    sent = {"puts": 0, "bytes": 0}
+    bus = BusConfig(mode="client", connect=spec["connect"], credential_file=spec["credential"])
+    with zenoh.open(bus.zenoh_config()) as s:
+        pubs = [(s.declare_publisher(k), bytes([0xFF - i]) * n) for i, (k, n) in enumerate(spec["targets"])]
+        while not stop.is_set():
             for pub, payload in pubs:
                 pub.put(payload)
                 sent["puts"] += 1
                 sent["bytes"] += len(payload)
+    print(json.dumps(sent), flush=True)
 
 
-def one_run(sc, out: Path, limits: bool, flood: bool, over: int = 1, rate_hz: float | None = None) -> dict:
+def _start_flooder(sw: LocalSwarm, n_sats: int, over: int | None, nice: int) -> subprocess.Popen:
+    """``over``: bytes over each key's size limit (1: every put dropped by the router's size
+    filter; 0: at the limit, every put passes it and reaches the recorder, which takes it for
+    malformed: its flood cap bounds what it writes); None: tiny puts (16 bytes), the most
+    messages per byte. The flooder holds agent 1's credential and connects where agent 1 does."""
+    keys = Keys(sw.run)
+    if over is None:
+        targets = [(keys.est(1), 16), (keys.health(1), 16)]
+    else:
+        targets = [(keys.est(1), size_limit_of("est", n_sats) + over), (keys.health(1), size_limit_of("health", n_sats) + over)]
+    bus = sw.bus_as("agent-1")
+    spec = {"connect": bus.connect, "credential": bus.credential_file, "targets": targets}
+    return subprocess.Popen([sys.executable, __file__, "--flooder", json.dumps(spec)], stdout=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: os.nice(nice))
+
+
+def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate_hz: float | None = None, gate: bool = True,
+            nice: int = 19) -> dict:
     os.environ["SWARM_ROUTER_SIZE_LIMITS"] = "on" if limits else "off"
+    os.environ["SWARM_ROUTER_GATE"] = "on" if gate else "off"
     if rate_hz:
         os.environ["SWARM_ROUTER_RATE_LIMIT_HZ"] = f"{rate_hz:g}"
     else:
         os.environ.pop("SWARM_ROUTER_RATE_LIMIT_HZ", None)
     sw = LocalSwarm(sc, out, log=lambda s: None)
-    stop = threading.Event()
+    flooder = None
     sent = {"puts": 0, "bytes": 0}
-    th = threading.Thread(target=_flood, args=(sw, sc.n_sats, stop, sent, over), daemon=True) if flood else None
     t0 = time.monotonic()
     code = None
     try:
         sw.start()
-        if th is not None:
-            th.start()
+        if flood:
+            flooder = _start_flooder(sw, sc.n_sats, over, nice)
         code = sw.run_to_end(timeout=1800)
     finally:
-        stop.set()
+        if flooder is not None:
+            flooder.terminate()
+            try:
+                sent = json.loads(flooder.communicate(timeout=30)[0] or "{}") or sent
+            except (subprocess.TimeoutExpired, ValueError):
+                flooder.kill()
         sw.stop()
-        if th is not None:
-            th.join(30)
     wall = time.monotonic() - t0
     summary = run_outcome(sc, out / "run.mcap", run=sw.run, world_exit_code=code, interrupted=sw.interrupted, broken=sw.broken,
                           broken_code=sw.broken_code, router_faults=sw.router_faults).summary
-    return {"limits": limits, "rate_limit_hz": rate_hz, "flood": ("over the limit" if over > 0 else "at the limit") if flood else None,
+    gate_counts = sw.gate_counts()
+    what = None if not flood else "tiny puts" if over is None else "over the limit" if over > 0 else "at the limit"
+    return {"limits": limits, "gate": gate, "rate_limit_hz": rate_hz, "flood": what, "flooder_nice": nice if flood else None,
             "world_exit_code": code, "wall_s": round(wall, 2),
             "puts_sent": sent["puts"], "bytes_sent": sent["bytes"],
             "recording_bytes": (out / "run.mcap").stat().st_size if (out / "run.mcap").exists() else None,
             "malformed_recorded": summary.get("messages", {}).get("_malformed", 0),
             "not_recorded_over_the_flood_cap": sum(summary.get("messages", {}).get("not_recorded_over_the_flood_cap", {}).values()),
+            "gate_agent_1": gate_counts.get("agent-1"),
+            "gate_held_others": {k: c["held"] for k, c in gate_counts.items() if k != "agent-1" and c.get("held")},
             "numbers": {k: summary.get(k) for k in NUMBERS}}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenario", default="scenarios/demo.yaml")
-    ap.add_argument("--duration", type=float, default=30.0)
+    ap.add_argument("--duration", type=float, default=10.0)
     ap.add_argument("--out", default="runs/bench/flood.json")
+    ap.add_argument("--repeat", type=int, default=1, help="run the whole list of cells this many times, interleaved "
+                    "(a busy machine's drift falls on every cell alike); the table gives each cell's median")
+    ap.add_argument("--nice", type=int, default=19, help="the flooder's nice value (19: it stands for a machine elsewhere, "
+                    "whose CPU this one's swarm would not share; 0: it competes for this machine's cores)")
     ap.add_argument("--rate-limit-hz", type=float, default=None,
-                    help="instead: the quiet and the at-the-limit runs with a router rate limit (Zenoh downsampling) of "
-                         "this many puts per second on every agent key (swarmrt.security.rate_limits)")
+                    help="instead: the quiet and the at-the-limit runs, gate off, with a router rate limit (Zenoh "
+                         "downsampling) of this many puts per second on every agent key (swarmrt.security.rate_limits)")
+    ap.add_argument("--flooder", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if a.flooder:
+        _flooder(json.loads(a.flooder))
+        return
     sc = load_scenario(a.scenario, [f"duration_s={a.duration}", "emulator.security=true"])
     ref = simulate_scenario(sc).summary()
     ref_numbers = json.loads(json.dumps({k: ref.get(k) for k in NUMBERS}))
     work = Path(a.out).with_suffix("")
     rows = []
-    # (limits, flood, bytes over the limit): quiet; garbage over the size limit; garbage at it.
-    cells = [(True, False, 1), (True, True, 1), (True, True, 0), (False, False, 1), (False, True, 1)]
+    # (gate, flood, bytes over the limit or None for tiny puts), router size limits on.
+    cells = [(False, False, 1), (False, True, 0), (False, True, None),
+             (True, False, 1), (True, True, 0), (True, True, None), (True, True, 1)]
     if a.rate_limit_hz:
-        cells = [(True, False, 1), (True, True, 0)]
-    for limits, flood, over in cells:
-        name = f"limits-{'on' if limits else 'off'}-" + ("quiet" if not flood else "flood-over" if over else "flood-at-limit")
-        if a.rate_limit_hz:
-            name += f"-rate-{a.rate_limit_hz:g}hz"
-        r = one_run(sc, work / name, limits, flood, over, a.rate_limit_hz)
-        r["numbers_equal_in_process"] = r.pop("numbers") == ref_numbers
-        rows.append(r)
-        rate = f" + rate {a.rate_limit_hz:g} Hz" if a.rate_limit_hz else ""
-        print(f"limits {'on ' if limits else 'off'}{rate} {r['flood'] or 'quiet'}: world exit {r['world_exit_code']}, "
-              f"{r['wall_s']:.1f} s, {r['puts_sent']} puts ({r['bytes_sent'] / 1e6:.1f} MB) by agent-1's credential, "
-              f"recording {r['recording_bytes'] / 1e6:.2f} MB, {r['malformed_recorded']} malformed recorded, "
-              f"{r['not_recorded_over_the_flood_cap']} over the recorder's flood cap not recorded, "
-              f"numbers equal in-process: {r['numbers_equal_in_process']}", flush=True)
+        cells = [(False, False, 1), (False, True, 0)]
+    for rep in range(a.repeat):
+        for gate, flood, over in cells:
+            what = "quiet" if not flood else "flood-tiny" if over is None else "flood-over" if over else "flood-at-limit"
+            name = f"gate-{'on' if gate else 'off'}-{what}" + (f"-rate-{a.rate_limit_hz:g}hz" if a.rate_limit_hz else "") + f"-{rep}"
+            r = one_run(sc, work / name, True, flood, over, a.rate_limit_hz, gate=gate, nice=a.nice)
+            r["numbers_equal_in_process"] = r.pop("numbers") == ref_numbers
+            r["repeat"] = rep
+            rows.append(r)
+            held = r["gate_agent_1"] or {}
+            print(f"gate {'on ' if gate else 'off'} {r['flood'] or 'quiet'}: world exit {r['world_exit_code']}, {r['wall_s']:.1f} s, "
+                  f"{r['puts_sent']} puts ({r['bytes_sent'] / 1e6:.1f} MB) by agent-1's credential, gate held agent-1 "
+                  f"{held.get('held', 0)} times ({held.get('held_s', 0):.1f} s), others held {r['gate_held_others'] or 0}, "
+                  f"recording {r['recording_bytes'] / 1e6:.2f} MB, {r['malformed_recorded']} malformed recorded, "
+                  f"{r['not_recorded_over_the_flood_cap']} over the flood cap, numbers equal in-process: "
+                  f"{r['numbers_equal_in_process']}", flush=True)
+    table = {}
+    for r in rows:
+        table.setdefault(f"gate {'on' if r['gate'] else 'off'}, {r['flood'] or 'quiet'}", []).append(r["wall_s"])
+    print("median wall (s) per cell:")
+    for k, v in table.items():
+        print(f"  {k}: {statistics.median(v):.2f} (of {', '.join(f'{x:.2f}' for x in v)})")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
-    Path(a.out).write_text(json.dumps({"scenario": sc.name, "n_sats": sc.n_sats, "duration_s": a.duration, "rows": rows}, indent=1))
+    Path(a.out).write_text(json.dumps({"scenario": sc.name, "n_sats": sc.n_sats, "duration_s": a.duration, "flooder_nice": a.nice,
+                                       "median_wall_s": {k: statistics.median(v) for k, v in table.items()}, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

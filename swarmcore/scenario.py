@@ -583,6 +583,16 @@ class Emulator(_Model):
         "summary.json); every role keeps its messages of the last recorder_max_lag_steps + 2 steps and sends them again "
         "when the recorder comes back after a gap, so a router failover loses nothing from the recording"
     )
+    gate: bool = Field(
+        True, description="local runs (swarm run): every process reaches the router through an ingress gate that rate-limits "
+        "what each identity sends in (a token bucket with a burst allowance; the sender is held back, nothing is dropped), "
+        "so a stolen credential's flood cannot slow the swarm; counted per identity in summary.json (router_gate)"
+    )
+    gate_steps_per_s: float = Field(
+        50.0, ge=1.0, le=1e6, description="the gate's rate for an identity: this many of its step budgets per wall second "
+        "(a step budget: the size limits of every key the identity may put, the same limits the router enforces; an "
+        "honest role sends a small part of it per step); its burst: recorder_max_lag_steps + 3 step budgets"
+    )
     flush_every_s: PosFloat = Field(1.0, description="recorder: flush to disk at least this often (sim time)")
     record_images: bool = Field(
         False, description="recorder: also write every rendered image (foxglove.RawImage, large) besides its metadata"

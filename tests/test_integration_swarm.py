@@ -309,9 +309,10 @@ def _garbage(keys: Keys, n: int):
 
 
 def test_malformed_flood_on_every_key_kills_nobody(tmp_path):
-    # Security off: the router's access rules would stop this garbage before any receiver
-    # (tests/test_security.py); what is tested here is the receivers' own checks.
-    sc = scenario(n_sats=3, duration_s=20, emulator={"security": False})
+    # Security and the router's ingress gate off: the access rules would stop this garbage
+    # before any receiver (tests/test_security.py) and the gate would hold the flood back
+    # (tests/test_router_gate.py); what is tested here is the receivers' own checks.
+    sc = scenario(n_sats=3, duration_s=20, emulator={"security": False, "gate": False})
     sent = {"n": 0}
     stop = threading.Event()
 

@@ -72,9 +72,10 @@ def chaos(
         from swarm.cli.distributed import _cluster_errors
         from swarm.cluster.swarm import cluster_shape
 
+        errors: tuple[type[BaseException], ...] = (ValueError, *_cluster_errors())
         try:
             nodes, partitions = cluster_shape(cluster)
-        except (ValueError, *_cluster_errors()) as exc:
+        except errors as exc:
             console.print(f"[red]error:[/red] {exc}", highlight=False)
             raise typer.Exit(2) from None
     if compose:

@@ -149,7 +149,9 @@ class LocalSwarm:
         self.procs: dict[str, Any] = {}
         self.endpoint: str | None = None  # router 0's endpoint, once started
         self.n_routers = routers
-        self.endpoints: list[str] = []  # router i listens on endpoints[i]
+        self.endpoints: list[str] = []  # router i listens on endpoints[i] (with the gate: its shared "other" port)
+        self.gate_endpoints: dict[str, list[str]] = {}  # with the gate: each identity's own port on each router
+        self._gate_dir: Path | None = None  # the gate plans and the routers' Unix sockets (a private 0700 directory)
         self.router_names = ["router" if i == 0 else f"router-{i}" for i in range(routers)]
         self.broken: str | None = None  # why the run could not go on (bus lost, world gone, an agent gone by itself)
         self.broken_code: int | None = None  # the exit status that says so, when not the world's
@@ -207,7 +209,42 @@ class LocalSwarm:
     def bus_as(self, identity: str) -> BusConfig:
         """The bus configuration of a process connecting as ``identity`` (its credential
         file when security is on)."""
-        return client_bus(self.endpoints, self.keys_dir, identity)
+        return client_bus(self.gate_endpoints.get(identity, self.endpoints), self.keys_dir, identity)
+
+    def gate_counts(self) -> dict[str, dict[str, Any]]:
+        """What the routers' ingress gates counted, per identity (``router_gate`` in
+        summary.json; empty without the gate)."""
+        from swarm.supervise.gate import merged_counts
+
+        counts = merged_counts(sorted((self.out / "logs").glob("gate-*.json")))
+        return {k: c for k, c in counts.items() if c.get("connections") or c.get("refused")}
+
+    def _plan_gate(self) -> None:
+        """The ingress gate (:mod:`swarm.supervise.gate`): a port per identity on each
+        router, each with its bucket; the routers listen on Unix sockets in a private
+        directory. Off with ``emulator.gate: false`` (or ``SWARM_ROUTER_GATE=off``, to measure)."""
+        from swarm.supervise.gate import OTHER, gate_limits
+        from swarmrt.bus.messages import IDENTITIES
+        from swarmrt.security import agent_identities
+
+        em = self.sc.emulator
+        for old in (self.out / "logs").glob("gate-*.json"):
+            old.unlink()  # a previous run's counts in a reused folder
+        if not em.gate or os.environ.get("SWARM_ROUTER_GATE", "on") == "off":
+            self.endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(self.n_routers)]
+            return
+        names = [*(i for i in IDENTITIES if i != "mesh"), *agent_identities(self.sc.n_sats)]
+        limits = gate_limits(self.sc.n_sats, em.recorder_max_lag_steps, self.sc.links.enabled, names, em.gate_steps_per_s)
+        limits[OTHER] = limits["agent-0"]  # tools, the fault CLI, a kit: an agent's bucket
+        self._gate_dir = Path(tempfile.mkdtemp(prefix="swarm-gate-"))
+        ports = {name: [free_port() for _ in range(self.n_routers)] for name in [*names, OTHER]}
+        for i in range(self.n_routers):
+            plan = {"upstream": str(self._gate_dir / f"r{i}.sock"),
+                    "entries": [{"identity": name, "port": ports[name][i], "rate_bytes_per_s": rate, "burst_bytes": burst}
+                                for name, (rate, burst) in limits.items()]}
+            (self._gate_dir / f"router-{i}.json").write_text(json.dumps(plan))
+        self.gate_endpoints = {name: [f"tcp/127.0.0.1:{p}" for p in ps] for name, ps in ports.items()}
+        self.endpoints = self.gate_endpoints[OTHER]
 
     def _role_args(self, identity: str) -> list[str]:
         return ["--scenario", str(self.scenario_file), "--run", self.run, *self.bus_as(identity).as_args()]
@@ -246,7 +283,7 @@ class LocalSwarm:
         # from the cache. Runs while the router and the recorder start.
         # (Short-lived; if it fails, each agent compiles for itself as before.)
         warm = subprocess.Popen([self.python, "-c", _WARM], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        self.endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(self.n_routers)]
+        self._plan_gate()
         self.endpoint = self.endpoints[0]
         if self.sc.emulator.security:
             from swarmrt.security import make_keys
@@ -325,15 +362,20 @@ class LocalSwarm:
         (the mesh is back at once, not at the peers' next retry). Its ``--index`` gives it
         its fixed Zenoh id and its peers' (:func:`swarmrt.security.router_zid`)."""
         name = self.router_names[i]
-        running = [e for j, e in enumerate(self.endpoints) if j != i and (q := self.procs.get(self.router_names[j])) is not None
+        running = [j for j in range(self.n_routers) if j != i and (q := self.procs.get(self.router_names[j])) is not None
                    and q.poll() is None]
-        mesh = [a for e in running for a in ("--connect", e)]
+        gate = self._gate_dir
+        # With the gate a router listens on its Unix socket only (the gate owns the ports), and
+        # the routers of a run dial each other's sockets: the mesh is not an identity to limit.
+        mesh = [a for j in running for a in ("--connect", f"unixsock-stream/{gate / f'r{j}.sock'}" if gate else self.endpoints[j])]
+        where = (["--gate", str(gate / f"router-{i}.json"), "--gate-counts", str(self.out / "logs" / f"gate-{name}.json")]
+                 if gate else ["--listen", self.endpoints[i]])
         # Security on: the run's keys and rules; a router meshing with another connects as
         # the "mesh" identity (swarmrt/security.py).
         secure = (["--keys", str(self.keys_dir), "--run", self.run, "--scenario", str(self.scenario_file)]
                   if self.keys_dir is not None else [])
         with open(self.out / "logs" / f"{name}.log", "ab" if name in self.procs else "wb") as logf:
-            router = self._popen(name, ["swarm.supervise.router", "--listen", self.endpoints[i], "--index", str(i), *mesh, *secure],
+            router = self._popen(name, ["swarm.supervise.router", *where, "--index", str(i), *mesh, *secure],
                                  stdout=subprocess.PIPE, stderr=logf)
         with self._lock:
             self.procs[name] = router
@@ -554,9 +596,16 @@ class LocalSwarm:
         # Report once this node is connected again (at once when another router is up)
         # and every liveliness token that went with the router is back: a report put
         # before the others have reconnected would reach nobody.
+        # Meanwhile every event is handled as in the run's loop (a recorder whose token comes
+        # back gets every report again: the stall reported done while it was failing over
+        # would otherwise be lost), but a command is carried out after this one.
+        deferred: list = []
+
         def on_event(ev) -> None:
-            if ev.kind == "clock":
-                self.k = ev.msg.k
+            if ev.kind == "fault" and ev.msg.phase == "command":
+                deferred.append(ev)
+            else:
+                self._handle(ev)
 
         n = self._node()
 
@@ -572,11 +621,11 @@ class LocalSwarm:
             return time.monotonic() + 0.1
 
         n.wait_for(lambda: (n.bus_up and bool(n._routers)) or over(), 5.0 if f.action == "kill-router" else 30.0, on_event, wake=tick)
-        if over():
-            self._report(f, "done", detail)
-            return
-        n.wait_for(lambda: not n._held or over(), self.sc.emulator.bus_grace_s, on_event, wake=tick)
+        if not over():
+            n.wait_for(lambda: not n._held or over(), self.sc.emulator.bus_grace_s, on_event, wake=tick)
         self._report(f, "done", detail)
+        for ev in deferred:
+            self._handle(ev)
 
     # -- signals -------------------------------------------------------------------------
     @contextlib.contextmanager
@@ -725,6 +774,10 @@ class LocalSwarm:
             import shutil
 
             shutil.rmtree(self.keys_dir, ignore_errors=True)
+        if self._gate_dir is not None:
+            import shutil
+
+            shutil.rmtree(self._gate_dir, ignore_errors=True)
         if self._lifeline is not None:
             for fd in self._lifeline:
                 os.close(fd)

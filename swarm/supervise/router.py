@@ -17,6 +17,7 @@ import logging
 import signal
 import sys
 import threading
+from pathlib import Path
 
 import zenoh
 
@@ -35,11 +36,24 @@ def main(argv=None) -> int:
     p.add_argument("--links", action="store_true", help="the radio is on (without --scenario)")
     p.add_argument("--index", type=int, default=0, help="this router's place in a mesh (0, 1, ...; with --keys: its fixed "
                    "Zenoh id, and its peers', which its access rules let through)")
+    p.add_argument("--gate", metavar="PLAN", default=None,
+                   help="an ingress gate plan (JSON, swarm.supervise.gate): listen only on the plan's Unix socket and let "
+                        "the gate, at one port per identity, rate-limit what each identity sends in")
+    p.add_argument("--gate-counts", metavar="FILE", default=None, help="where the gate writes its counts per identity (JSON)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s router %(levelname)s %(message)s", stream=sys.stderr)
     cfg = zenoh.Config.from_file(a.config) if a.config else zenoh.Config()
     cfg.insert_json5("mode", json.dumps("router"))
-    cfg.insert_json5("listen/endpoints", json.dumps(a.listen or ["tcp/0.0.0.0:7447"]))
+    gate = None
+    listen = a.listen or ["tcp/0.0.0.0:7447"]
+    if a.gate:
+        from swarm.supervise.gate import Gate, read_plan
+
+        entries, upstream = read_plan(a.gate)
+        Path(upstream).unlink(missing_ok=True)  # ours: a killed predecessor's socket file
+        listen = [f"unixsock-stream/{upstream}", *(a.listen or [])]
+        gate = Gate(entries, upstream)
+    cfg.insert_json5("listen/endpoints", json.dumps(listen))
     if a.connect:
         cfg.insert_json5("connect/endpoints", json.dumps(a.connect))
         # Keep trying: the other router may start later, or come back after a fault.
@@ -54,7 +68,15 @@ def main(argv=None) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda *_: stop.set())
     with zenoh.open(cfg) as session:
-        logging.info("router %s listening on %s", session.zid(), a.listen or ["tcp/0.0.0.0:7447"])
+        logging.info("router %s listening on %s", session.zid(), listen)
+        counts = None
+        if gate is not None:
+            from swarm.supervise.gate import CountsFile
+
+            gate.start()
+            logging.info("ingress gate: %s", ", ".join(f"{e.identity} on {e.port}" for e in gate.entries[:4])
+                         + (f" and {len(gate.entries) - 4} more" if len(gate.entries) > 4 else ""))
+            counts = CountsFile(gate, a.gate_counts) if a.gate_counts else None
         handles = []
         if a.exit_when_done:
             handles = _watch_run(session, a.exit_when_done, stop, _world_hold_s(a.scenario))
@@ -62,8 +84,15 @@ def main(argv=None) -> int:
         # Wake now and then: the kernel may deliver SIGTERM to one of Zenoh's threads, and
         # then a wait without a timeout in this thread never returns to run the handler
         # (seen: a router that outlived its test by minutes, the signal caught, never handled).
+        ticks = 0
         while not stop.wait(0.5):
-            pass
+            ticks += 1
+            if counts is not None and ticks % 2 == 0:
+                counts.write()
+        if counts is not None:
+            counts.write()
+        if gate is not None:
+            gate.stop()
         for h in handles:
             h.undeclare()
     return 0

@@ -1,0 +1,286 @@
+"""The router's ingress gate: a rate limit per identity, with a burst allowance, in front of
+a local Zenoh router (issue 35: a stolen credential must not slow the swarm).
+
+Every process of a local run connects to the gate, not to the router: each identity at its
+own port (``agent-3`` at one, ``world`` at another, anything else at the shared ``other``
+port, which is also ``run.json``'s endpoint). The gate relays each connection to the router,
+which listens only on a Unix socket in a private (0700) directory, and the bytes coming *in*
+from a connection pass through a token bucket sized for that identity
+(:func:`gate_limits`): up to ``burst_bytes`` at once, then ``rate_bytes_per_s``. When the
+bucket is empty the gate stops reading that connection: TCP's flow control holds the sender
+back, so nothing is dropped (a lockstep run loses no message to the limit, an honest burst
+is at worst delayed) and a flood is throttled at its source, before the router, the world,
+the recorder or any agent spends anything on it. What comes *out* to a connection (what the
+router forwards to it) is not limited.
+
+Why not Zenoh's own tools: ``downsampling`` drops what exceeds a frequency with no burst
+allowance (measured in docs/security.md: it breaks quiet runs or lets the flood through),
+and a router still receives and parses every put it then drops; Zenoh 1.x has no ingress
+rate limit per identity. Why a relay and not ``tc``/``iptables``: it needs no privileges,
+knows the identity (by port) and counts per identity; a kernel policer drops packets
+(TCP then retransmits after ≥ 200 ms) and counts per rule, not per identity.
+
+Counted per identity (``counts()``, written by the router to ``gate-<router>.json`` and read
+into ``summary.json``'s ``router_gate``): connections, bytes in and out, and how often and for
+how long the bucket held a connection back (``held``, ``held_s``, ``held_bytes``: bytes that
+had to wait). A quiet run is never held.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import functools
+import json
+import logging
+import socket
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+_READ_BYTES = 64 * 1024  # one read from a connection: the unit the bucket is charged
+_OTHER = "other"  # the shared entry: identities without their own port (tools, the fault CLI)
+
+
+@dataclass
+class Entry:
+    """One identity's port and its bucket's size."""
+
+    identity: str
+    port: int
+    rate_bytes_per_s: float
+    burst_bytes: float
+
+
+@dataclass
+class _Count:
+    connections: int = 0
+    bytes_in: int = 0
+    bytes_out: int = 0
+    held: int = 0
+    held_s: float = 0.0
+    held_bytes: int = 0
+    refused: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"connections": self.connections, "bytes_in": self.bytes_in, "bytes_out": self.bytes_out, "held": self.held,
+                "held_s": round(self.held_s, 4), "held_bytes": self.held_bytes, "refused": self.refused}
+
+
+@dataclass
+class _Bucket:
+    """A token bucket of bytes (the usual one: a burst of ``burst`` bytes, refilled at
+    ``rate`` bytes per second). Charged after a read, so the level may go below zero: the
+    next read waits until it is back at zero."""
+
+    rate: float
+    burst: float
+    clock: Any = time.monotonic
+    level: float = field(default=0.0)
+    t: float = field(default=0.0)
+
+    def __post_init__(self) -> None:
+        self.level = self.burst
+        self.t = self.clock()
+
+    def charge(self, n: int) -> float:
+        """Take ``n`` bytes; return how long to wait (s) before the next read."""
+        if self.rate == float("inf"):
+            return 0.0
+        now = self.clock()
+        self.level = min(self.burst, self.level + (now - self.t) * self.rate)
+        self.t = now
+        self.level -= n
+        return 0.0 if self.level >= 0 else -self.level / self.rate
+
+
+def gate_limits(n_sats: int, recorder_max_lag_steps: int, links: bool, identities: list[str],
+                steps_per_s: float) -> dict[str, tuple[float, float]]:
+    """Each identity's bucket: ``(rate_bytes_per_s, burst_bytes)``, sized from the scenario
+    like the router's size limits (:func:`swarmrt.security.size_limit_of`). An identity's
+    *step budget* is the sum of the size limits of the keys it may put (its grants; a kind
+    the scenario does not size, a measurement or a selection, counts as an estimate; the
+    world's radio batches and images make it unbounded: ``inf``, the world is not limited).
+    Its rate is ``steps_per_s`` step budgets per second (``emulator.gate_steps_per_s``: more
+    steps per second than a lockstep run of this machine kind ever goes, so an honest role is
+    never held); its burst is what a role sends at once when its bus comes back (its last
+    ``recorder_max_lag_steps + 2`` steps, :class:`swarmrt.protocol.Outbox`) and one step more."""
+    from swarmrt.bus.messages import MAX_PAYLOAD_BYTES, Keys, MessageError, grants, parse_key
+    from swarmrt.security import size_limit_of
+
+    bounded = {"est", "health", "fault", "recorded"}
+    keys = Keys("gate")
+    out: dict[str, tuple[float, float]] = {}
+    for name in identities:
+        budget = 0.0
+        for key in grants(keys, name, links=links).put:
+            try:
+                kind = parse_key(key.replace("*", "0"))[1]
+            except MessageError:
+                continue
+            if kind in bounded:
+                budget += size_limit_of(kind, n_sats)
+            elif kind in MAX_PAYLOAD_BYTES:
+                budget = float("inf")  # the world's radio and images: its job is to send them, unbounded
+            else:
+                budget += size_limit_of("est", n_sats)  # a measurement, a selection: counted as an estimate
+        budget = max(budget, size_limit_of("health", n_sats))  # an identity that puts nothing still opens a session
+        out[name] = (budget * steps_per_s, budget * (recorder_max_lag_steps + 3))
+    return out
+
+
+class Gate:
+    """The relay (an asyncio loop on its own thread). ``upstream``: the router's Unix socket."""
+
+    def __init__(self, entries: list[Entry], upstream: str, host: str = "127.0.0.1"):
+        self.entries = entries
+        self.upstream = upstream
+        self.host = host
+        self.count = {e.identity: _Count() for e in entries}
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._servers: list[asyncio.base_events.Server] = []
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+
+    def start(self, timeout: float = 30.0) -> None:
+        self._thread = threading.Thread(target=self._run, name="gate", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(timeout):
+            raise RuntimeError("the gate did not start listening")
+        if self._error is not None:
+            raise RuntimeError(f"the gate could not listen: {self._error}") from self._error
+
+    def stop(self) -> None:
+        loop = self._loop
+        if loop is not None and loop.is_running():
+            loop.call_soon_threadsafe(loop.stop)
+        if self._thread is not None:
+            self._thread.join(5)
+
+    def counts(self) -> dict[str, dict[str, Any]]:
+        return {k: c.as_dict() for k, c in self.count.items()}
+
+    def _run(self) -> None:
+        self._loop = loop = asyncio.new_event_loop()
+        try:
+            for e in self.entries:
+                srv = loop.run_until_complete(asyncio.start_server(
+                    functools.partial(self._serve, e), self.host, e.port, reuse_address=True, limit=_READ_BYTES))
+                self._servers.append(srv)
+        except OSError as err:
+            self._error = err
+            self._ready.set()
+            return
+        self._ready.set()
+        try:
+            loop.run_forever()
+        finally:
+            for srv in self._servers:
+                srv.close()
+            loop.close()
+
+    async def _serve(self, e: Entry, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        c = self.count[e.identity]
+        _nodelay(writer)
+        try:
+            up_r, up_w = await asyncio.open_unix_connection(self.upstream, limit=_READ_BYTES)
+        except OSError:
+            c.refused += 1  # the router is not (yet, or any more) there: the client retries
+            writer.close()
+            return
+        _nodelay(up_w)
+        c.connections += 1
+        bucket = _Bucket(e.rate_bytes_per_s, e.burst_bytes)
+
+        async def inbound() -> None:
+            while data := await reader.read(_READ_BYTES):
+                c.bytes_in += len(data)
+                up_w.write(data)
+                await up_w.drain()
+                if (wait := bucket.charge(len(data))) > 0:
+                    c.held += 1
+                    c.held_s += wait
+                    c.held_bytes += len(data)
+                    await asyncio.sleep(wait)  # not reading: TCP holds the sender back
+
+        async def outbound() -> None:
+            while data := await up_r.read(_READ_BYTES):
+                c.bytes_out += len(data)
+                writer.write(data)
+                await writer.drain()
+
+        tasks = [asyncio.ensure_future(inbound()), asyncio.ensure_future(outbound())]
+        with contextlib.suppress(Exception):
+            await asyncio.wait(tasks, return_when=asyncio.FIRST_COMPLETED)
+        for t in tasks:
+            t.cancel()
+        for w in (writer, up_w):
+            with contextlib.suppress(Exception):
+                w.close()
+
+
+def _nodelay(w: asyncio.StreamWriter) -> None:
+    sock = w.get_extra_info("socket")
+    if sock is not None and sock.family in (socket.AF_INET, socket.AF_INET6):
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+
+def read_plan(path: str | Path) -> tuple[list[Entry], str]:
+    """A gate plan (JSON written by the supervisor): ``{"upstream": SOCKET, "entries":
+    [{"identity", "port", "rate_bytes_per_s", "burst_bytes"}, ...]}``."""
+    doc = json.loads(Path(path).read_text())
+    return [Entry(**e) for e in doc["entries"]], doc["upstream"]
+
+
+class CountsFile:
+    """The gate's counts, written to ``path`` (atomically) once a second while they change
+    and at the end; a restarted router adds to what its predecessor wrote."""
+
+    def __init__(self, gate: Gate, path: str | Path):
+        self.gate, self.path = gate, Path(path)
+        self.base: dict[str, dict[str, Any]] = {}
+        with contextlib.suppress(OSError, ValueError):
+            self.base = json.loads(self.path.read_text())
+        self._last: str | None = None
+
+    def total(self) -> dict[str, dict[str, Any]]:
+        now = self.gate.counts()
+        out: dict[str, dict[str, Any]] = {}
+        for ident in sorted(set(now) | set(self.base)):
+            a, b = now.get(ident, {}), self.base.get(ident, {})
+            out[ident] = {k: round(a.get(k, 0) + b.get(k, 0), 4) for k in (set(a) | set(b))}
+        return out
+
+    def write(self) -> None:
+        text = json.dumps(self.total(), sort_keys=True)
+        if text == self._last:
+            return
+        tmp = self.path.with_suffix(".tmp")
+        try:
+            tmp.write_text(text)
+            tmp.replace(self.path)
+            self._last = text
+        except OSError as err:
+            logging.warning("gate: could not write %s: %s", self.path, err)
+
+
+def merged_counts(paths: list[Path]) -> dict[str, dict[str, Any]]:
+    """The counts of every router's gate of a run, summed per identity."""
+    out: dict[str, dict[str, Any]] = {}
+    for p in paths:
+        try:
+            doc = json.loads(p.read_text())
+        except (OSError, ValueError):
+            continue
+        for ident, c in doc.items():
+            acc = out.setdefault(ident, {})
+            for k, v in c.items():
+                acc[k] = round(acc.get(k, 0) + v, 4)
+    return out
+
+
+OTHER = _OTHER
