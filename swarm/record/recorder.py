@@ -416,13 +416,13 @@ def main(argv=None) -> int:
 
         if r.broken or not r.done:
             try:
-                summary = load_recording(a.out, sc.n_sats, None).summary(sc)
+                summary = load_recording(a.out, sc.n_sats, None, scenario=sc).summary(sc)
             except (ValueError, FileNotFoundError):
                 summary = {"scenario": sc.name, "n_sats": sc.n_sats, "seed": sc.seed, "steps": 0, "faults": []}
             summary["interrupted"] = {"reason": r.broken or "the recorder was stopped before the run's end",
                                       "last_step": r.last_k, "steps_planned": sc.steps}
         else:
-            summary = load_recording(a.out, sc.n_sats, sc.steps).summary(sc)
+            summary = load_recording(a.out, sc.n_sats, sc.steps, scenario=sc).summary(sc)
         summary["run"] = a.run
         write_json(a.summary, summary)
         logging.getLogger("recorder").info("wrote %s", a.summary)
