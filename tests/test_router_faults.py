@@ -173,7 +173,9 @@ def test_router_killed_for_good_the_run_ends_broken(tmp_path):
 def test_world_killed_the_run_ends_broken(tmp_path):
     code, gone_s, summary, text = _break_run(tmp_path, "world")
     assert code == 4, text[-2000:]
-    assert gone_s < 10.0
+    # The reason below shows the direct path (the world's exit, not a bus lost); the time
+    # only guards against a hang: generous, a loaded machine took 14.2 s (load 25 on 2 cores).
+    assert gone_s < 30.0
     intr = summary["interrupted"]
     assert intr["reason"] == "the world died (SIGKILL)" and 8 <= intr["last_step"] < 600, intr
     assert "BROKEN RUN" in text and "the world died" in text
