@@ -77,6 +77,7 @@ class PairwiseState:
 class PairwiseEstimator(OwnStateEstimator):
     kind = "pairwise"
     radio = "graph"  # it meets only graph neighbours and reads only their messages
+    accepts_bearings = True  # angles-only bearings in I (module docstring)
     Params = PairwiseParams
 
     def __init__(self, sc, own: int, params: PairwiseParams | None = None):
