@@ -45,6 +45,14 @@ measurements that involve the agent). History does not cross steps the agent mis
 (stalled, cut off): it restarts after such a gap.
 Its view of a peer (one it fused with at the step) is the peer's broadcast prior, with no
 cross-covariance (that is what it claims about the relative pose).
+
+Bearings (``sensors.relative.model: bearing``, the angles-only camera): the observer turns
+each line of sight into I with its own prior (:meth:`prediction`, its own satellite alone;
+:func:`swarmcore.agent.inertial_bearings`, which adds the mean variance of that attitude to
+R), and ``ũ_I`` is a 2-row measurement of the two positions
+(:func:`swarmcore.mekf.bearing_residuals_padded`: the 6-row layout, four rows empty). It is
+fused like a pose: the same gate (χ²(2)), the same CI, the Jacobian on the own and the
+peer's positions only (:func:`stack_factors`; ``tests/test_bearing_estimators.py``).
 """
 
 from __future__ import annotations

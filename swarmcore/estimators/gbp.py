@@ -98,6 +98,11 @@ the sender's rate and velocity once; 82 B per neighbour and 34 B a message. The 
 is quantised at :meth:`transmit`, so the in-process message is the decoded one, bit for
 bit.
 
+**Bearings** (``sensors.relative.model: bearing``): as in :mod:`.ci`, a line of sight shared
+in I is a relative factor of the two positions alone (2 rows of the 6-row layout), linearised
+by the same :func:`stack_factors`, fused into the belief, the cavities and the edge beliefs
+like a pose.
+
 **Late deliveries** (``filter.late: replay``, as ``ci``): each step's beliefs, readings,
 measurements and what it heard are kept for ``filter.history_s``; a message of step s
 arriving at k is filed under s and the beliefs (own and cavities) are re-run from s.
