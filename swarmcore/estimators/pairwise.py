@@ -197,7 +197,7 @@ class PairwiseEstimator(OwnStateEstimator):
         for j in ls:
             self.sigma[j] = P_new @ sla.cho_solve(cf, self.sigma[j])
 
-    def _bounded_cross(self, Pi: np.ndarray, Pj: np.ndarray, Pij: np.ndarray) -> np.ndarray:
+    def _bounded_cross(self, Pi: np.ndarray, Pj: np.ndarray, Pij: np.ndarray, count: bool = True) -> np.ndarray:
         """The cross-covariance the factors give, shrunk if need be so that the joint prior
         is a covariance: the factors are an approximation (Luft et al.), and their product
         can imply a correlation above one. With ``C = L_i⁻¹ P_ij L_j⁻ᵀ`` (``P = L Lᵀ``), the
@@ -209,7 +209,8 @@ class PairwiseEstimator(OwnStateEstimator):
         s = float(np.linalg.norm(C, 2))
         if s < 0.999:
             return Pij
-        self.shrunk += 1
+        if count:
+            self.shrunk += 1
         return Pij * (0.999 / s)
 
     def _encounter(self, j: int, s: PairwiseState, meas: RelativeMeasurements) -> tuple[int, int, float]:
@@ -255,6 +256,10 @@ class PairwiseEstimator(OwnStateEstimator):
                          P_cross=Pij.T[np.ix_(POSE, POSE)])
             else:
                 s = self._heard[j]
+                Pij = self._cross(j, s)
+                if self.params.absent == "keep":  # type: ignore[attr-defined]
+                    # Unscaled factors imply larger correlations: claim a joint that is a covariance.
+                    Pij = self._bounded_cross(self.e.P, s.P, Pij, count=False)
                 rows.set(j, s.q_BI, s.omega_BI_B, s.r_H, s.v_H, P12=s.P,
-                         P_cross=self._cross(j, s).T[np.ix_(POSE, POSE)])  # P_ji: peer rows, own columns
+                         P_cross=Pij.T[np.ix_(POSE, POSE)])  # P_ji: peer rows, own columns
         return rows.view(with_cross=True)
