@@ -171,7 +171,10 @@ class SyntheticPoseEstimator:
 
 
 def _bearing_row(predicted: SwarmEstimate, observer: int) -> int | None:
-    """The observer's row in a prediction (a full-swarm one holds every id in order)."""
+    """The observer's row in a prediction (a full-swarm one holds every id in order; an
+    own-state estimator's, its own satellite alone, row 0)."""
+    if predicted.n == 1:
+        return 0
     return observer if predicted.n > observer else None
 
 

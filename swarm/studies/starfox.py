@@ -38,7 +38,7 @@ __all__ = ["CONFIGS", "KEYS", "one_run", "run_starfox", "plot"]
 #: The two configurations: satellite 0 the only observer, or every satellite observing every other.
 CONFIGS = ("single", "several")
 #: The per-run numbers aggregated over the seeds.
-KEYS = ("err_pct", "sigma_pct", "nees_pos", "nees_pos_abs", "nees6", "range_km")
+KEYS = ("err_pct", "sigma_pct", "nees_pos", "nees_pos_abs", "nees6", "claimed", "range_km")
 
 
 def single_observer(n: int) -> list[str]:
@@ -57,36 +57,54 @@ def one_run(args: tuple[str, str, int, list[str]]) -> dict:
     def on_step(s) -> None:
         for v in s.views:
             if v.own == 0:
-                rows.append((s.k, s.r_H.copy(), v.r_H.copy(), v.P_rel_pose.copy(), v.P_pose.copy()))
+                rows.append((s.k, s.r_H.copy(), v.ids.copy(), v.r_H.copy(), v.P_rel_pose.copy(), v.P_pose.copy()))
 
     res = simulate_scenario(sc, on_step=on_step)
     K = sc.steps
     err, sig, nees, nees_abs = [], [], [], []
+    claimed = 0  # (step, target) pairs of the second half at which satellite 0's view claims the target
     series: list[tuple[float, float, float]] = []  # (t_s, mean |Δr|/range %, mean 1σ/range %) per step
-    for k, r_true, r_hat, P_rel, P_pose in rows:
+    for k, r_true, ids, r_hat, P_rel, P_pose in rows:
+        # A decentralized estimator claims only the peers it tracks at the step (ci, gbp:
+        # those it fused with; pairwise: the neighbours it heard): rows by id, not by index.
+        at = {int(j): r for r, j in enumerate(ids)}
+        if 0 not in at:
+            continue
+        o = at[0]
         pct = []
         for j in range(1, sc.n_sats):
+            if j not in at:
+                continue
             d_true = r_true[j] - r_true[0]
             rng = float(np.linalg.norm(d_true))
-            e = (r_hat[j] - r_hat[0]) - d_true
-            pct.append((100 * np.linalg.norm(e) / rng, 100 * np.sqrt(np.trace(P_rel[j][3:6, 3:6])) / rng))
-        series.append((k * sc.dt_s, *np.mean(pct, axis=0).tolist()))
+            e = (r_hat[at[j]] - r_hat[o]) - d_true
+            pct.append((100 * np.linalg.norm(e) / rng, 100 * np.sqrt(np.trace(P_rel[at[j]][3:6, 3:6])) / rng))
+        series.append((k * sc.dt_s, *(np.mean(pct, axis=0).tolist() if pct else [float("nan")] * 2)))
         if k < K // 2:
             continue
-        for j in range(sc.n_sats):
-            e = r_hat[j] - r_true[j]
-            nees_abs.append(float(e @ np.linalg.solve(P_pose[j][3:6, 3:6], e)) / 3.0)
+        for j, r in at.items():
+            e = r_hat[r] - r_true[j]
+            nees_abs.append(float(e @ np.linalg.solve(P_pose[r][3:6, 3:6], e)) / 3.0)
         for j in range(1, sc.n_sats):
+            if j not in at:
+                continue
+            claimed += 1
             d_true = r_true[j] - r_true[0]
-            e = (r_hat[j] - r_hat[0]) - d_true
+            e = (r_hat[at[j]] - r_hat[o]) - d_true
             rng = float(np.linalg.norm(d_true))
-            P = P_rel[j][3:6, 3:6]
+            P = P_rel[at[j]][3:6, 3:6]
             err.append(np.linalg.norm(e) / rng)
             sig.append(np.sqrt(np.trace(P)) / rng)
             nees.append(float(e @ np.linalg.solve(P, e)) / 3.0)
     summ = res.summary()
-    return {"config": config, "seed": seed, "err_pct": 100 * float(np.mean(err)), "sigma_pct": 100 * float(np.mean(sig)),
-            "nees_pos": float(np.mean(nees)), "nees_pos_abs": float(np.mean(nees_abs)), "nees6": float(summ["nees"]["mean"]) / 6.0,
+
+    def mean(x: list[float]) -> float:
+        return float(np.mean(x)) if x else float("nan")
+
+    second_half = (K - K // 2) * (sc.n_sats - 1)
+    return {"config": config, "seed": seed, "estimator": sc.estimator.kind, "err_pct": 100 * mean(err), "sigma_pct": 100 * mean(sig),
+            "nees_pos": mean(nees), "nees_pos_abs": mean(nees_abs), "nees6": float(summ["nees"]["mean"]) / 6.0,
+            "claimed": claimed / second_half,
             "range_km": float(np.mean([np.linalg.norm(rows[-1][1][j] - rows[-1][1][0]) for j in range(1, sc.n_sats)]) / 1e3),
             "gate_rejected": int(summ["gate"]["rejected"]) if "gate" in summ else None, "series": series}
 
@@ -140,10 +158,10 @@ def plot(results: list[dict], configs: tuple[str, ...] | list[str], path: str | 
         t_min = S[0, :, 0] / 60.0
         col = colours.get(c)
         for idx, style, what in ((1, "-", "|error|"), (2, "--", "1σ")):
-            med = np.median(S[:, :, idx], axis=0)
+            med = np.nanmedian(S[:, :, idx], axis=0)
             ax.plot(t_min, med, style, color=col, label=f"{c} observer{'s' if c == 'several' else ''}: {what} (median of {len(S)})")
             if idx == 1:
-                lo, hi = np.percentile(S[:, :, idx], [10, 90], axis=0)
+                lo, hi = np.nanpercentile(S[:, :, idx], [10, 90], axis=0)
                 ax.fill_between(t_min, lo, hi, color=col, alpha=0.15, linewidth=0)
     for level, lab in ((1.3, "StarFOX, one observer: 1.3 %"), (0.6, "StarFOX, several: 0.6 %")):
         ax.axhline(level, color="grey", linestyle=":", linewidth=1)
@@ -157,3 +175,85 @@ def plot(results: list[dict], configs: tuple[str, ...] | list[str], path: str | 
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+#: The estimators the per-estimator table compares (every one that flies bearings).
+ESTIMATORS = ("full", "ci", "pairwise", "gbp")
+
+
+def run_per_estimator(scenario: str | Path, runs: int, out_jsonl: str | Path, estimators: tuple[str, ...] = ESTIMATORS,
+                      configs: tuple[str, ...] = CONFIGS, sets: tuple[str, ...] = (), seed: int | None = None,
+                      log: Callable[[str], None] = lambda s: None) -> list[dict]:
+    """:func:`one_run` of every estimator, configuration and seed (``seed`` or the scenario's,
+    + r), seed by seed (so that a study cut short still compares every estimator on the same
+    seeds), each appended to ``out_jsonl`` as it finishes; runs already there are kept, not
+    run again. Returns every run (``series`` left out)."""
+    path = Path(out_jsonl)
+    done = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.exists() else []
+    have = {(r["estimator"], r["config"], r["seed"]) for r in done}
+    base = load_scenario(scenario, list(sets)).seed if seed is None else seed
+    for r in range(runs):
+        for est in estimators:
+            for c in configs:
+                if (est, c, base + r) in have:
+                    continue
+                res = one_run((str(scenario), c, base + r, [*sets, f"estimator.kind={est}"]))
+                res.pop("series")
+                with path.open("a") as f:
+                    f.write(json.dumps(res) + "\n")
+                done.append(res)
+                log(json.dumps(res))
+    return done
+
+
+def estimator_table(results: list[dict], estimators: tuple[str, ...] = ESTIMATORS, configs: tuple[str, ...] = CONFIGS) -> str:
+    """The percentage-of-range table per estimator and configuration (Markdown), over the
+    seeds every estimator of a configuration has run (paired): mean ± standard deviation
+    over the seeds (median in brackets) of satellite 0's relative position error and 1σ as
+    a percentage of range, its relative-position NEES/3 and the fraction of (step, target)
+    pairs of the second half it claims an estimate of."""
+    rows = ["| observers | estimator | seeds | \\|Δr\\| / range | 1σ / range | rel. position NEES/3 | abs. position NEES/3 | claimed |",
+            "| --- | --- | ---: | --- | --- | --- | --- | ---: |"]
+    for c in configs:
+        seeds = sorted(set.intersection(*[{r["seed"] for r in results if r["config"] == c and r["estimator"] == e} for e in estimators]))
+        for e in estimators:
+            rs = [r for r in results if r["config"] == c and r["estimator"] == e and r["seed"] in seeds]
+            if not rs:
+                continue
+
+            def stat(key: str, fmt: str, rs: list[dict] = rs) -> str:
+                v = np.array([r[key] for r in rs])
+                sd = f" ± {v.std(ddof=1):{fmt}}" if v.size > 1 else ""
+                return f"{v.mean():{fmt}}{sd} ({np.median(v):{fmt}})"
+
+            rows.append(f"| {c} | {e} | {len(rs)} | {stat('err_pct', '.2f')} % | {stat('sigma_pct', '.2f')} % | {stat('nees_pos', '.2f')} | "
+                        f"{stat('nees_pos_abs', '.2f')} | {np.mean([r['claimed'] for r in rs]):.2f} |")
+    return "\n".join(rows)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m swarm.studies.starfox``: the per-estimator table (:func:`run_per_estimator`,
+    :func:`estimator_table`), one process, resumable from its JSON lines."""
+    import argparse
+
+    ap = argparse.ArgumentParser(prog="python -m swarm.studies.starfox", description=main.__doc__)
+    ap.add_argument("scenario", nargs="?", default="scenarios/starfox.yaml")
+    ap.add_argument("--out", required=True, help="JSON lines file: one run a line (appended; runs already there are kept)")
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--seed", type=int, default=None)
+    ap.add_argument("--estimators", default=",".join(ESTIMATORS))
+    ap.add_argument("--configs", default=",".join(CONFIGS))
+    ap.add_argument("--set", action="append", default=[], dest="sets", help="dotted.key=value (repeatable)")
+    ap.add_argument("--table-only", action="store_true", help="print the table of what OUT holds, run nothing")
+    a = ap.parse_args(argv)
+    ests = tuple(e for e in a.estimators.split(",") if e)
+    cfgs = tuple(c for c in a.configs.split(",") if c)
+    if a.table_only:
+        res = [json.loads(line) for line in Path(a.out).read_text().splitlines() if line.strip()]
+    else:
+        res = run_per_estimator(a.scenario, a.runs, a.out, ests, cfgs, tuple(a.sets), a.seed, log=print)
+    print(estimator_table(res, ests, cfgs))
+
+
+if __name__ == "__main__":
+    main()

@@ -213,6 +213,11 @@ class Estimator(ABC):
     provides_swarm_covariance: ClassVar[bool] = False
     #: True when it can use a prediction of its targets (image pipelines need one).
     provides_prediction: ClassVar[bool] = False
+    #: True when it fuses angles-only bearings (``sensors.relative.model: bearing``) from a
+    #: prediction of its own satellite alone (:meth:`prediction`): the observer turns each
+    #: line of sight into I with its own predicted attitude, which is all a bearing needs
+    #: (an estimator that ``provides_prediction`` accepts them too).
+    accepts_bearings: ClassVar[bool] = False
     #: True when a restarted agent can start from what a live peer serves (:meth:`rejoin`).
     warm_rejoin: ClassVar[bool] = False
     #: Version of its message's layout (recorded with every message).
@@ -247,10 +252,10 @@ class Estimator(ABC):
             raise IncompatibleScenario(
                 f"selection.strategy: {sc.selection.strategy!r} plans from every satellite's full-swarm covariance, which "
                 f"estimator {cls.kind!r} does not keep; use none, complete, random or random_tree, or estimator.kind: full")
-        if sc.sensors.relative.model == "bearing" and not cls.provides_prediction:
+        if sc.sensors.relative.model == "bearing" and not (cls.provides_prediction or cls.accepts_bearings):
             raise IncompatibleScenario(
                 f"sensors.relative.model: bearing shares each line of sight in I, turned by the observer's predicted attitude, "
-                f"which estimator {cls.kind!r} does not make; use estimator.kind: full")
+                f"which estimator {cls.kind!r} does not make; use estimator.kind: full, ci, pairwise or gbp")
         if sc.vision.pipeline != "none" and not cls.provides_prediction:
             raise IncompatibleScenario(
                 f"vision.pipeline: {sc.vision.pipeline!r} starts each measurement from a prediction of its targets, which "

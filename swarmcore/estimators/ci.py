@@ -45,6 +45,14 @@ measurements that involve the agent). History does not cross steps the agent mis
 (stalled, cut off): it restarts after such a gap.
 Its view of a peer (one it fused with at the step) is the peer's broadcast prior, with no
 cross-covariance (that is what it claims about the relative pose).
+
+Bearings (``sensors.relative.model: bearing``, the angles-only camera): the observer turns
+each line of sight into I with its own prior (:meth:`prediction`, its own satellite alone;
+:func:`swarmcore.agent.inertial_bearings`, which adds the mean variance of that attitude to
+R), and ``ũ_I`` is a 2-row measurement of the two positions
+(:func:`swarmcore.mekf.bearing_residuals_padded`: the 6-row layout, four rows empty). It is
+fused like a pose: the same gate (χ²(2)), the same CI, the Jacobian on the own and the
+peer's positions only (:func:`stack_factors`; ``tests/test_bearing_estimators.py``).
 """
 
 from __future__ import annotations
@@ -70,7 +78,7 @@ from .base import EstimateView, EstimatorParams, Received, StepInputs, StepRepor
 from .own import Kept, ReplayingEstimator
 from .views import POSE, ViewRows, pose_block
 
-__all__ = ["CIEstimator", "CIParams", "CiState", "ci_weight"]
+__all__ = ["CIEstimator", "CIParams", "CiState", "ci_weight", "stack_factors"]
 
 #: Variance given to a peer's rate and velocity states in the joint update: the relative
 #: measurement's Jacobian has zero columns there and the peer carries no cross-covariance,
@@ -97,6 +105,42 @@ class CiState:
     r_H: np.ndarray  # (3,) m
     v_H: np.ndarray  # (3,) m/s
     P_pose: np.ndarray  # (6, 6) over [a, Δr]
+
+
+def stack_factors(local: RelativeMeasurements, Hi: np.ndarray, Hj: np.ndarray, n_peers: int
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The linearised relative factors of one belief (row 0 of the joint ``local`` is the own
+    satellite, rows 1… its neighbours): ``y ≈ Ho δx_i + Hp δp + v``, with ``Ho`` (6m × 12)
+    on the own 12 error states, ``Hp`` (6m × 6 n_peers) on the neighbours' ``[a, Δr]`` and
+    ``R`` (6m × 6m) the camera noise, from the Jacobian blocks of
+    :func:`swarmcore.mekf.relative_residuals` (``Hi`` on the observer, ``Hj`` on the target).
+    ``ci`` and ``gbp`` both linearise this way; with bearings (``relative_kind: bearing``)
+    each measurement keeps the 6-row layout, its rows 2–5 zero with unit noise, and only
+    the positions' columns are non-zero (module docstring)."""
+    mine_obs = local.observer == 0
+    Ho6 = np.where(mine_obs[:, None, None], Hi, Hj)
+    Hq6 = np.where(mine_obs[:, None, None], Hj, Hi)
+    peer_row = np.where(mine_obs, local.target, local.observer) - 1
+    k = len(local)
+    Ho = np.zeros((6 * k, BLOCK))
+    Hp = np.zeros((6 * k, 6 * n_peers))
+    for r in range(k):
+        rows = slice(6 * r, 6 * r + 6)
+        Ho[rows, POSE] = Ho6[r]
+        Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
+    return Ho, Hp, _block_diag(local.R_Bi)
+
+
+def _block_diag(blocks) -> np.ndarray:
+    """The block-diagonal matrix of square blocks of one size (scipy's costs more at 6×6)."""
+    m = len(blocks)
+    if not m:
+        return np.zeros((0, 0))
+    b = blocks[0].shape[0]
+    out = np.zeros((m * b, m * b))
+    for r, blk in enumerate(blocks):
+        out[r * b : (r + 1) * b, r * b : (r + 1) * b] = blk
+    return out
 
 
 def ci_weight(logdet_of, lo: float = 1e-4, hi: float = 1.0 - 1e-4) -> float:
@@ -161,6 +205,7 @@ def _logdet(S: np.ndarray) -> float:
 class CIEstimator(ReplayingEstimator):
     kind = "ci"
     radio = "graph"  # it fuses only measurements involving its satellite, with their other end's estimate
+    accepts_bearings = True  # angles-only bearings in I (module docstring)
     Params = CIParams
 
     def __init__(self, sc, own: int, params: CIParams | None = None):
@@ -259,21 +304,10 @@ class CIEstimator(ReplayingEstimator):
         y, Hi, Hj, d2, accepted = gate(joint, jp, local)
         if not accepted.any():
             return 0, 0.0
-        # The accepted rows: Jacobian on the own [a, Δr] and on the peer's, noise R.
+        # The accepted rows: Jacobian on the own 12 states and on the peers' [a, Δr], noise R.
         a = np.nonzero(accepted)[0]
-        mine_obs = local.observer[a] == 0
-        Ho6 = np.where(mine_obs[:, None, None], Hi[a], Hj[a])  # (k, 6, 6)
-        Hq6 = np.where(mine_obs[:, None, None], Hj[a], Hi[a])
-        peer_row = np.where(mine_obs, local.target[a], local.observer[a]) - 1  # 0..len(peers)-1
         k = a.size
-        Ho = np.zeros((6 * k, BLOCK))
-        Hp = np.zeros((6 * k, 6 * len(peers)))
-        R = np.zeros((6 * k, 6 * k))
-        for r in range(k):
-            rows = slice(6 * r, 6 * r + 6)
-            Ho[rows, POSE] = Ho6[r]
-            Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
-            R[rows, rows] = local.R_Bi[a[r]]
+        Ho, Hp, R = stack_factors(local.subset(a), Hi[a], Hj[a], len(peers))
         Pp = np.zeros((6 * len(peers), 6 * len(peers)))
         for r, s in enumerate(st):
             Pp[6 * r : 6 * r + 6, 6 * r : 6 * r + 6] = s.P_pose

@@ -98,6 +98,11 @@ the sender's rate and velocity once; 82 B per neighbour and 34 B a message. The 
 is quantised at :meth:`transmit`, so the in-process message is the decoded one, bit for
 bit.
 
+**Bearings** (``sensors.relative.model: bearing``): as in :mod:`.ci`, a line of sight shared
+in I is a relative factor of the two positions alone (2 rows of the 6-row layout), linearised
+by the same :func:`stack_factors`, fused into the belief, the cavities and the edge beliefs
+like a pose.
+
 **Late deliveries** (``filter.late: replay``, as ``ci``): each step's beliefs, readings,
 measurements and what it heard are kept for ``filter.history_s``; a message of step s
 arriving at k is filed under s and the beliefs (own and cavities) are re-run from s.
@@ -127,7 +132,7 @@ from ..mekf import (
     state_jacobian_blocks,
 )
 from .base import EstimateView, EstimatorParams, StepInputs, StepReport
-from .ci import _logdet_cost, _whitened, ci_weight
+from .ci import _block_diag, _logdet_cost, _whitened, ci_weight, stack_factors
 from .own import Kept, ReplayingEstimator, absolute_update
 from .views import POSE, ViewRows, pose_block
 
@@ -257,27 +262,6 @@ class GbpMessage:
     __hash__ = None  # type: ignore[assignment]
 
 
-def stack_factors(local: RelativeMeasurements, Hi: np.ndarray, Hj: np.ndarray, n_peers: int
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The linearised relative factors of one belief (row 0 of the joint ``local`` is the own
-    satellite, rows 1… its neighbours): ``y ≈ Ho δx_i + Hp δp + v``, with ``Ho`` (6m × 12)
-    on the own 12 error states, ``Hp`` (6m × 6 n_peers) on the neighbours' ``[a, Δr]`` and
-    ``R`` (6m × 6m) the camera noise, from the Jacobian blocks of
-    :func:`swarmcore.mekf.relative_residuals` (``Hi`` on the observer, ``Hj`` on the target)."""
-    mine_obs = local.observer == 0
-    Ho6 = np.where(mine_obs[:, None, None], Hi, Hj)
-    Hq6 = np.where(mine_obs[:, None, None], Hj, Hi)
-    peer_row = np.where(mine_obs, local.target, local.observer) - 1
-    k = len(local)
-    Ho = np.zeros((6 * k, BLOCK))
-    Hp = np.zeros((6 * k, 6 * n_peers))
-    for r in range(k):
-        rows = slice(6 * r, 6 * r + 6)
-        Ho[rows, POSE] = Ho6[r]
-        Hp[rows, 6 * peer_row[r] : 6 * peer_row[r] + 6] = Hq6[r]
-    return Ho, Hp, _block_diag(local.R_Bi)
-
-
 def factor_message(Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, P_cav: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The factor → variable message of linearised relative factors in information form
     (module docstring): ``(Λ, S)`` with ``S = R + Hp P_cav Hpᵀ`` the noise of the
@@ -289,6 +273,7 @@ def factor_message(Ho: np.ndarray, Hp: np.ndarray, R: np.ndarray, P_cav: np.ndar
 class GbpEstimator(ReplayingEstimator):
     kind = "gbp"
     radio = "graph"  # factors only with graph neighbours, messages only from them
+    accepts_bearings = True  # angles-only bearings in I (module docstring)
     Params = GbpParams
 
     @classmethod
@@ -522,18 +507,6 @@ class GbpEstimator(ReplayingEstimator):
             q, r, P, s = self._edges[j]
             rows.set(j, q, s.omega_BI_B.astype(float), r, s.v_H.astype(float), P_pose=P)
         return rows.view(with_cross=False)
-
-
-def _block_diag(blocks) -> np.ndarray:
-    """The block-diagonal matrix of square blocks of one size (scipy's costs more at 6×6)."""
-    m = len(blocks)
-    if not m:
-        return np.zeros((0, 0))
-    b = blocks[0].shape[0]
-    out = np.zeros((m * b, m * b))
-    for r, blk in enumerate(blocks):
-        out[r * b : (r + 1) * b, r * b : (r + 1) * b] = blk
-    return out
 
 
 def _delta(e: SwarmEstimate, ref: SwarmEstimate) -> np.ndarray:

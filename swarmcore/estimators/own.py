@@ -66,6 +66,15 @@ class OwnStateEstimator(Estimator):
         self.est = prior
         self._pending = step_pending
 
+    def prediction(self) -> SwarmEstimate | None:
+        """With bearings (``sensors.relative.model: bearing``), its prior of the step (its own
+        satellite alone, after :meth:`predict`): what the observer turns its lines of sight
+        into I with (:func:`swarmcore.agent.inertial_bearings`). None otherwise (it makes no
+        prediction of its targets: image pipelines are refused)."""
+        if self.fp.relative_kind != "bearing" or self.est is None:
+            return None
+        return self.est
+
     @property
     def e(self) -> SwarmEstimate:
         if self.est is None:

@@ -30,6 +30,22 @@ in this method. A peer whose prior did not arrive cannot be met; its measurement
 counted ``unusable``. Late deliveries are dropped and counted. The factors' product can imply a correlation
 above one (the approximation of absent robots' correlations); such a cross-covariance is
 shrunk until the joint prior is a covariance, and counted (``shrunk``).
+
+``absent``: what an encounter of i and j does to i's factors toward the other peers l.
+``scale`` (the default, Luft et al.): ``σ_il ← P_ii⁺ (P_ii⁻)⁻¹ σ_il``, exact when the
+update touches i alone (its own star tracker and GPS, where it is always applied), an
+approximation after an encounter: the exact ``P_il⁺ = P_il − K_i (H_i P_il + H_j P_jl)``
+needs ``P_jl``, which i does not have, and the rule amounts to ``P_jl ≈ P_ji P_ii⁻¹ P_il``.
+``keep``: the factors are left as they are, i.e. ``P_jl ≈ P_il`` on the measured states: a
+relative measurement is blind to the error that i and j share (``H_i + H_j`` vanishes on
+the positions), and in a swarm localised through its neighbours the error a third peer
+shares with i it largely shares with j too. Measured: docs/estimators.md (item 5 of
+issue 33: ``scale`` is overconfident on held-out seeds).
+
+Bearings (``sensors.relative.model: bearing``): the encounter's joint update is
+:func:`swarmcore.mekf.update` with ``relative_kind: bearing``, so a line of sight shared in
+I (the observer turned it with its own prior, :meth:`prediction`) is a 2-row measurement
+of the two positions, gated with χ²(2), as in ``full``.
 """
 
 from __future__ import annotations
@@ -51,6 +67,10 @@ __all__ = ["PairwiseEstimator", "PairwiseParams", "PairwiseState"]
 
 
 class PairwiseParams(EstimatorParams):
+    absent: str = Field(
+        "scale", pattern="^(scale|keep)$",
+        description="what an encounter with j does to the factors toward the other peers l: scale (Luft et al.: "
+        "σ_il ← P_ii⁺ (P_ii⁻)⁻¹ σ_il) or keep (unchanged: a relative measurement is blind to the error i and j share with l)")
     neighbours: str = Field(
         "graph", pattern="^(graph|all)$",
         description="whose factors an agent broadcasts: graph (its measurement graph's neighbours, in and out; bounded "
@@ -77,6 +97,7 @@ class PairwiseState:
 class PairwiseEstimator(OwnStateEstimator):
     kind = "pairwise"
     radio = "graph"  # it meets only graph neighbours and reads only their messages
+    accepts_bearings = True  # angles-only bearings in I (module docstring)
     Params = PairwiseParams
 
     def __init__(self, sc, own: int, params: PairwiseParams | None = None):
@@ -176,7 +197,7 @@ class PairwiseEstimator(OwnStateEstimator):
         for j in ls:
             self.sigma[j] = P_new @ sla.cho_solve(cf, self.sigma[j])
 
-    def _bounded_cross(self, Pi: np.ndarray, Pj: np.ndarray, Pij: np.ndarray) -> np.ndarray:
+    def _bounded_cross(self, Pi: np.ndarray, Pj: np.ndarray, Pij: np.ndarray, count: bool = True) -> np.ndarray:
         """The cross-covariance the factors give, shrunk if need be so that the joint prior
         is a covariance: the factors are an approximation (Luft et al.), and their product
         can imply a correlation above one. With ``C = L_i⁻¹ P_ij L_j⁻ᵀ`` (``P = L Lᵀ``), the
@@ -188,7 +209,8 @@ class PairwiseEstimator(OwnStateEstimator):
         s = float(np.linalg.norm(C, 2))
         if s < 0.999:
             return Pij
-        self.shrunk += 1
+        if count:
+            self.shrunk += 1
         return Pij * (0.999 / s)
 
     def _encounter(self, j: int, s: PairwiseState, meas: RelativeMeasurements) -> tuple[int, int, float]:
@@ -215,7 +237,8 @@ class PairwiseEstimator(OwnStateEstimator):
         P_old = e.P
         self.est = SwarmEstimate(e.step, e.t, post.q_BI[:1].copy(), post.omega_BI_B[:1].copy(), post.r_H[:1].copy(),
                                  post.v_H[:1].copy(), post.bias_B.copy(), post.P[:BLOCK, :BLOCK].copy())
-        self._scale_factors(self.e.P, P_old, skip=j)
+        if self.params.absent == "scale":  # type: ignore[attr-defined]
+            self._scale_factors(self.e.P, P_old, skip=j)
         self.sigma[j] = post.P[:BLOCK, BLOCK:].copy() if me < j else np.eye(BLOCK)
         self._met[j] = (post, post.P[:BLOCK, BLOCK:].copy())
         return acc, urep.n_rejected, float(urep.d2[urep.accepted].sum())
@@ -233,6 +256,10 @@ class PairwiseEstimator(OwnStateEstimator):
                          P_cross=Pij.T[np.ix_(POSE, POSE)])
             else:
                 s = self._heard[j]
+                Pij = self._cross(j, s)
+                if self.params.absent == "keep":  # type: ignore[attr-defined]
+                    # Unscaled factors imply larger correlations: claim a joint that is a covariance.
+                    Pij = self._bounded_cross(self.e.P, s.P, Pij, count=False)
                 rows.set(j, s.q_BI, s.omega_BI_B, s.r_H, s.v_H, P12=s.P,
-                         P_cross=self._cross(j, s).T[np.ix_(POSE, POSE)])  # P_ji: peer rows, own columns
+                         P_cross=Pij.T[np.ix_(POSE, POSE)])  # P_ji: peer rows, own columns
         return rows.view(with_cross=True)
