@@ -3,8 +3,19 @@
 It plans step k from a reference agent's estimate — the lowest-numbered live agent —
 exactly as the in-process simulator does (:func:`swarmcore.selection.choose_pairs`): the
 agent's posterior at k−1 carried to k without its gyro (its prior at k = 0), fetched in
-full from ``cov/<ref>``. Camera health (fault commands, agents' health reports) and dead
-satellites (liveliness) remove candidates (:func:`swarmcore.selection.mask_dead`).
+full from ``cov/<ref>``. Camera health and dead satellites remove candidates
+(:func:`swarmcore.selection.mask_dead`).
+
+In lockstep it plans step k when the world's clock of k comes, from what the clock says:
+the live agents of step k (the reference is the lowest of them, every other satellite's
+cameras are off) and the cameras as the fault commands the world put before that clock
+left them; the world waits for that selection. Everything it plans from is then fixed by
+the step, not by when messages arrived: planned earlier, on the reference's estimate of
+k − 1, a selection of k was made before or after the faults of step k had been heard (a
+camera switched off, the reference killed, the selector itself killed with its plan of k
+already sent or not), and a chaos campaign's two runs differed (issue 35). Free-running,
+where nothing waits, it plans as soon as the reference's estimate or health of k − 1 comes,
+with what it knows then (liveliness, commands and health reports).
 """
 
 from __future__ import annotations
@@ -51,6 +62,11 @@ class SelectorProtocol:
         self.world_seen = False
         self.outbox = Outbox(keep=outbox_steps(sc.emulator))  # the latest selections, sent again when the bus comes back
         self._clock_only: set[int] = set()  # steps known plannable from the world's clock alone (lockstep)
+        self.lockstep = sc.emulator.time_mode == "lockstep"
+        # Lockstep: the cameras as the fault commands left them (health reports, which may
+        # come before or after a clock, are not used), and each clock's (live agents, cameras).
+        self.camera_cmd = np.ones((sc.n_sats, 6), dtype=bool)
+        self.steps: dict[int, tuple[list[int], np.ndarray]] = {}
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
@@ -81,10 +97,18 @@ class SelectorProtocol:
             f: Fault = ev.msg
             if f.action == "camera" and f.phase == "command" and f.target is not None and f.camera is not None:
                 self.camera_ok[f.target, f.camera] = f.state == "on"
+                if 0 <= f.target < self.n and 0 <= f.camera < 6:
+                    self.camera_cmd[f.target, f.camera] = f.state == "on"
         elif ev.kind == "clock":
             self.clock_seen = True
             self.done = self.done or ev.msg.done
             k = int(ev.msg.k)
+            if self.lockstep and not ev.msg.done:
+                # The step's own state: the selection of k is planned from it (the module's docstring).
+                self.steps.setdefault(k, (sorted(int(i) for i in ev.msg.live_agents), self.camera_cmd.copy()))
+                for old in [s for s in self.steps if s < k - 2]:
+                    del self.steps[old]
+                return []
             ref = self.ref_agent()
             lockstep = self.sc.emulator.time_mode == "lockstep" and not ev.msg.done
             if lockstep and k >= 1 and ref is not None and self.next_plan.get(ref, -1) < k:
@@ -98,8 +122,14 @@ class SelectorProtocol:
                 self._clock_only.add(k)
         return []
 
-    def plan(self, k: int, ref: int, msg=None):
+    def plan(self, k: int, ref: int, msg=None, live=None, cams=None):
+        """Plan step k from agent ``ref``'s estimate (``msg``, or asked for), masking the
+        satellites not in ``live`` with cameras ``cams`` (default: what this selector knows
+        now: liveliness, commands and health reports)."""
         sc = self.sc
+        live = self.alive if live is None else live
+        cams = self.camera_ok if cams is None else cams
+        behind = k in self._clock_only or (self.lockstep and k in self.steps)
         t0 = time.perf_counter()
         est = None
         # Every strategy plans from the reference estimate when there is one, as in the
@@ -110,7 +140,7 @@ class SelectorProtocol:
         # world takes the selection only select_timeout_s after the bus is back.
         em = sc.emulator
         if not self.plans_from_estimate:
-            obs, tgt = choose_pairs(sc, k, self.G, None, None, mask_dead(self.camera_ok, self.alive))
+            obs, tgt = choose_pairs(sc, k, self.G, None, None, mask_dead(cams, live))
             self.outbox.clear()
             yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
                                                       strategy=sc.selection.strategy, ref_agent=ref,
@@ -120,18 +150,18 @@ class SelectorProtocol:
         deadline = self.clock() + em.step_timeout_s
         while msg is None:
             msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
-            if msg is not None and k in self._clock_only and msg.k < k - 1:
+            if msg is not None and behind and msg.k < k - 1:
                 # Planned on the clock alone, and the reference is still behind (a world that
                 # moved on without its estimate: stalled, say): not its estimate of k − 1 yet.
                 msg = None
-                yield Wait(lambda: self.done or k not in self._clock_only, 0.2)
+                yield Wait(lambda: self.done or not (k in self._clock_only or (self.lockstep and k in self.steps)), 0.2)
             if msg is None and (self.clock() >= deadline or self.done):
                 break
         if msg is None:
             log.warning("step %d: agent %d did not serve its estimate", k, ref)
             return
         est = estimate_from_full(msg, self.n)
-        obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(self.camera_ok, self.alive))
+        obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(cams, live))
         ms = (time.perf_counter() - t0) * 1e3
         self.outbox.clear()
         yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
@@ -166,6 +196,17 @@ class SelectorProtocol:
             # one again is paced by the timeout).
             yield Wait(lambda: self.done or self._work() is not None or (self._first_pending() and self.ref_agent() != self._asked_first),
                        0.5)
+            if self.lockstep and self.steps:
+                # The run is under way: plan the step of the latest clock, from its own state.
+                k = self._work()
+                if k is None:
+                    continue
+                live, cams = self.steps[k]
+                if live:
+                    yield from self.plan(k, min(live), live=live, cams=cams)
+                else:
+                    self.planned.add(k)  # no live agent to plan from: the world falls back
+                continue
             # Plan from the reference agent's latest estimate only (the lowest live id).
             ref = self.ref_agent()
             if ref is None:
@@ -187,7 +228,11 @@ class SelectorProtocol:
 
     def _work(self):
         """The step there is something to plan for now, if any (step 0 only once the
-        reference is settled, as for :meth:`_first_pending`)."""
+        reference is settled, as for :meth:`_first_pending`; in lockstep, once the run is
+        under way, the step of the latest clock)."""
+        if self.lockstep and self.steps:
+            k = max(self.steps)
+            return k if 0 <= k < self.sc.steps and k not in self.planned else None
         ref = self.ref_agent()
         if ref is None:
             return None

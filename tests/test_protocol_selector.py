@@ -62,22 +62,63 @@ def _running_selector(sc: Scenario | None = None):
     return d, post
 
 
+def clock(k: int, live) -> Event:
+    return Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=k, t_s=float(k), live_agents=list(live)))
+
+
 def test_next_step_planned_from_the_lowest_live_agent_and_dead_observers_masked():
+    """Lockstep: step k is planned when its clock comes, from the agents it lists live (the
+    reference is the lowest of them; the others' cameras are off)."""
     d, post = _running_selector()
     d.feed(alive(0, up=False))
     d.feed(Event(K.est(1), "est", 1, msg=estimate_msg(post[1], run=RUN, sender="agent-1", own=1)))
+    assert not d.sent_on(K.select()), "lockstep: nothing is planned before the step's clock"
+    d.feed(clock(1, [1, 2, 3]))
     (sel,) = d.sent_on(K.select())
-    assert sel.k == 1 and sel.ref_agent == 1
+    assert sel.k == 1 and sel.ref_agent == 1 and [q.key for q in d.queries][-1] == K.cov(1)
     assert all(o != 0 for o in sel.observer), "a dead satellite measures nothing"
 
 
+def _plan_of_step_1(order: str):
+    """Agent 0 (the reference) and camera 2 of satellite 1 faulted at step 1, and the
+    reference's estimate of step 0: the selection of step 1, the events in ``order``."""
+    from swarmrt.bus.messages import Fault
+
+    d, post = _running_selector()
+    est = Event(K.est(0), "est", 0, msg=estimate_msg(post[0], run=RUN, sender="agent-0", own=0))
+    cam = Event(K.fault(), "fault", None, msg=Fault(run=RUN, sender="world", k=1, t_s=1.0, phase="command", action="camera",
+                                                    target=1, camera=2, state="off"))
+    dead = alive(0, up=False)
+    events = {"est": est, "cam": cam, "dead": dead, "clock": clock(1, [1, 2, 3])}
+    for name in order.split():
+        d.feed(events[name])
+    (sel,) = d.sent_on(K.select())
+    return sel
+
+
+def test_the_plan_of_a_step_does_not_depend_on_when_its_faults_were_heard():
+    """Issue 35: a chaos campaign's two runs planned step 2 differently: planned on the
+    reference's estimate of the step before, a selection was made before or after the step's
+    faults (the selector killed, a camera off, the reference killed) had reached the
+    selector. Now it is planned from the step's clock: whatever the order the reference's
+    estimate, the fault commands and the liveliness came in (the world puts its commands
+    before its clock), the same selection."""
+    orders = ["est cam dead clock", "cam est clock dead", "dead cam est clock", "cam dead clock est"]
+    sels = [_plan_of_step_1(o) for o in orders]
+    for sel in sels:
+        assert (sel.k, sel.ref_agent) == (1, 1)
+        assert list(sel.observer) == list(sels[0].observer) and list(sel.target) == list(sels[0].target)
+        assert all(o != 0 for o in sel.observer)
+
+
 def test_a_dropped_estimate_of_the_reference_agent_does_not_hold_the_plan():
-    """A drop fault loses the reference agent's estimate of step k but never its health
-    report, which also follows its update: step k + 1 is planned from what it serves, at
-    once (with the estimate alone the world waited a whole step timeout, then fell back)."""
+    """Free-running: a drop fault loses the reference agent's estimate of step k but never
+    its health report, which also follows its update: step k + 1 is planned from what it
+    serves, at once (with the estimate alone the world waited a whole step timeout, then
+    fell back)."""
     from swarmrt.bus.messages import Health
 
-    d, _post = _running_selector()
+    d, _post = _running_selector(scenario("free"))
     health = Health(run=RUN, sender="agent-0", k=0, t_s=0.0, sat=0, camera_ok=[True] * 6, drop_rate=0.5, host="h")
     d.feed(Event(K.health(0), "health", 0, msg=health))
     (sel,) = d.sent_on(K.select())

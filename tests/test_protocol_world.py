@@ -485,3 +485,57 @@ def test_graph_radio_sends_each_agent_its_neighbours_batches_only():
     d.take()
     d.feed(batch(1, 0, [2]))
     assert sorted(s.key for s in d.take()) == sorted([K.batches(0), K.batches(2)])  # 1's neighbours, nobody else
+
+
+def _linked_restart(sc: Scenario):
+    """Agent 2 killed at step 1 and restarted at step 2, links on: the world at its restart,
+    agent 2's token back."""
+    d, w, _ = started_world(sc, warm_rejoin=True)
+    d.take()
+    d.feed(*finish(0))
+    d.feed(alive("agent", 2, up=False))
+    d.feed(*finish(1, (0, 1)))
+    assert [f.action for f in d.sent_on(K.fault())][-1] == "restart-agent"
+    d.feed(alive("agent", 2))
+    return d, w
+
+
+LINKED = {"links": {"enabled": True, "latency": {"fixed_s": 1.5, "speed_of_light": False}}, "duration_s": 8, "faults": RESTART}
+
+
+def test_a_restarted_agent_joins_at_the_step_its_state_arrives_in_whenever_its_prior_comes():
+    """Issue 35: with links on, the world went on once the restarted agent had asked for its
+    state, and counted it live at whichever clock followed its prior: a step that depended
+    on the machine's load. Now the world waits for its round of asks at the restart (its
+    prior, or its word that nothing got through) and lists it from the first step that
+    begins at or after its state's arrival."""
+    sc = scenario(**LINKED)
+    d, w = _linked_restart(sc)
+    assert [c.k for c in d.sent_on(K.clock())] == [1], "the restart waits for the agent's round"
+    fate = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert fate.fate == "delivered" and fate.k == 2 and 3.0 < fate.arrival_t_s < 4.0
+    assert [c.k for c in d.sent_on(K.clock())] == [1], "its prior is not in yet"
+    d.feed(est(2, 3, "prior"))
+    d.feed(*finish(2, (0, 1)), *finish(3, (0, 1)))
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())] == [[0, 1], [0, 1], [0, 1], [0, 1, 2]], \
+        "live from step 4 (its state arrives at t = 3.x s), not from the clock after its prior"
+
+
+def test_a_restarted_agent_whose_state_did_not_get_through_asks_again_at_the_next_step():
+    """Its radio cut off, nothing gets through in its round at the restart: it says so (a
+    health report), the world goes on without it and waits, after the next clock, for its
+    next round; that one's state counts from the step after it."""
+    sc = scenario(**LINKED)
+    d, w = _linked_restart(sc)
+    d.feed(_health(2, 2))  # the round at the restart brought nothing
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())] == [[0, 1], [0, 1]]
+    d.feed(*finish(2, (0, 1)))
+    assert [c.k for c in d.sent_on(K.clock())][-1] == 3
+    assert d.sent_on(K.cam(0))[-1].k != 3, "step 3 waits for the agent's round before its selection and cameras"
+    fate = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert fate.k == 3 and fate.fate == "delivered"
+    d.feed(est(2, 4, "prior"))
+    assert d.sent_on(K.cam(0))[-1].k == 3
+    d.feed(*finish(3, (0, 1)), *finish(4, (0, 1)))
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())][-1] == [0, 1, 2], "live at step 5 (its state arrives at t = 4.x s)"
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())][-2] == [0, 1]
