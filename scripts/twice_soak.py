@@ -82,7 +82,7 @@ def _check_second(out: Path, report: dict) -> dict:
     try:
         sc = load_scenario(run2 / "scenario.yaml")
         summary = json.loads((run2 / "summary.json").read_text())
-    except Exception as exc:  # noqa: BLE001 - the finding is that it could not be read
+    except Exception as exc:
         return {"error": f"{type(exc).__name__}: {exc}"}
     # swarm run's exit status: 0 for a finished run, non-zero for one declared broken (its world's, or 1).
     code = int(summary.get("world_exit_code") or 0) if not summary.get("interrupted") else int(summary.get("world_exit_code") or 1) or 1

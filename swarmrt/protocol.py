@@ -173,7 +173,7 @@ def arrival_step(t_s: float, dt_s: float) -> int:
     """The first step that begins at or after simulated time ``t_s`` (steps of ``dt_s``): from
     it on, what arrived at ``t_s`` is in use. The world and a restarted agent both work out
     from a state transfer's arrival (links on) the step at which the agent joins the swarm."""
-    return max(0, int(math.ceil(t_s / dt_s - 1e-9)))
+    return max(0, math.ceil(t_s / dt_s - 1e-9))
 
 
 def first_time(seen: set[bytes], command) -> bool:
