@@ -355,7 +355,16 @@ class AgentProtocol:
         """Measure our own camera delivery (image pipelines start from the prediction)."""
         e = self.estimator
         if not self.pose.needs_prediction:
-            return self.pose.measure(self.i, detections_from_msg(self.cams.pop(k), self.camera_ok) if k in self.cams else None,
+            msg = self.cams.pop(k, None)
+            if msg is not None:
+                # The step's camera delivery says which cameras are off (the hardware's state):
+                # that, not the commands this process happened to hear (a restarted agent, or
+                # one whose link was down when a command went by, heard fewer), is what the
+                # satellite measures with and reports in its health (the selector plans the
+                # next step from those reports).
+                self.camera_ok = np.ones(6, dtype=bool)
+                self.camera_ok[[int(c) for c in msg.cameras_off if 0 <= int(c) < 6]] = False
+            return self.pose.measure(self.i, detections_from_msg(msg, self.camera_ok) if msg is not None else None,
                                      e.prediction() if self.started else None, k)
         msg = self.imgs.pop(k, None)
         obs = None

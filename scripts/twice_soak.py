@@ -61,7 +61,7 @@ def _campaign(seed: int, a) -> dict:
     row["fired"] = sum(d["fired"] for d in report["fired"].values())
     row["invariants"] = {inv["name"].split(".")[0] + ("2" if "run twice" in inv["name"] else ""): inv["ok"] for inv in report["invariants"]}
     row["evidence"] = {inv["name"]: inv["evidence"] for inv in report["invariants"] if not inv["ok"]}
-    row["second_run"] = _check_second(out, report)
+    row["second_run"] = _check_second(out, report, a.routers)
     row["numbers_equal"] = next((inv["ok"] for inv in report["invariants"] if "run twice" in inv["name"]), None)
     first, second = out / "run" / "run.mcap", out / "run-2" / "run.mcap"
     if first.exists() and second.exists():
@@ -73,7 +73,7 @@ def _campaign(seed: int, a) -> dict:
     return row
 
 
-def _check_second(out: Path, report: dict) -> dict:
+def _check_second(out: Path, report: dict, routers: int) -> dict:
     """Invariants a–d of the second run (the command checks the first run's)."""
     from swarm.studies.chaos import Episode, check_run
     from swarmrt.scenario_files import load_scenario
@@ -87,7 +87,7 @@ def _check_second(out: Path, report: dict) -> dict:
     # swarm run's exit status: 0 for a finished run, non-zero for one declared broken (its world's, or 1).
     code = int(summary.get("world_exit_code") or 0) if not summary.get("interrupted") else int(summary.get("world_exit_code") or 1) or 1
     episodes = [Episode(**e) for e in report["schedule"]]
-    rep = check_run(run2, sc, episodes, report["seed"], code, n_faults=report["n_faults"])
+    rep = check_run(run2, sc, episodes, report["seed"], code, n_faults=report["n_faults"], routers=routers)
     return {inv.name.split(".")[0]: inv.ok for inv in rep.invariants} | {
         "evidence": {inv.name: inv.evidence for inv in rep.invariants if not inv.ok}}
 

@@ -6,16 +6,19 @@ agent's posterior at k−1 carried to k without its gyro (its prior at k = 0), f
 full from ``cov/<ref>``. Camera health and dead satellites remove candidates
 (:func:`swarmcore.selection.mask_dead`).
 
-In lockstep it plans step k when the world's clock of k comes, from what the clock says:
-the live agents of step k (the reference is the lowest of them, every other satellite's
-cameras are off) and the cameras as the fault commands the world put before that clock
-left them; the world waits for that selection. Everything it plans from is then fixed by
-the step, not by when messages arrived: planned earlier, on the reference's estimate of
-k − 1, a selection of k was made before or after the faults of step k had been heard (a
-camera switched off, the reference killed, the selector itself killed with its plan of k
-already sent or not), and a chaos campaign's two runs differed (issue 35). Free-running,
-where nothing waits, it plans as soon as the reference's estimate or health of k − 1 comes,
-with what it knows then (liveliness, commands and health reports).
+In lockstep it plans step k when the world's clock of k comes, from what is fixed by the
+steps themselves: the live agents of step k (the clock; the reference is the lowest of them,
+every other satellite's cameras are off), and the cameras of each agent live at k − 1 and k
+as its health report of step k − 1 gives them (the world's camera state at that step, which
+the agent takes from its camera delivery); it waits for those reports. A selector started
+during step k (a restart) plans from k + 1 (the world falls back at k): it heard neither the
+clock nor the reports of k − 1. Planned earlier, on the reference's estimate of k − 1 and
+with whatever commands and liveliness had arrived, a selection of k was made before or after
+the faults of step k had been heard (a camera switched off, the reference killed, the
+selector itself killed with its plan of k already sent or not; a command missed in a
+failover and sent again later), and a chaos campaign's two runs differed (issue 35).
+Free-running, where nothing waits, it plans as soon as the reference's estimate or health
+of k − 1 comes, with what it knows then (liveliness, commands and health reports).
 """
 
 from __future__ import annotations
@@ -32,7 +35,7 @@ from swarmcore.scenario import Scenario
 from swarmcore.selection import choose_pairs, mask_dead
 from swarmrt.bus.convert import estimate_from_full, select_msg
 from swarmrt.bus.messages import Fault, Keys
-from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost, outbox_steps
+from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost, outbox_steps, world_wait_s
 
 __all__ = ["SelectorProtocol"]
 
@@ -63,10 +66,9 @@ class SelectorProtocol:
         self.outbox = Outbox(keep=outbox_steps(sc.emulator))  # the latest selections, sent again when the bus comes back
         self._clock_only: set[int] = set()  # steps known plannable from the world's clock alone (lockstep)
         self.lockstep = sc.emulator.time_mode == "lockstep"
-        # Lockstep: the cameras as the fault commands left them (health reports, which may
-        # come before or after a clock, are not used), and each clock's (live agents, cameras).
-        self.camera_cmd = np.ones((sc.n_sats, 6), dtype=bool)
-        self.steps: dict[int, tuple[list[int], np.ndarray]] = {}
+        # Lockstep: each clock's live agents, and each step's health reports' cameras.
+        self.steps: dict[int, list[int]] = {}
+        self.cams_at: dict[int, dict[int, np.ndarray]] = {}
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
@@ -88,6 +90,7 @@ class SelectorProtocol:
             self._clock_only.discard(plan_k)
         elif ev.kind == "health":
             self.camera_ok[ev.msg.sat] = ev.msg.camera_ok
+            self.cams_at.setdefault(int(ev.msg.k), {})[int(ev.msg.sat)] = np.array(ev.msg.camera_ok, dtype=bool)
             # An agent's health report follows its update of step k (a drop fault loses its
             # estimate, never its health): step k + 1 can be planned from what it serves. With
             # the estimate alone a dropped one left the world waiting a step timeout for a plan.
@@ -97,17 +100,17 @@ class SelectorProtocol:
             f: Fault = ev.msg
             if f.action == "camera" and f.phase == "command" and f.target is not None and f.camera is not None:
                 self.camera_ok[f.target, f.camera] = f.state == "on"
-                if 0 <= f.target < self.n and 0 <= f.camera < 6:
-                    self.camera_cmd[f.target, f.camera] = f.state == "on"
         elif ev.kind == "clock":
             self.clock_seen = True
             self.done = self.done or ev.msg.done
             k = int(ev.msg.k)
             if self.lockstep and not ev.msg.done:
                 # The step's own state: the selection of k is planned from it (the module's docstring).
-                self.steps.setdefault(k, (sorted(int(i) for i in ev.msg.live_agents), self.camera_cmd.copy()))
+                self.steps.setdefault(k, sorted(int(i) for i in ev.msg.live_agents))
                 for old in [s for s in self.steps if s < k - 2]:
                     del self.steps[old]
+                for old in [s for s in self.cams_at if s < k - 2]:
+                    del self.cams_at[old]
                 return []
             ref = self.ref_agent()
             lockstep = self.sc.emulator.time_mode == "lockstep" and not ev.msg.done
@@ -201,11 +204,26 @@ class SelectorProtocol:
                 k = self._work()
                 if k is None:
                     continue
-                live, cams = self.steps[k]
-                if live:
-                    yield from self.plan(k, min(live), live=live, cams=cams)
-                else:
+                live = self.steps[k]
+                if not live:
                     self.planned.add(k)  # no live agent to plan from: the world falls back
+                    continue
+                if k == 0:
+                    yield from self.plan(0, min(live), live=live, cams=np.ones((self.n, 6), dtype=bool))
+                    continue
+                need = [i for i in live if i in self.steps[k - 1]]
+                got = yield Wait(lambda k=k, need=need: self.done or max(self.steps) > k
+                                 or all(i in self.cams_at.get(k - 1, {}) for i in need), world_wait_s(self.sc.emulator))
+                if self.done or max(self.steps) > k:
+                    continue  # a newer step to plan
+                if not got:
+                    log.warning("step %d: no health report of step %d from %s; their cameras taken as on", k, k - 1,
+                                [i for i in need if i not in self.cams_at.get(k - 1, {})])
+                cams = np.ones((self.n, 6), dtype=bool)
+                for i, ok in self.cams_at.get(k - 1, {}).items():
+                    if i in need:
+                        cams[i] = ok
+                yield from self.plan(k, min(live), live=live, cams=cams)
                 continue
             # Plan from the reference agent's latest estimate only (the lowest live id).
             ref = self.ref_agent()
@@ -232,7 +250,9 @@ class SelectorProtocol:
         under way, the step of the latest clock)."""
         if self.lockstep and self.steps:
             k = max(self.steps)
-            return k if 0 <= k < self.sc.steps and k not in self.planned else None
+            if k == 0 and 0 not in self.planned:
+                return 0  # (step 0 not planned before its clock: from the reference's prior)
+            return k if 0 < k < self.sc.steps and k - 1 in self.steps and k not in self.planned else None
         ref = self.ref_agent()
         if ref is None:
             return None

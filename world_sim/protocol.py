@@ -168,6 +168,7 @@ class WorldProtocol:
         self._round_failed: dict[int, int] = {}  # satellite → the step of its last round that brought nothing
         self._delivered: dict[int, RejoinFate] = {}  # satellite → the fate of the state it rejoins from
         self._joins: dict[int, int] = {}  # satellite → the step from which it is live again (its state arrived)
+        self._selector_started_at = -1  # the step of a scheduled restart-selector (it plans from the next)
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -537,6 +538,7 @@ class WorldProtocol:
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
                 yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
+                self._selector_started_at = k
             elif spec.action in CLUSTER_FAULTS:
                 # A host of a cluster run killed (its agents started again on the others) or
                 # two cut apart: over once the supervisor says so, and for a killed node once
@@ -566,7 +568,12 @@ class WorldProtocol:
         if not self.use_selector:
             return edges(self.G)
         em = self.sc.emulator
-        if "selector" in self.alive_roles:
+        if self._selector_started_at == k and em.time_mode == "lockstep":
+            # A selector started during this step heard neither the clock nor the agents'
+            # reports of the step before, which it plans from: it plans from the next step, and
+            # this one falls back (whether its late plan came in time is no part of the run).
+            self.selections.pop(k, None)
+        elif "selector" in self.alive_roles:
             # Lockstep: a live selector is waited for as a live agent is (the step timeout
             # plus the lease): a stall of the selector, of the agent it plans from or of the
             # router shorter than that delays its selection and changes nothing; only a
