@@ -7,6 +7,13 @@ reports, rejoins), wall-time fields left out.
 
 Prints the first step at which the two differ and what differs there (with ``--all``, every
 differing step). Exit 1 when they differ, 0 when every compared message is equal.
+
+Two kinds of record are compared for what the run did with them, not for when they came: a
+stall's ``done`` report (the supervisor's, made when it sent SIGCONT after ``down_s`` wall
+seconds: its step is the world's step at that wall time) is compared without its step; and
+at a step where the world fell back (its own selection recorded), a selection the selector
+sent for that step too (late: the world had gone on without it) is not what the run used,
+and is left out.
 """
 
 from __future__ import annotations
@@ -58,8 +65,16 @@ def messages(path: Path, n: int) -> dict[int, dict[tuple[str, str], set[str]]]:
         if kind == "fault" and d.get("phase") == "command" and d.get("sender") not in ("world",):
             continue  # the supervisor's own commands (a restart's) carry wall-time details
         k = int(d.get("k", -1))
+        if kind == "fault" and d.get("sender") == "supervisor" and str(d.get("action", "")).startswith("stall-"):
+            d.pop("k", None)
+            d.pop("t_s", None)
+            k = -1  # when a stall ended, in steps, is wall time: compared without its step
         topic_tail = topic.split("/", 2)[-1] if "/" in topic else topic
         out[k][(kind, topic_tail)].add(json.dumps(_plain(d), sort_keys=True))
+    for step in out.values():
+        sel = step.get(("select", "select"))
+        if sel and any(json.loads(x).get("sender") == "world" for x in sel):
+            step[("select", "select")] = {x for x in sel if json.loads(x).get("sender") == "world"}
     return out
 
 

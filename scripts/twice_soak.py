@@ -44,10 +44,15 @@ def _campaign(seed: int, a) -> dict:
     for s in a.sets:
         cmd += ["--set", s]
     out.mkdir(parents=True, exist_ok=True)
-    t0 = time.monotonic()
-    with open(out / "chaos.log", "w") as log:
-        code = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=dict(os.environ, COLUMNS="200")).returncode
-    wall = time.monotonic() - t0
+    if a.no_run:  # the campaign ran before: check and compare its folder again
+        before = json.loads((out / "row.json").read_text()) if (out / "row.json").exists() else {}
+        code, wall = before.get("exit", -1), before.get("wall_s", float("nan"))
+    else:
+        t0 = time.monotonic()
+        with open(out / "chaos.log", "w") as log:
+            code = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=dict(os.environ, COLUMNS="200")).returncode
+        wall = time.monotonic() - t0
+        (out / "row.json").write_text(json.dumps({"exit": code, "wall_s": round(wall, 1)}) + "\n")
     row: dict = {"seed": seed, "exit": code, "wall_s": round(wall, 1)}
     try:
         report = json.loads((out / "chaos.json").read_text())
@@ -121,6 +126,7 @@ def main(argv=None) -> int:
     p.add_argument("--jobs", type=int, default=1, help="campaigns at once")
     p.add_argument("--set", dest="sets", action="append", default=None, help="scenario override (repeatable; replaces the defaults)")
     p.add_argument("--out", type=Path, default=Path("runs/soak/twice"))
+    p.add_argument("--no-run", action="store_true", help="run nothing: check and compare the campaigns already in OUT again")
     a = p.parse_args(argv)
     a.sets = a.sets if a.sets is not None else DEFAULT_SETS
     a.out = (ROOT / a.out) if not a.out.is_absolute() else a.out
