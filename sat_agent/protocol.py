@@ -286,8 +286,16 @@ class AgentProtocol:
                 # round at a fixed point of its step, so that the transfer's fate and arrival do
                 # not depend on when we ask): the freshest peer first.
                 first_round = True
+                asked = -1
                 while not self.started:
                     msg, fate = yield from self._through_the_radio(got)
+                    if msg is None and (fate is None or int(fate.k) <= asked):
+                        # Not answered (the world answers a round only where it waits for it):
+                        # the clock that starts it went by unseen (a failover). Ask again soon.
+                        yield Wait(lambda: self.done or any(c > asked for c in self.clocks), 2.0)
+                        if self.done:
+                            raise SystemExit(f"agent {self.i}: the run ended before a peer's state got through the radio")
+                        continue
                     if msg is not None:
                         # In use from the first step that begins at or after its arrival (and
                         # after this round: the world has put the clock of a later round's step).
@@ -298,12 +306,12 @@ class AgentProtocol:
                         break
                     # Nothing got through this round (our radio cut off, say): say so, and try
                     # again at the next step the world puts.
-                    asked = int(fate.k) if fate is not None else (max(self.clocks) if self.clocks else 0)
+                    asked = int(fate.k)
                     yield Send(self.keys.health(self.i), self._health(asked, asked * self.sc.dt_s))
                     first_round = False
-                    ok = yield Wait(lambda: self.done or any(c > asked for c in self.clocks), em.startup_timeout_s)
-                    if self.done or not ok:
-                        raise SystemExit(f"agent {self.i}: no peer's state got through the radio")
+                    yield Wait(lambda: self.done or any(c > asked for c in self.clocks), 2.0)
+                    if self.done:
+                        raise SystemExit(f"agent {self.i}: the run ended before a peer's state got through the radio")
                 break
             self.started = True
             self.last_step = self.estimator.step_index

@@ -136,7 +136,16 @@ def main(argv=None) -> int:
     with ThreadPoolExecutor(max_workers=max(1, a.jobs)) as pool:
         for row in pool.map(lambda s: _campaign(s, a), seeds):
             rows.append(row)
-            print(json.dumps(row)[:600], flush=True)
+            print(json.dumps(row), flush=True)
+            _write(a, argv, rows, t0)  # as it goes: a benchmark cut short keeps what it measured
+    doc = _write(a, argv, rows, t0)
+    print(_table(rows))
+    print(f"\n{len(rows)} seeds, {doc['invariant_failures']} with an invariant failure, {doc['differences']} with a difference; "
+          f"{doc['wall_s']:.0f} s; wrote {a.out / 'twice.json'}")
+    return 1 if doc["invariant_failures"] or doc["differences"] else 0
+
+
+def _write(a, argv, rows: list[dict], t0: float) -> dict:
     doc = {"command": " ".join([Path(sys.argv[0]).name, *(argv if argv is not None else sys.argv[1:])]),
            "scenario": str(a.scenario), "sets": a.sets, "faults": a.faults, "duration_s": a.duration, "routers": a.routers,
            "jobs": a.jobs, "wall_s": round(time.monotonic() - t0, 1), "rows": rows,
@@ -145,10 +154,8 @@ def main(argv=None) -> int:
            "differences": sum(1 for r in rows if "error" in r or not r.get("numbers_equal") or not r.get("recordings_equal"))}
     a.out.mkdir(parents=True, exist_ok=True)
     (a.out / "twice.json").write_text(json.dumps(doc, indent=1) + "\n")
-    print(_table(rows))
-    print(f"\n{len(rows)} seeds, {doc['invariant_failures']} with an invariant failure, {doc['differences']} with a difference; "
-          f"{doc['wall_s']:.0f} s; wrote {a.out / 'twice.json'}")
-    return 1 if doc["invariant_failures"] or doc["differences"] else 0
+    (a.out / "twice.md").write_text(_table(rows) + "\n")
+    return doc
 
 
 if __name__ == "__main__":

@@ -259,4 +259,6 @@ class SelectorProtocol:
         k = self.next_plan.get(ref, -1)
         if k == 0 and not (len(self.alive) == self.n or self.clock() > self._startup_deadline or self.clock_seen):
             return None
+        if self.lockstep and k != 0:
+            return None  # lockstep: a step after the first only from its clock (a restarted selector that missed one waits)
         return k if 0 <= k < self.sc.steps and k not in self.planned else None

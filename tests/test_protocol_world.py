@@ -539,3 +539,45 @@ def test_a_restarted_agent_whose_state_did_not_get_through_asks_again_at_the_nex
     d.feed(*finish(3, (0, 1)), *finish(4, (0, 1)))
     assert [list(c.live_agents) for c in d.sent_on(K.clock())][-1] == [0, 1, 2], "live at step 5 (its state arrives at t = 4.x s)"
     assert [list(c.live_agents) for c in d.sent_on(K.clock())][-2] == [0, 1]
+
+
+def test_between_its_rounds_a_restarted_agents_asks_are_not_answered():
+    """The world answers a searching agent's asks only where it waits for its round (the
+    restart, then once per step after the clock): an ask at another moment (the agent missed
+    a clock in a failover and asks on a timer) would put its state on the radio at a point of
+    the step that depends on timing. It gets no answer, and asks again."""
+    sc = scenario(**LINKED)
+    d, w = _linked_restart(sc)
+    d.feed(_health(2, 2))  # the round at the restart brought nothing: the world goes on
+    assert w.serve_rejoin(K.rejoin(2, 0, 5000)) is None, "not answered between rounds"
+    d.feed(*finish(2, (0, 1)))
+    fate = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert fate is not None and fate.k == 3, "answered in its round of step 3"
+
+
+def test_a_selector_restarted_at_step_r_plans_from_r_plus_2():
+    """A selector started during step r heard neither the clock nor the reports of r − 1, and
+    (seen in a campaign) not always the clock of r: r and r + 1 fall back, whatever plans of
+    it came in; r + 2 is its."""
+    sc = scenario(selection={"strategy": "greedy", "budget": 2}, duration_s=8,
+                  faults=[{"at_step": 2, "action": "kill-selector"}, {"at_step": 4, "action": "restart-selector"}])
+    d, w, _ = started_world(sc, expect_selector=True)
+    d.feed(alive("selector"))
+    d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([0]), np.array([1]), run=RUN, sender="selector", k=0, t_s=0.0,
+                                                           strategy="greedy")))
+    d.feed(*finish(0))
+    d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([0]), np.array([1]), run=RUN, sender="selector", k=1,
+                                                           t_s=1.0, strategy="greedy")))
+    d.feed(*finish(1))
+    d.feed(alive("selector", up=False))
+    d.feed(*finish(2), *finish(3))
+    d.feed(alive("selector"))
+    for k in (4, 5):
+        d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([1]), np.array([2]), run=RUN, sender="selector", k=k,
+                                                               t_s=float(k), strategy="greedy")))
+        d.feed(*finish(k))
+    d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([1]), np.array([2]), run=RUN, sender="selector", k=6,
+                                                           t_s=6.0, strategy="greedy")))
+    mine = {s.k: s.sender for s in d.sent_on(K.select())}
+    assert mine.get(2) == mine.get(3) == mine.get(4) == mine.get(5) == "world", mine
+    assert 6 not in mine, "step 6: the restarted selector's plan"

@@ -168,7 +168,8 @@ class WorldProtocol:
         self._round_failed: dict[int, int] = {}  # satellite → the step of its last round that brought nothing
         self._delivered: dict[int, RejoinFate] = {}  # satellite → the fate of the state it rejoins from
         self._joins: dict[int, int] = {}  # satellite → the step from which it is live again (its state arrived)
-        self._selector_started_at = -1  # the step of a scheduled restart-selector (it plans from the next)
+        self._selector_started_at = -1  # the step of a scheduled restart-selector (it plans from the one after next)
+        self._awaiting_round: int | None = None  # the restarted agent whose round of asks the world waits for now
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -188,6 +189,8 @@ class WorldProtocol:
         i, peer, size = int(parts[1]), int(parts[2]), int(parts[3])
         if self.links is None or not (0 <= i < self.n and 0 <= peer < self.n) or i == peer:
             return None
+        if i in self._searching and self._awaiting_round != i:
+            return None  # asked between its rounds (it missed a clock): answered only where the world waits for it
         with self._radio_lock:
             t = self.k * self.sc.dt_s  # the step the world is at (its truth may not have reached it yet)
             fate, arrival = self.links.transfer(peer, i, size, t)
@@ -343,8 +346,10 @@ class WorldProtocol:
         """Wait for restarted agent t's round of asks at step k: its prior (a state got
         through: it is live from the first step that begins at its arrival, after this round)
         or its report that nothing did (it asks again at the next step)."""
+        self._awaiting_round = t
         ok = yield Wait(lambda: t not in self.alive_agents or t in self.ready or self._round_failed.get(t, -1) >= k,
                         self.sc.emulator.startup_timeout_s)
+        self._awaiting_round = None
         if not ok:
             log.warning("step %d: restarted agent %d's round of asks not over within %.0f s; going on", k, t,
                         self.sc.emulator.startup_timeout_s)
@@ -512,6 +517,7 @@ class WorldProtocol:
 
                 if self._searches(t):
                     self._searching[t] = k
+                    self._awaiting_round = t  # (its asks are answered from now: it may ask before its token is in)
                     self._delivered.pop(t, None)
                     self._round_failed.pop(t, None)
                     self._joins.pop(t, None)
@@ -568,10 +574,12 @@ class WorldProtocol:
         if not self.use_selector:
             return edges(self.G)
         em = self.sc.emulator
-        if self._selector_started_at == k and em.time_mode == "lockstep":
-            # A selector started during this step heard neither the clock nor the agents'
-            # reports of the step before, which it plans from: it plans from the next step, and
-            # this one falls back (whether its late plan came in time is no part of the run).
+        if self._selector_started_at >= 0 and k - self._selector_started_at in (0, 1) and em.time_mode == "lockstep":
+            # A selector started during step r heard neither the clock nor the agents' reports
+            # of r − 1, which it plans r from; nor, it was seen, always the clock of r (its
+            # token reached the world before its subscriptions had reached the world's router):
+            # it plans from r + 2, and r and r + 1 fall back (whether a plan of its came in time
+            # is no part of the run).
             self.selections.pop(k, None)
         elif "selector" in self.alive_roles:
             # Lockstep: a live selector is waited for as a live agent is (the step timeout
