@@ -561,7 +561,7 @@ def test_a_selector_restarted_at_step_r_plans_from_r_plus_2():
     it came in; r + 2 is its."""
     sc = scenario(selection={"strategy": "greedy", "budget": 2}, duration_s=8,
                   faults=[{"at_step": 2, "action": "kill-selector"}, {"at_step": 4, "action": "restart-selector"}])
-    d, w, _ = started_world(sc, expect_selector=True)
+    d, _w, _ = started_world(sc, expect_selector=True)
     d.feed(alive("selector"))
     d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([0]), np.array([1]), run=RUN, sender="selector", k=0, t_s=0.0,
                                                            strategy="greedy")))
