@@ -581,3 +581,17 @@ def test_a_selector_restarted_at_step_r_plans_from_r_plus_2():
     mine = {s.k: s.sender for s in d.sent_on(K.select())}
     assert mine.get(2) == mine.get(3) == mine.get(4) == mine.get(5) == "world", mine
     assert 6 not in mine, "step 6: the restarted selector's plan"
+
+
+def test_the_same_ask_twice_in_a_step_gets_the_same_answer_and_no_second_transfer():
+    """A searching agent that saw no clock for a while asks again on a timer; if the world is
+    still in the round it already answered (busy, or stalled), the repeat must not put the
+    state on the radio a second time (counted, recorded): one run's recording had one
+    transfer more than the other's."""
+    sc = scenario(**LINKED)
+    _d, w = _linked_restart(sc)
+    first = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    sent = int(w.links.counters.sent.sum())
+    again = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert again == first and int(w.links.counters.sent.sum()) == sent
+    assert sum(1 for m in w._rejoin_log if m.sat == 2) == 1

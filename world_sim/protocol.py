@@ -170,6 +170,7 @@ class WorldProtocol:
         self._joins: dict[int, int] = {}  # satellite → the step from which it is live again (its state arrived)
         self._selector_started_at = -1  # the step of a scheduled restart-selector (it plans from the one after next)
         self._awaiting_round: int | None = None  # the restarted agent whose round of asks the world waits for now
+        self._fates: dict[tuple[int, int, int], RejoinFate] = {}  # (agent, peer, step) → the answer given
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -192,11 +193,16 @@ class WorldProtocol:
         if i in self._searching and self._awaiting_round != i:
             return None  # asked between its rounds (it missed a clock): answered only where the world waits for it
         with self._radio_lock:
+            again = self._fates.get((i, peer, self.k))
+            if again is not None:
+                return again  # the same ask in the same step (the agent asked again on a timer): the same answer, no new transfer
             t = self.k * self.sc.dt_s  # the step the world is at (its truth may not have reached it yet)
             fate, arrival = self.links.transfer(peer, i, size, t)
         msg = RejoinFate(run=self.run_id, sender="world", k=self.k, t_s=t, sat=i, peer=peer, bytes=size, fate=fate,
                          arrival_t_s=arrival)
         self._rejoin_log.append(msg)
+        self._fates = {x: m for x, m in self._fates.items() if x[2] >= self.k - 1}
+        self._fates[(i, peer, self.k)] = msg
         if fate == "delivered":
             self._delivered.setdefault(i, msg)  # the agent takes the first state that gets through
         log.info("rejoin of %d from %d (%d B): %s%s", i, peer, size, fate, "" if arrival is None else f" at t = {arrival:.2f} s")
