@@ -344,8 +344,15 @@ class AgentProtocol:
         for m in candidates:
             size = len(encode(m))
             fate = yield Query(self.keys.rejoin(self.i, m.own, size), "rejoin", world_wait_s(self.sc.emulator))
-            if fate is None or fate.fate != "delivered":
-                self.log.info("rejoin state from agent %d: %s", m.own, "no answer" if fate is None else fate.fate)
+            if fate is None:
+                # Not answered: the world is not waiting for our round (we asked on a timer,
+                # its clock unseen) or the answer was lost. The round is all or nothing: asked
+                # again from the first candidate (a round begun before the world waited for it
+                # and finished after took another peer's state in one run than in the other).
+                self.log.info("rejoin state from agent %d: no answer; asking again", m.own)
+                return None, None
+            if fate.fate != "delivered":
+                self.log.info("rejoin state from agent %d: %s", m.own, fate.fate)
                 continue
             self.log.info("rejoin state from agent %d (%d B) arrives at t = %.2f s", m.own, size, fate.arrival_t_s)
             return m, fate

@@ -357,3 +357,36 @@ def test_a_graph_radio_agent_waits_for_and_misses_only_its_neighbours():
         (est,) = d.sent_on(K.est(0))
         assert est.k == k and list(est.batches_used) == delivered
         assert list(est.batches_missing) == [j for j in (1,) if j not in delivered], "only its neighbour can be missing"
+
+
+def test_a_round_of_asks_is_all_or_nothing():
+    """Links on, a restarted agent's round of asks: an ask the world does not answer (it is
+    not waiting for the round yet) ends the round, and the next round starts again from the
+    freshest peer. Seen in a campaign: the first ask unanswered, the second answered and
+    delivered: the agent took peer 1's state in one run and peer 0's in the other."""
+    from swarmrt.bus.messages import RejoinFate
+
+    sc = scenario(links={"enabled": True})
+    world = WorldScript(sc)
+    clock = FakeClock()
+    ests = {j: initial_estimate(sc, world.truth, j) for j in (1, 2)}
+    open_ = {"gate": False}
+    asks = []
+
+    def answer(q: Query):
+        if "/cov/" in q.key:
+            j = int(q.key.rsplit("/", 1)[1])
+            return full_estimate_msg(ests[j], run=RUN, sender=f"agent-{j}", own=j)
+        peer = int(q.key.rsplit("/", 2)[1])
+        asks.append((peer, open_["gate"]))
+        if not open_["gate"]:
+            open_["gate"] = True  # the world starts waiting for the round between two asks
+            return None
+        return RejoinFate(run=RUN, sender="world", k=3, t_s=3.0, sat=0, peer=peer, bytes=100, fate="delivered", arrival_t_s=3.0)
+
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), restart=True, clock=clock)
+    d = Driver(a, clock, answer=answer)
+    assert asks[:1] == [(1, False)] and not a.started, "the unanswered first ask ends the round"
+    d.elapse(2.5)
+    assert asks[1:] == [(1, True)], "the next round starts again from the freshest peer (1), not peer 2"
+    assert a.started and a.last_step == 2
