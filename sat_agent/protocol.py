@@ -307,7 +307,9 @@ class AgentProtocol:
                     # Nothing got through this round (our radio cut off, say): say so, and try
                     # again at the next step the world puts.
                     asked = int(fate.k)
-                    yield Send(self.keys.health(self.i), self._health(asked, asked * self.sc.dt_s))
+                    # (Its cameras as a process that has measured nothing yet knows them: all
+                    # on; the commands it has heard by now depend on timing.)
+                    yield Send(self.keys.health(self.i), self._health(asked, asked * self.sc.dt_s, cameras=np.ones(6, dtype=bool)))
                     first_round = False
                     yield Wait(lambda: self.done or any(c > asked for c in self.clocks), 2.0)
                     if self.done:
@@ -503,9 +505,10 @@ class AgentProtocol:
         received.sort(key=lambda r: (r.step, r.sender))
         return received
 
-    def _health(self, k: int, t: float) -> Health:
+    def _health(self, k: int, t: float, cameras=None) -> Health:
+        cameras = self.camera_ok if cameras is None else cameras
         return Health(
-            run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in self.camera_ok],
+            run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in cameras],
             malformed=self.malformed() + self.payloads_refused, batches_missing=self.batches_missing, batches_late=self.batches_late,
             drop_rate=self.drop_rate, host=_HOST, key_mismatch=self.key_mismatch(),
         )
