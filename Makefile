@@ -1,5 +1,5 @@
 # One command to set up and run the default swarm; one to set up and run the tests.
-.PHONY: setup demo sim test test-fast test-loaded check bench soak image rust-agent clean
+.PHONY: setup demo sim test test-fast test-loaded check bench soak soak-twice image rust-agent clean
 
 SWARM ?= .venv/bin/swarm
 DEMO_OUT ?= runs/demo
@@ -62,6 +62,15 @@ soak: setup
 		--set selection.strategy=greedy --set selection.budget=20 \
 		--set links.enabled=true --set links.latency.speed_of_light=false \
 		--routers 2 --seed 1 --out runs/soak
+
+# The repeat benchmark (issue 35): `swarm chaos --twice` over TWICE_SEEDS, 40 faults of every
+# kind a local run has (stalls of every role, link faults, failovers) on the default swarm with
+# a greedy selector and the link model on; every invariant of both runs and whether their numbers
+# and recordings are equal, one table: runs/soak/twice/twice.json (scripts/twice_soak.py).
+TWICE_SEEDS ?= 1-20
+TWICE_JOBS ?= 2
+soak-twice: setup
+	.venv/bin/python scripts/twice_soak.py --seeds $(TWICE_SEEDS) --faults 40 --duration 40 --jobs $(TWICE_JOBS) --out runs/soak/twice
 
 # The container image (makes the local base image and the wheelhouse when needed).
 image:

@@ -44,6 +44,7 @@ class Agent(Node):
         self.watch_liveliness(self.keys.alive("agent"))
         self.watch_liveliness(self.keys.alive("world"))  # gone before the end: the run is broken
         self.watch_liveliness(self.keys.alive("recorder"))  # back after a bus gap: it is sent the step again
+        self.watch_liveliness(self.keys.alive("selector"))  # back after a bus gap: its health reports again (it plans from them)
         self.set_bus_limits(sc.emulator, hold_world=True)
         self.queryable(self.keys.cov(sat), self.machine.serve_cov)
         warm = getattr(pose, "warm_up", None)

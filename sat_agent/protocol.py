@@ -74,6 +74,7 @@ from swarmrt.protocol import (
     Send,
     Wait,
     WorldLost,
+    arrival_step,
     first_time,
     message_dropped,
     outbox_steps,
@@ -265,62 +266,99 @@ class AgentProtocol:
             yield Send(self.keys.health(self.i), self._health(k_now, self.clocks[k_now].t_s if k_now in self.clocks else 0.0))
             return
         if self.restart:
-            # A restarted agent borrows a live peer's full estimate: it asks every peer it
-            # knows to be alive (in lockstep the world holds the clock until we are back, so
-            # no new estimate would come to tell us who is freshest) and takes the latest
-            # step, then the lowest id.
-            yield Wait(lambda: bool(self.peers_alive), em.startup_timeout_s)
-            yield Wait(lambda: False, 0.0)  # take in every liveliness token already announced
+            # A restarted agent borrows a peer's full estimate. In lockstep the world holds the
+            # step while it restarts, so every running peer serves its estimate of the step
+            # before (a peer still restarting serves nothing): it asks every other satellite's
+            # agent, whichever tokens it has heard of yet (that depended on how fast they came:
+            # a chaos campaign's two runs took different peers), waits for a stalled one, and
+            # takes the latest step, then the lowest id.
             while not self.started:
-                peers = sorted(self.peers_alive)
-                if not peers:
-                    raise SystemExit(f"agent {self.i}: no live peer to initialise from")
-                got = []
-                for j in peers:
-                    msg = yield Query(self.keys.cov(j), "full_est", 5.0)
-                    if msg is not None and msg.own == j:
-                        got.append(msg)
-                    else:
-                        self.peers_alive.discard(j)
+                got = yield from self._peer_states()
                 if not got:
-                    yield Wait(lambda: bool(self.peers_alive), em.startup_timeout_s)
+                    self.log.warning("no peer serves an estimate to restart from; asking again")
+                    yield Wait(lambda: False, min(em.step_timeout_s, 1.0))
                     continue
-                got.sort(key=lambda m: (-m.k, m.own))
-                msg = got[0]
-                if self.linked:
-                    # The state crosses the radio: ask the world (the channel) what becomes of
-                    # it, freshest peer first; wait for its arrival in simulated time.
-                    msg = yield from self._through_the_radio(got)
-                    if msg is None:
-                        yield Wait(lambda: False, min(em.step_timeout_s, 1.0))
+                if not self.linked:
+                    msg = got[0]
+                    self.estimator.rejoin(estimate_from_full(msg, self.n), int(msg.own), None)
+                    break
+                # The state crosses the radio: one round of asks a step (the world waits for each
+                # round at a fixed point of its step, so that the transfer's fate and arrival do
+                # not depend on when we ask): the freshest peer first.
+                first_round = True
+                asked = -1
+                while not self.started:
+                    msg, fate = yield from self._through_the_radio(got)
+                    if msg is None and (fate is None or int(fate.k) <= asked):
+                        # Not answered (the world answers a round only where it waits for it):
+                        # the clock that starts it went by unseen (a failover). Ask again soon.
+                        yield Wait(lambda: self.done or any(c > asked for c in self.clocks), 2.0)
+                        if self.done:
+                            raise SystemExit(f"agent {self.i}: the run ended before a peer's state got through the radio")
                         continue
-                # It arrived some steps later: carry it to the swarm's present (no gyro
-                # samples meanwhile: the world sends sensors only to live agents).
-                now = max(self.clocks) if self.linked and self.clocks else None
-                self.estimator.rejoin(estimate_from_full(msg, self.n), int(msg.own), now)
-                self.started = True
-                self.last_step = self.estimator.step_index
-                self.log.info("restarted from agent %d's estimate at step %d", msg.own, self.estimator.step_index)
+                    if msg is not None:
+                        # In use from the first step that begins at or after its arrival (and
+                        # after this round: the world has put the clock of a later round's step).
+                        join = max(arrival_step(fate.arrival_t_s, self.sc.dt_s), int(fate.k) + (0 if first_round else 1))
+                        # Carried to the step before it (no gyro samples meanwhile: the world
+                        # sends sensors only to live agents); the world lists us live from join on.
+                        self.estimator.rejoin(estimate_from_full(msg, self.n), int(msg.own), join)
+                        break
+                    # Nothing got through this round (our radio cut off, say): say so, and try
+                    # again at the next step the world puts.
+                    asked = int(fate.k)
+                    # (Its cameras as a process that has measured nothing yet knows them: all
+                    # on; the commands it has heard by now depend on timing.)
+                    yield Send(self.keys.health(self.i), self._health(asked, asked * self.sc.dt_s, cameras=np.ones(6, dtype=bool)))
+                    first_round = False
+                    yield Wait(lambda: self.done or any(c > asked for c in self.clocks), 2.0)
+                    if self.done:
+                        raise SystemExit(f"agent {self.i}: the run ended before a peer's state got through the radio")
+                break
+            self.started = True
+            self.last_step = self.estimator.step_index
+            self.log.info("restarted from agent %d's estimate at step %d", msg.own, self.estimator.step_index)
         self._served = self.est
         yield Send(self.keys.est(self.i), view_msg(self.estimator.view(), run=self.run_id, sender=self.name, phase="prior",
                                                     estimator=self.estimator.kind))
 
+    def _peer_states(self):
+        """Every other satellite's agent's full estimate (those that serve one: a dead or
+        restarting agent answers at once with nothing), freshest first, then lowest id. A
+        stalled peer is waited for (the world's wait for a step's message): its answer comes
+        when it runs again."""
+        got = []
+        for j in range(self.n):
+            if j == self.i:
+                continue
+            msg = yield Query(self.keys.cov(j), "full_est", world_wait_s(self.sc.emulator))
+            if msg is not None and msg.own == j:
+                got.append(msg)
+        got.sort(key=lambda m: (-m.k, m.own))
+        return got
+
     def _through_the_radio(self, candidates):
-        """The first peer estimate (in order of preference) the radio delivers, once it has
-        arrived (a clock at or after its arrival time); None if none gets through."""
+        """One round: the first peer estimate (in order of preference) the radio delivers and
+        its fate; (None, the last fate) if none gets through."""
         from swarmrt.bus.messages import encode
 
+        fate = None
         for m in candidates:
             size = len(encode(m))
-            fate = yield Query(self.keys.rejoin(self.i, m.own, size), "rejoin", 5.0)
-            if fate is None or fate.fate != "delivered":
-                self.log.info("rejoin state from agent %d: %s", m.own, "no answer" if fate is None else fate.fate)
+            fate = yield Query(self.keys.rejoin(self.i, m.own, size), "rejoin", world_wait_s(self.sc.emulator))
+            if fate is None:
+                # Not answered: the world is not waiting for our round (we asked on a timer,
+                # its clock unseen) or the answer was lost. The round is all or nothing: asked
+                # again from the first candidate (a round begun before the world waited for it
+                # and finished after took another peer's state in one run than in the other).
+                self.log.info("rejoin state from agent %d: no answer; asking again", m.own)
+                return None, None
+            if fate.fate != "delivered":
+                self.log.info("rejoin state from agent %d: %s", m.own, fate.fate)
                 continue
-            t_a = fate.arrival_t_s
-            self.log.info("rejoin state from agent %d (%d B) arrives at t = %.2f s", m.own, size, t_a)
-            yield Wait(lambda: any(c.t_s >= t_a for c in self.clocks.values()) or self.done, self.sc.emulator.startup_timeout_s)
-            return m
-        return None
+            self.log.info("rejoin state from agent %d (%d B) arrives at t = %.2f s", m.own, size, fate.arrival_t_s)
+            return m, fate
+        return None, fate
 
     # -- steps --------------------------------------------------------------------
     def _gyro_of(self, s: int):
@@ -334,7 +372,16 @@ class AgentProtocol:
         """Measure our own camera delivery (image pipelines start from the prediction)."""
         e = self.estimator
         if not self.pose.needs_prediction:
-            return self.pose.measure(self.i, detections_from_msg(self.cams.pop(k), self.camera_ok) if k in self.cams else None,
+            msg = self.cams.pop(k, None)
+            if msg is not None:
+                # The step's camera delivery says which cameras are off (the hardware's state):
+                # that, not the commands this process happened to hear (a restarted agent, or
+                # one whose link was down when a command went by, heard fewer), is what the
+                # satellite measures with and reports in its health (the selector plans the
+                # next step from those reports).
+                self.camera_ok = np.ones(6, dtype=bool)
+                self.camera_ok[[int(c) for c in msg.cameras_off if 0 <= int(c) < 6]] = False
+            return self.pose.measure(self.i, detections_from_msg(msg, self.camera_ok) if msg is not None else None,
                                      e.prediction() if self.started else None, k)
         msg = self.imgs.pop(k, None)
         obs = None
@@ -458,9 +505,10 @@ class AgentProtocol:
         received.sort(key=lambda r: (r.step, r.sender))
         return received
 
-    def _health(self, k: int, t: float) -> Health:
+    def _health(self, k: int, t: float, cameras=None) -> Health:
+        cameras = self.camera_ok if cameras is None else cameras
         return Health(
-            run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in self.camera_ok],
+            run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in cameras],
             malformed=self.malformed() + self.payloads_refused, batches_missing=self.batches_missing, batches_late=self.batches_late,
             drop_rate=self.drop_rate, host=_HOST, key_mismatch=self.key_mismatch(),
         )

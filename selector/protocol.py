@@ -3,8 +3,22 @@
 It plans step k from a reference agent's estimate — the lowest-numbered live agent —
 exactly as the in-process simulator does (:func:`swarmcore.selection.choose_pairs`): the
 agent's posterior at k−1 carried to k without its gyro (its prior at k = 0), fetched in
-full from ``cov/<ref>``. Camera health (fault commands, agents' health reports) and dead
-satellites (liveliness) remove candidates (:func:`swarmcore.selection.mask_dead`).
+full from ``cov/<ref>``. Camera health and dead satellites remove candidates
+(:func:`swarmcore.selection.mask_dead`).
+
+In lockstep it plans step k when the world's clock of k comes, from what is fixed by the
+steps themselves: the live agents of step k (the clock; the reference is the lowest of them,
+every other satellite's cameras are off), and the cameras of each agent live at k − 1 and k
+as its health report of step k − 1 gives them (the world's camera state at that step, which
+the agent takes from its camera delivery); it waits for those reports. A selector started
+during step k (a restart) plans from k + 1 (the world falls back at k): it heard neither the
+clock nor the reports of k − 1. Planned earlier, on the reference's estimate of k − 1 and
+with whatever commands and liveliness had arrived, a selection of k was made before or after
+the faults of step k had been heard (a camera switched off, the reference killed, the
+selector itself killed with its plan of k already sent or not; a command missed in a
+failover and sent again later), and a chaos campaign's two runs differed (issue 35).
+Free-running, where nothing waits, it plans as soon as the reference's estimate or health
+of k − 1 comes, with what it knows then (liveliness, commands and health reports).
 """
 
 from __future__ import annotations
@@ -21,7 +35,7 @@ from swarmcore.scenario import Scenario
 from swarmcore.selection import choose_pairs, mask_dead
 from swarmrt.bus.convert import estimate_from_full, select_msg
 from swarmrt.bus.messages import Fault, Keys
-from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost, outbox_steps
+from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost, outbox_steps, world_wait_s
 
 __all__ = ["SelectorProtocol"]
 
@@ -51,6 +65,10 @@ class SelectorProtocol:
         self.world_seen = False
         self.outbox = Outbox(keep=outbox_steps(sc.emulator))  # the latest selections, sent again when the bus comes back
         self._clock_only: set[int] = set()  # steps known plannable from the world's clock alone (lockstep)
+        self.lockstep = sc.emulator.time_mode == "lockstep"
+        # Lockstep: each clock's live agents, and each step's health reports' cameras.
+        self.steps: dict[int, list[int]] = {}
+        self.cams_at: dict[int, dict[int, np.ndarray]] = {}
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
@@ -72,6 +90,7 @@ class SelectorProtocol:
             self._clock_only.discard(plan_k)
         elif ev.kind == "health":
             self.camera_ok[ev.msg.sat] = ev.msg.camera_ok
+            self.cams_at.setdefault(int(ev.msg.k), {})[int(ev.msg.sat)] = np.array(ev.msg.camera_ok, dtype=bool)
             # An agent's health report follows its update of step k (a drop fault loses its
             # estimate, never its health): step k + 1 can be planned from what it serves. With
             # the estimate alone a dropped one left the world waiting a step timeout for a plan.
@@ -85,6 +104,14 @@ class SelectorProtocol:
             self.clock_seen = True
             self.done = self.done or ev.msg.done
             k = int(ev.msg.k)
+            if self.lockstep and not ev.msg.done:
+                # The step's own state: the selection of k is planned from it (the module's docstring).
+                self.steps.setdefault(k, sorted(int(i) for i in ev.msg.live_agents))
+                for old in [s for s in self.steps if s < k - 2]:
+                    del self.steps[old]
+                for old in [s for s in self.cams_at if s < k - 2]:
+                    del self.cams_at[old]
+                return []
             ref = self.ref_agent()
             lockstep = self.sc.emulator.time_mode == "lockstep" and not ev.msg.done
             if lockstep and k >= 1 and ref is not None and self.next_plan.get(ref, -1) < k:
@@ -98,8 +125,14 @@ class SelectorProtocol:
                 self._clock_only.add(k)
         return []
 
-    def plan(self, k: int, ref: int, msg=None):
+    def plan(self, k: int, ref: int, msg=None, live=None, cams=None):
+        """Plan step k from agent ``ref``'s estimate (``msg``, or asked for), masking the
+        satellites not in ``live`` with cameras ``cams`` (default: what this selector knows
+        now: liveliness, commands and health reports)."""
         sc = self.sc
+        live = self.alive if live is None else live
+        cams = self.camera_ok if cams is None else cams
+        behind = k in self._clock_only or (self.lockstep and k in self.steps)
         t0 = time.perf_counter()
         est = None
         # Every strategy plans from the reference estimate when there is one, as in the
@@ -110,7 +143,7 @@ class SelectorProtocol:
         # world takes the selection only select_timeout_s after the bus is back.
         em = sc.emulator
         if not self.plans_from_estimate:
-            obs, tgt = choose_pairs(sc, k, self.G, None, None, mask_dead(self.camera_ok, self.alive))
+            obs, tgt = choose_pairs(sc, k, self.G, None, None, mask_dead(cams, live))
             self.outbox.clear()
             yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
                                                       strategy=sc.selection.strategy, ref_agent=ref,
@@ -120,18 +153,18 @@ class SelectorProtocol:
         deadline = self.clock() + em.step_timeout_s
         while msg is None:
             msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
-            if msg is not None and k in self._clock_only and msg.k < k - 1:
+            if msg is not None and behind and msg.k < k - 1:
                 # Planned on the clock alone, and the reference is still behind (a world that
                 # moved on without its estimate: stalled, say): not its estimate of k − 1 yet.
                 msg = None
-                yield Wait(lambda: self.done or k not in self._clock_only, 0.2)
+                yield Wait(lambda: self.done or not (k in self._clock_only or (self.lockstep and k in self.steps)), 0.2)
             if msg is None and (self.clock() >= deadline or self.done):
                 break
         if msg is None:
             log.warning("step %d: agent %d did not serve its estimate", k, ref)
             return
         est = estimate_from_full(msg, self.n)
-        obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(self.camera_ok, self.alive))
+        obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(cams, live))
         ms = (time.perf_counter() - t0) * 1e3
         self.outbox.clear()
         yield Send(self.keys.select(), select_msg(obs, tgt, run=self.run_id, sender="selector", k=k, t_s=k * sc.dt_s,
@@ -166,6 +199,32 @@ class SelectorProtocol:
             # one again is paced by the timeout).
             yield Wait(lambda: self.done or self._work() is not None or (self._first_pending() and self.ref_agent() != self._asked_first),
                        0.5)
+            if self.lockstep and self.steps:
+                # The run is under way: plan the step of the latest clock, from its own state.
+                k = self._work()
+                if k is None:
+                    continue
+                live = self.steps[k]
+                if not live:
+                    self.planned.add(k)  # no live agent to plan from: the world falls back
+                    continue
+                if k == 0:
+                    yield from self.plan(0, min(live), live=live, cams=np.ones((self.n, 6), dtype=bool))
+                    continue
+                need = [i for i in live if i in self.steps[k - 1]]
+                got = yield Wait(lambda k=k, need=need: self.done or max(self.steps) > k
+                                 or all(i in self.cams_at.get(k - 1, {}) for i in need), world_wait_s(self.sc.emulator))
+                if self.done or max(self.steps) > k:
+                    continue  # a newer step to plan
+                if not got:
+                    log.warning("step %d: no health report of step %d from %s; their cameras taken as on", k, k - 1,
+                                [i for i in need if i not in self.cams_at.get(k - 1, {})])
+                cams = np.ones((self.n, 6), dtype=bool)
+                for i, ok in self.cams_at.get(k - 1, {}).items():
+                    if i in need:
+                        cams[i] = ok
+                yield from self.plan(k, min(live), live=live, cams=cams)
+                continue
             # Plan from the reference agent's latest estimate only (the lowest live id).
             ref = self.ref_agent()
             if ref is None:
@@ -187,11 +246,19 @@ class SelectorProtocol:
 
     def _work(self):
         """The step there is something to plan for now, if any (step 0 only once the
-        reference is settled, as for :meth:`_first_pending`)."""
+        reference is settled, as for :meth:`_first_pending`; in lockstep, once the run is
+        under way, the step of the latest clock)."""
+        if self.lockstep and self.steps:
+            k = max(self.steps)
+            if k == 0 and 0 not in self.planned:
+                return 0  # (step 0 not planned before its clock: from the reference's prior)
+            return k if 0 < k < self.sc.steps and k - 1 in self.steps and k not in self.planned else None
         ref = self.ref_agent()
         if ref is None:
             return None
         k = self.next_plan.get(ref, -1)
         if k == 0 and not (len(self.alive) == self.n or self.clock() > self._startup_deadline or self.clock_seen):
             return None
+        if self.lockstep and k != 0:
+            return None  # lockstep: a step after the first only from its clock (a restarted selector that missed one waits)
         return k if 0 <= k < self.sc.steps and k not in self.planned else None

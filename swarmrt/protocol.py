@@ -17,6 +17,7 @@ as that sequence, and the generator's frame is the machine's state.
 from __future__ import annotations
 
 import collections
+import math
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
@@ -24,7 +25,7 @@ from typing import Any, NamedTuple, Protocol
 from swarmcore.streams import stream
 
 __all__ = ["Event", "Send", "Query", "Wait", "Action", "Machine", "Clock", "RunBroken", "BusLost", "WorldLost",
-           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "EXIT_AGENT_LOST", "BUS_LEASE_S", "world_wait_s", "Outbox", "outbox_steps", "first_time", "DROP_BATCH", "DROP_ESTIMATE", "message_dropped"]
+           "EXIT_BUS_LOST", "EXIT_WORLD_LOST", "EXIT_AGENT_LOST", "BUS_LEASE_S", "world_wait_s", "Outbox", "outbox_steps", "arrival_step", "first_time", "DROP_BATCH", "DROP_ESTIMATE", "message_dropped"]
 
 #: Exit status of a role (and of ``swarm run``) whose bus did not come back within
 #: ``emulator.bus_lost_after_s``, and of one whose world is gone before the run's end.
@@ -166,6 +167,13 @@ class Outbox:
         if ev.kind == "resync":
             return [*self.previous, *self.sends]
         return []
+
+
+def arrival_step(t_s: float, dt_s: float) -> int:
+    """The first step that begins at or after simulated time ``t_s`` (steps of ``dt_s``): from
+    it on, what arrived at ``t_s`` is in use. The world and a restarted agent both work out
+    from a state transfer's arrival (links on) the step at which the agent joins the swarm."""
+    return max(0, math.ceil(t_s / dt_s - 1e-9))
 
 
 def first_time(seen: set[bytes], command) -> bool:

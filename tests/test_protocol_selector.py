@@ -62,22 +62,111 @@ def _running_selector(sc: Scenario | None = None):
     return d, post
 
 
+def clock(k: int, live) -> Event:
+    return Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=k, t_s=float(k), live_agents=list(live)))
+
+
 def test_next_step_planned_from_the_lowest_live_agent_and_dead_observers_masked():
+    """Lockstep: step k is planned when its clock comes, from the agents it lists live (the
+    reference is the lowest of them; the others' cameras are off)."""
     d, post = _running_selector()
     d.feed(alive(0, up=False))
     d.feed(Event(K.est(1), "est", 1, msg=estimate_msg(post[1], run=RUN, sender="agent-1", own=1)))
+    d.feed(*(_health(i, 0) for i in range(4)))
+    assert not d.sent_on(K.select()), "lockstep: nothing is planned before the step's clock"
+    d.feed(clock(1, [1, 2, 3]))
     (sel,) = d.sent_on(K.select())
-    assert sel.k == 1 and sel.ref_agent == 1
+    assert sel.k == 1 and sel.ref_agent == 1 and [q.key for q in d.queries][-1] == K.cov(1)
     assert all(o != 0 for o in sel.observer), "a dead satellite measures nothing"
 
 
-def test_a_dropped_estimate_of_the_reference_agent_does_not_hold_the_plan():
-    """A drop fault loses the reference agent's estimate of step k but never its health
-    report, which also follows its update: step k + 1 is planned from what it serves, at
-    once (with the estimate alone the world waited a whole step timeout, then fell back)."""
+def _health(i: int, k: int, off=()) -> Event:
     from swarmrt.bus.messages import Health
 
+    cams = [c not in off for c in range(6)]
+    return Event(K.health(i), "health", i, msg=Health(run=RUN, sender=f"agent-{i}", k=k, t_s=float(k), sat=i, camera_ok=cams, host="h"))
+
+
+def _plan_of_step_1(order: str):
+    """Agent 0 (the reference) killed at step 1; camera 2 of satellite 1 off at step 0, as its
+    health report of step 0 says; a camera command of step 1 and a stale one sent again: the
+    selection of step 1, the events in ``order``."""
+    from swarmrt.bus.messages import Fault
+
+    d, post = _running_selector()
+    est = Event(K.est(0), "est", 0, msg=estimate_msg(post[0], run=RUN, sender="agent-0", own=0))
+    cam = Event(K.fault(), "fault", None, msg=Fault(run=RUN, sender="world", k=1, t_s=1.0, phase="command", action="camera",
+                                                    target=3, camera=1, state="off"))
+    stale = Event(K.fault(), "fault", None, msg=Fault(run=RUN, sender="world", k=0, t_s=0.0, phase="command", action="camera",
+                                                      target=2, camera=3, state="off"))
+    events = {"est": est, "cam": cam, "stale": stale, "dead": alive(0, up=False), "clock": clock(1, [1, 2, 3]),
+              "health": [_health(1, 0, off=(2,)), _health(2, 0), _health(3, 0), _health(0, 0)]}
+    for name in order.split():
+        e = events[name]
+        d.feed(*(e if isinstance(e, list) else [e]))
+    (sel,) = d.sent_on(K.select())
+    return sel
+
+
+def test_the_plan_of_a_step_does_not_depend_on_when_its_faults_were_heard():
+    """Issue 35: a chaos campaign's two runs planned step 2 differently: planned on the
+    reference's estimate of the step before, a selection was made before or after the step's
+    faults (the selector killed, a camera off, the reference killed) had reached the
+    selector. Now it is planned when the step's clock comes, from the agents it lists live
+    and the cameras of their health reports of the step before (waited for): whatever the
+    order the reference's estimate, fault commands (a stale one sent again after a failover
+    among them), liveliness and reports came in, the same selection."""
+    orders = ["est cam dead health clock", "cam est clock dead health", "health dead cam stale est clock",
+              "clock cam stale dead est health", "stale health clock"]
+    sels = [_plan_of_step_1(o) for o in orders]
+    for sel in sels:
+        assert (sel.k, sel.ref_agent) == (1, 1)
+        assert list(sel.observer) == list(sels[0].observer) and list(sel.target) == list(sels[0].target)
+        assert all(o != 0 for o in sel.observer)
+
+
+def test_the_plan_waits_for_the_health_reports_of_the_step_before():
+    """The cameras it plans with are those of the live agents' reports of the step before:
+    until every one of them is in, nothing is planned."""
     d, _post = _running_selector()
+    d.feed(clock(1, [0, 1, 2, 3]), _health(0, 0), _health(1, 0))
+    assert not d.sent_on(K.select())
+    d.feed(_health(2, 0), _health(3, 0, off=(0, 1, 2, 3, 4, 5)))
+    (sel,) = d.sent_on(K.select())
+    assert sel.k == 1 and all(o != 3 for o in sel.observer), "satellite 3's cameras are all off"
+
+
+def test_a_selector_started_during_a_step_plans_from_the_next():
+    """Started during step k (a restart), it heard neither the clock nor the reports of k − 1:
+    it plans k + 1, not k, whatever old clocks it is sent again."""
+    sc = scenario()
+    truth = initial_truth(sc)
+    post = {i: initial_estimate(sc, truth, i) for i in range(4)}
+    import dataclasses
+
+    post = {i: dataclasses.replace(e, step=2, t=2.0) for i, e in post.items()}  # every agent has finished step 2
+    clk = FakeClock()
+    s = SelectorProtocol(sc, RUN, clock=clk)
+    d = Driver(s, clk, answer=lambda q: full_estimate_msg(post[int(q.key[-1])], run=RUN, sender="x", own=int(q.key[-1])))
+    d.feed(alive(0), alive(1), alive(2), alive(3))
+    d.feed(clock(2, [0, 1, 2, 3]))
+    assert not d.sent_on(K.select()), "no clock of step 1: step 2 is not planned"
+    d.feed(clock(0, [0, 1, 2, 3]), clock(1, [0, 1, 2, 3]))  # old clocks sent again (a failover)
+    assert not d.sent_on(K.select()), "nor are old steps"
+    d.feed(*(_health(i, 2) for i in range(4)))
+    d.feed(clock(3, [0, 1, 2, 3]))
+    (sel,) = d.sent_on(K.select())
+    assert sel.k == 3
+
+
+def test_a_dropped_estimate_of_the_reference_agent_does_not_hold_the_plan():
+    """Free-running: a drop fault loses the reference agent's estimate of step k but never
+    its health report, which also follows its update: step k + 1 is planned from what it
+    serves, at once (with the estimate alone the world waited a whole step timeout, then
+    fell back)."""
+    from swarmrt.bus.messages import Health
+
+    d, _post = _running_selector(scenario("free"))
     health = Health(run=RUN, sender="agent-0", k=0, t_s=0.0, sat=0, camera_ok=[True] * 6, drop_rate=0.5, host="h")
     d.feed(Event(K.health(0), "health", 0, msg=health))
     (sel,) = d.sent_on(K.select())
@@ -85,13 +174,15 @@ def test_a_dropped_estimate_of_the_reference_agent_does_not_hold_the_plan():
 
 
 def test_the_clock_of_a_step_is_enough_to_plan_it_in_lockstep():
-    """A router restart can lose the reference agent's estimate and health of step k − 1
-    (sent into the gap, resent before the selector's subscriptions were back). In lockstep
-    the world puts the clock of k only once every live agent has finished k − 1: the clock
-    alone lets the selector plan k from what the reference agent serves (CI saw the world
-    wait 30 s for a selection that never came, then fall back, changing the schedule)."""
+    """A router restart can lose the reference agent's estimate of step k − 1 (sent into the
+    gap, resent before the selector's subscriptions were back). In lockstep the world puts
+    the clock of k only once every live agent has finished k − 1: the clock and the agents'
+    reports of k − 1 (which every agent sends again when the selector's token comes back) let
+    the selector plan k from what the reference agent serves (CI saw the world wait 30 s for
+    a selection that never came, then fall back, changing the schedule)."""
     d, _post = _running_selector()
     assert not d.sent_on(K.select())
+    d.feed(*(_health(i, 0) for i in range(4)))
     d.feed(Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=1, t_s=1.0, live_agents=[0, 1, 2, 3])))
     (sel,) = d.sent_on(K.select())
     assert sel.k == 1 and sel.ref_agent == 0 and [q.key for q in d.queries][-1] == K.cov(0)
@@ -109,17 +200,18 @@ def test_free_running_the_clock_alone_plans_nothing():
     assert not d.sent_on(K.select())
 
 
-def test_on_the_clock_alone_a_reference_still_behind_is_waited_for():
+def test_a_reference_still_behind_is_waited_for():
     """The world moved on to step 2 without the reference agent's estimate of step 1 (a
-    stalled agent past the step timeout): what it serves is of step 0, older than step 1, so
-    the selector does not plan from it; once it serves its estimate of step 1, it plans."""
+    stalled agent past the step timeout): its report of step 1 has not come and what it
+    serves is of step 0, so the selector does not plan from it; once it has finished step 1
+    (its report, and what it serves), it plans."""
     import dataclasses
 
     d, served = _running_selector()  # every agent serves its estimate of step 0
-    d.feed(Event(K.clock(), "clock", None, msg=Clock(run=RUN, sender="world", k=2, t_s=2.0, live_agents=[0, 1, 2, 3])))
+    d.feed(clock(1, [0, 1, 2, 3]), clock(2, [0, 1, 2, 3]), *(_health(i, 1) for i in (1, 2, 3)))
     d.elapse(1.0)
-    assert not d.sent_on(K.select()) and d.queries[-1].key == K.cov(0)
+    assert not [s for s in d.sent_on(K.select()) if s.k == 2]
     served[0] = dataclasses.replace(served[0], step=1, t=1.0)  # it finished step 1
-    d.elapse(0.3)
-    (sel,) = d.sent_on(K.select())
-    assert sel.k == 2 and sel.ref_agent == 0
+    d.feed(_health(0, 1))
+    (sel,) = [s for s in d.sent_on(K.select()) if s.k == 2]
+    assert sel.ref_agent == 0 and d.queries[-1].key == K.cov(0)

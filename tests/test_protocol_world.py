@@ -485,3 +485,113 @@ def test_graph_radio_sends_each_agent_its_neighbours_batches_only():
     d.take()
     d.feed(batch(1, 0, [2]))
     assert sorted(s.key for s in d.take()) == sorted([K.batches(0), K.batches(2)])  # 1's neighbours, nobody else
+
+
+def _linked_restart(sc: Scenario):
+    """Agent 2 killed at step 1 and restarted at step 2, links on: the world at its restart,
+    agent 2's token back."""
+    d, w, _ = started_world(sc, warm_rejoin=True)
+    d.take()
+    d.feed(*finish(0))
+    d.feed(alive("agent", 2, up=False))
+    d.feed(*finish(1, (0, 1)))
+    assert [f.action for f in d.sent_on(K.fault())][-1] == "restart-agent"
+    d.feed(alive("agent", 2))
+    return d, w
+
+
+LINKED = {"links": {"enabled": True, "latency": {"fixed_s": 1.5, "speed_of_light": False}}, "duration_s": 8, "faults": RESTART}
+
+
+def test_a_restarted_agent_joins_at_the_step_its_state_arrives_in_whenever_its_prior_comes():
+    """Issue 35: with links on, the world went on once the restarted agent had asked for its
+    state, and counted it live at whichever clock followed its prior: a step that depended
+    on the machine's load. Now the world waits for its round of asks at the restart (its
+    prior, or its word that nothing got through) and lists it from the first step that
+    begins at or after its state's arrival."""
+    sc = scenario(**LINKED)
+    d, w = _linked_restart(sc)
+    assert [c.k for c in d.sent_on(K.clock())] == [1], "the restart waits for the agent's round"
+    fate = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert fate.fate == "delivered" and fate.k == 2 and 3.0 < fate.arrival_t_s < 4.0
+    assert [c.k for c in d.sent_on(K.clock())] == [1], "its prior is not in yet"
+    d.feed(est(2, 3, "prior"))
+    d.feed(*finish(2, (0, 1)), *finish(3, (0, 1)))
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())] == [[0, 1], [0, 1], [0, 1], [0, 1, 2]], \
+        "live from step 4 (its state arrives at t = 3.x s), not from the clock after its prior"
+
+
+def test_a_restarted_agent_whose_state_did_not_get_through_asks_again_at_the_next_step():
+    """Its radio cut off, nothing gets through in its round at the restart: it says so (a
+    health report), the world goes on without it and waits, after the next clock, for its
+    next round; that one's state counts from the step after it."""
+    sc = scenario(**LINKED)
+    d, w = _linked_restart(sc)
+    d.feed(_health(2, 2))  # the round at the restart brought nothing
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())] == [[0, 1], [0, 1]]
+    d.feed(*finish(2, (0, 1)))
+    assert [c.k for c in d.sent_on(K.clock())][-1] == 3
+    assert d.sent_on(K.cam(0))[-1].k != 3, "step 3 waits for the agent's round before its selection and cameras"
+    fate = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert fate.k == 3 and fate.fate == "delivered"
+    d.feed(est(2, 4, "prior"))
+    assert d.sent_on(K.cam(0))[-1].k == 3
+    d.feed(*finish(3, (0, 1)), *finish(4, (0, 1)))
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())][-1] == [0, 1, 2], "live at step 5 (its state arrives at t = 4.x s)"
+    assert [list(c.live_agents) for c in d.sent_on(K.clock())][-2] == [0, 1]
+
+
+def test_between_its_rounds_a_restarted_agents_asks_are_not_answered():
+    """The world answers a searching agent's asks only where it waits for its round (the
+    restart, then once per step after the clock): an ask at another moment (the agent missed
+    a clock in a failover and asks on a timer) would put its state on the radio at a point of
+    the step that depends on timing. It gets no answer, and asks again."""
+    sc = scenario(**LINKED)
+    d, w = _linked_restart(sc)
+    d.feed(_health(2, 2))  # the round at the restart brought nothing: the world goes on
+    assert w.serve_rejoin(K.rejoin(2, 0, 5000)) is None, "not answered between rounds"
+    d.feed(*finish(2, (0, 1)))
+    fate = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert fate is not None and fate.k == 3, "answered in its round of step 3"
+
+
+def test_a_selector_restarted_at_step_r_plans_from_r_plus_2():
+    """A selector started during step r heard neither the clock nor the reports of r − 1, and
+    (seen in a campaign) not always the clock of r: r and r + 1 fall back, whatever plans of
+    it came in; r + 2 is its."""
+    sc = scenario(selection={"strategy": "greedy", "budget": 2}, duration_s=8,
+                  faults=[{"at_step": 2, "action": "kill-selector"}, {"at_step": 4, "action": "restart-selector"}])
+    d, _w, _ = started_world(sc, expect_selector=True)
+    d.feed(alive("selector"))
+    d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([0]), np.array([1]), run=RUN, sender="selector", k=0, t_s=0.0,
+                                                           strategy="greedy")))
+    d.feed(*finish(0))
+    d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([0]), np.array([1]), run=RUN, sender="selector", k=1,
+                                                           t_s=1.0, strategy="greedy")))
+    d.feed(*finish(1))
+    d.feed(alive("selector", up=False))
+    d.feed(*finish(2), *finish(3))
+    d.feed(alive("selector"))
+    for k in (4, 5):
+        d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([1]), np.array([2]), run=RUN, sender="selector", k=k,
+                                                               t_s=float(k), strategy="greedy")))
+        d.feed(*finish(k))
+    d.feed(Event(K.select(), "select", None, msg=select_msg(np.array([1]), np.array([2]), run=RUN, sender="selector", k=6,
+                                                           t_s=6.0, strategy="greedy")))
+    mine = {s.k: s.sender for s in d.sent_on(K.select())}
+    assert mine.get(2) == mine.get(3) == mine.get(4) == mine.get(5) == "world", mine
+    assert 6 not in mine, "step 6: the restarted selector's plan"
+
+
+def test_the_same_ask_twice_in_a_step_gets_the_same_answer_and_no_second_transfer():
+    """A searching agent that saw no clock for a while asks again on a timer; if the world is
+    still in the round it already answered (busy, or stalled), the repeat must not put the
+    state on the radio a second time (counted, recorded): one run's recording had one
+    transfer more than the other's."""
+    sc = scenario(**LINKED)
+    _d, w = _linked_restart(sc)
+    first = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    sent = int(w.links.counters.sent.sum())
+    again = w.serve_rejoin(K.rejoin(2, 0, 5000))
+    assert again == first and int(w.links.counters.sent.sum()) == sent
+    assert sum(1 for m in w._rejoin_log if m.sat == 2) == 1

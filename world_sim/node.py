@@ -29,7 +29,8 @@ class World(Node):
         est = check_estimator(sc)  # the agents' estimator: which satellites each one's prior covers
         self.machine = WorldProtocol(sc, run, self.cameras, expect_recorder, expect_selector, agent_passwords=agent_passwords,
                                      malformed=lambda: self.malformed, key_mismatch=lambda: self.key_mismatch,
-                                     prior_ids=lambda i: est.prior_ids_for(sc, i), radio=est.radio)
+                                     prior_ids=lambda i: est.prior_ids_for(sc, i), radio=est.radio,
+                                     warm_rejoin=est.warm_rejoin)
         self.subscribe(self.keys.est(), shallow=True)  # who, which step, which phase: not the arrays
         self.subscribe(self.keys.health())
         self.subscribe(self.keys.select())

@@ -66,7 +66,18 @@ from swarmrt.bus.messages import (
     Select,
     replace,
 )
-from swarmrt.protocol import DROP_BATCH, Event, Outbox, Send, Wait, first_time, message_dropped, outbox_steps, world_wait_s
+from swarmrt.protocol import (
+    DROP_BATCH,
+    Event,
+    Outbox,
+    Send,
+    Wait,
+    arrival_step,
+    first_time,
+    message_dropped,
+    outbox_steps,
+    world_wait_s,
+)
 
 __all__ = ["WorldProtocol"]
 
@@ -82,7 +93,7 @@ class WorldProtocol:
                  expect_selector: bool | None = None, clock: Callable[[], float] = time.monotonic,
                  agent_passwords: dict[int, str] | None = None, malformed: Callable[[], int] = lambda: 0,
                  key_mismatch: Callable[[], int] = lambda: 0, prior_ids: Callable[[int], list[int] | None] | None = None,
-                 radio: str = "all"):
+                 radio: str = "all", warm_rejoin: bool = True):
         self.sc = sc
         # Security on, agents started with --id auto: satellite i's bus password, handed to
         # the claimant given satellite i (swarmrt.security says why this is safe).
@@ -147,6 +158,19 @@ class WorldProtocol:
         self._commands_seen: set[bytes] = set()
         self._aired: set[tuple[int, int]] = set()  # (step, observer) of batches already on the radio
         self.limbo: set[str] = set()  # liveliness tokens gone, not yet known whether for good (a bus gap)
+        # A restarted agent's state crossing the radio (links on, an estimator with a warm
+        # rejoin, the Python agent): it asks in rounds, one at its restart and then one a step
+        # until a state gets through, and the world waits for each round at a fixed point of
+        # its step, so that the transfer's fate, its arrival and the step the agent joins at
+        # are the same whatever the machine's load (a chaos campaign's two runs differed).
+        self.warm_rejoin = warm_rejoin
+        self._searching: dict[int, int] = {}  # satellite → the step of its last round (nothing got through yet)
+        self._round_failed: dict[int, int] = {}  # satellite → the step of its last round that brought nothing
+        self._delivered: dict[int, RejoinFate] = {}  # satellite → the fate of the state it rejoins from
+        self._joins: dict[int, int] = {}  # satellite → the step from which it is live again (its state arrived)
+        self._selector_started_at = -1  # the step of a scheduled restart-selector (it plans from the one after next)
+        self._awaiting_round: int | None = None  # the restarted agent whose round of asks the world waits for now
+        self._fates: dict[tuple[int, int, int], RejoinFate] = {}  # (agent, peer, step) → the answer given
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -166,12 +190,21 @@ class WorldProtocol:
         i, peer, size = int(parts[1]), int(parts[2]), int(parts[3])
         if self.links is None or not (0 <= i < self.n and 0 <= peer < self.n) or i == peer:
             return None
+        if i in self._searching and self._awaiting_round != i:
+            return None  # asked between its rounds (it missed a clock): answered only where the world waits for it
         with self._radio_lock:
+            again = self._fates.get((i, peer, self.k))
+            if again is not None:
+                return again  # the same ask in the same step (the agent asked again on a timer): the same answer, no new transfer
             t = self.k * self.sc.dt_s  # the step the world is at (its truth may not have reached it yet)
             fate, arrival = self.links.transfer(peer, i, size, t)
         msg = RejoinFate(run=self.run_id, sender="world", k=self.k, t_s=t, sat=i, peer=peer, bytes=size, fate=fate,
                          arrival_t_s=arrival)
         self._rejoin_log.append(msg)
+        self._fates = {x: m for x, m in self._fates.items() if x[2] >= self.k - 1}
+        self._fates[(i, peer, self.k)] = msg
+        if fate == "delivered":
+            self._delivered.setdefault(i, msg)  # the agent takes the first state that gets through
         log.info("rejoin of %d from %d (%d B): %s%s", i, peer, size, fate, "" if arrival is None else f" at t = {arrival:.2f} s")
         return msg
 
@@ -215,14 +248,24 @@ class WorldProtocol:
                 else:
                     self.alive_agents.discard(ev.sat)
                     self.ready.discard(ev.sat)
+                    self._searching.pop(ev.sat, None)
+                    self._joins.pop(ev.sat, None)
                     self._claimed_at.pop(ev.sat, None)  # its satellite may be claimed again at once
             elif ev.role:
                 (self.alive_roles.add if ev.alive else self.alive_roles.discard)(ev.role)
         elif ev.kind == "est":
             m = ev.msg
             self.ready.add(m.own)  # a prior too: the agent is initialised
+            fate = self._delivered.pop(m.own, None) if m.phase == "prior" else None
+            if fate is not None:
+                # Restarted from a state that crossed the radio: live from the step it arrives
+                # in (no earlier than the step it was asked at; _round may put it later).
+                self._joins[m.own] = max(arrival_step(fate.arrival_t_s, self.sc.dt_s), int(fate.k))
             if m.phase == "posterior":
                 self.est_seen.setdefault(m.k, set()).add(m.own)
+        elif ev.kind == "health" and ev.msg.sat in self._searching:
+            # A restarted agent whose round of asks brought no state through the radio.
+            self._round_failed[ev.msg.sat] = max(int(ev.msg.k), self._round_failed.get(ev.msg.sat, -1))
         elif ev.kind == "health":
             # An agent's health report follows its update: it has finished step k even
             # when its estimate was lost (the drop fault). An agent restarted cold reports
@@ -299,7 +342,42 @@ class WorldProtocol:
         return replace(f, phase="done", detail=detail, **at)
 
     def live(self) -> list[int]:
-        return sorted(self.alive_agents & self.ready)
+        return sorted(i for i in self.alive_agents & self.ready if self._joins.get(i, -1) <= self.k)
+
+    def _searches(self, t: int) -> bool:
+        """Whether restarted agent t gets its state through the radio in rounds (see __init__)."""
+        return self.links is not None and self.warm_rejoin and t not in self.sc.emulator.agent_commands
+
+    def _round(self, t: int, k: int, at_restart: bool):
+        """Wait for restarted agent t's round of asks at step k: its prior (a state got
+        through: it is live from the first step that begins at its arrival, after this round)
+        or its report that nothing did (it asks again at the next step)."""
+        self._awaiting_round = t
+        ok = yield Wait(lambda: t not in self.alive_agents or t in self.ready or self._round_failed.get(t, -1) >= k,
+                        self.sc.emulator.startup_timeout_s)
+        self._awaiting_round = None
+        if not ok:
+            log.warning("step %d: restarted agent %d's round of asks not over within %.0f s; going on", k, t,
+                        self.sc.emulator.startup_timeout_s)
+        if t not in self.alive_agents:
+            self._searching.pop(t, None)
+            return
+        if t in self.ready:
+            self._searching.pop(t, None)
+            join = max(k + (0 if at_restart else 1), self._joins.get(t, -1))  # (the arrival's step: handle)
+            if join > k:
+                self._joins[t] = join
+            else:
+                self._joins.pop(t, None)
+            log.info("step %d: restarted agent %d rejoins at step %d", k, t, join)
+        else:
+            self._searching[t] = k
+
+    def _rounds(self, k: int):
+        """The rounds of step k of the restarted agents still asking for a state."""
+        for t in sorted(self._searching):
+            if self._searching.get(t, k) < k:
+                yield from self._round(t, k, at_restart=False)
 
     # -- the run ---------------------------------------------------------------------
     def run(self):
@@ -337,6 +415,7 @@ class WorldProtocol:
                     run=self.run_id, k=k, t_s=t, sat=i, gyro=None if gyro is None else gyro[i],
                     absm=absm[i] if self.G[i, i] else None, sigma_star=self.wp.star_sigma, sigma_gps=self.wp.gps_sigma,
                 ))
+            yield from self._rounds(k)
             obs, tgt = yield from self._selection(k)
             yield from self._deliver_cameras(k, t, live, obs, tgt)
             if em.time_mode == "lockstep":
@@ -442,6 +521,18 @@ class WorldProtocol:
                 def back(t: int = t) -> bool:
                     return t in self.alive_agents and (t in self.ready or t in self._reported_since_restart)
 
+                if self._searches(t):
+                    self._searching[t] = k
+                    self._awaiting_round = t  # (its asks are answered from now: it may ask before its token is in)
+                    self._delivered.pop(t, None)
+                    self._round_failed.pop(t, None)
+                    self._joins.pop(t, None)
+                    if not (yield Wait(lambda: t in self.alive_agents, em.startup_timeout_s)):
+                        log.warning("step %d: restarted agent %d not back within %.0f s (startup_timeout_s); going on without it",
+                                    k, t, em.startup_timeout_s)
+                        continue
+                    yield from self._round(t, k, at_restart=True)
+                    continue
                 if self.links is None:
                     ok = yield Wait(back, em.startup_timeout_s)
                 else:
@@ -459,6 +550,7 @@ class WorldProtocol:
                 yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
                 yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
+                self._selector_started_at = k
             elif spec.action in CLUSTER_FAULTS:
                 # A host of a cluster run killed (its agents started again on the others) or
                 # two cut apart: over once the supervisor says so, and for a killed node once
@@ -488,7 +580,14 @@ class WorldProtocol:
         if not self.use_selector:
             return edges(self.G)
         em = self.sc.emulator
-        if "selector" in self.alive_roles:
+        if self._selector_started_at >= 0 and k - self._selector_started_at in (0, 1) and em.time_mode == "lockstep":
+            # A selector started during step r heard neither the clock nor the agents' reports
+            # of r − 1, which it plans r from; nor, it was seen, always the clock of r (its
+            # token reached the world before its subscriptions had reached the world's router):
+            # it plans from r + 2, and r and r + 1 fall back (whether a plan of its came in time
+            # is no part of the run).
+            self.selections.pop(k, None)
+        elif "selector" in self.alive_roles:
             # Lockstep: a live selector is waited for as a live agent is (the step timeout
             # plus the lease): a stall of the selector, of the agent it plans from or of the
             # router shorter than that delays its selection and changes nothing; only a
