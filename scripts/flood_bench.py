@@ -20,6 +20,7 @@ run's bit for bit. ``--repeat R`` interleaves the cells R times and reports each
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import signal
@@ -78,8 +79,40 @@ def _start_flooder(sw: LocalSwarm, n_sats: int, over: int | None, nice: int) -> 
                             preexec_fn=lambda: os.nice(nice))
 
 
+class _CpuCap:
+    """The flooder held to a fraction of one core (a cgroup of its own, root only; v1 ``cpu``
+    or v2 ``cpu.max``): it stands for a machine elsewhere that sends as fast as its share lets
+    it, instead of taking this machine's cores and memory bandwidth from the swarm. Removed
+    after the run."""
+
+    def __init__(self, fraction: float):
+        self.fraction = fraction
+        self.path: Path | None = None
+
+    def add(self, pid: int) -> None:
+        period = 100_000
+        quota = max(1000, int(period * self.fraction))
+        v1 = Path("/sys/fs/cgroup/cpu")
+        if v1.is_dir():
+            self.path = v1 / f"swarm-flooder-{os.getpid()}-{pid}"
+            self.path.mkdir()
+            (self.path / "cpu.cfs_period_us").write_text(str(period))
+            (self.path / "cpu.cfs_quota_us").write_text(str(quota))
+        else:
+            self.path = Path("/sys/fs/cgroup") / f"swarm-flooder-{os.getpid()}-{pid}"
+            self.path.mkdir()
+            (self.path / "cpu.max").write_text(f"{quota} {period}")
+        (self.path / "cgroup.procs").write_text(str(pid))
+
+    def remove(self) -> None:
+        if self.path is not None:
+            with contextlib.suppress(OSError):
+                self.path.rmdir()
+            self.path = None
+
+
 def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate_hz: float | None = None, gate: bool = True,
-            nice: int = 19) -> dict:
+            nice: int = 19, cpu: float | None = None) -> dict:
     os.environ["SWARM_ROUTER_SIZE_LIMITS"] = "on" if limits else "off"
     os.environ["SWARM_ROUTER_GATE"] = "on" if gate else "off"
     if rate_hz:
@@ -87,6 +120,7 @@ def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate
     else:
         os.environ.pop("SWARM_ROUTER_RATE_LIMIT_HZ", None)
     sw = LocalSwarm(sc, out, log=lambda s: None)
+    cap = _CpuCap(cpu) if cpu is not None else _CpuCap(0.0)
     flooder = None
     sent = {"puts": 0, "bytes": 0}
     t0 = time.monotonic()
@@ -95,6 +129,8 @@ def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate
         sw.start()
         if flood:
             flooder = _start_flooder(sw, sc.n_sats, over, nice)
+            if cpu is not None:
+                cap.add(flooder.pid)
         code = sw.run_to_end(timeout=1800)
     finally:
         if flooder is not None:
@@ -103,6 +139,8 @@ def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate
                 sent = json.loads(flooder.communicate(timeout=30)[0] or "{}") or sent
             except (subprocess.TimeoutExpired, ValueError):
                 flooder.kill()
+                flooder.wait()
+        cap.remove()
         sw.stop()
     wall = time.monotonic() - t0
     summary = run_outcome(sc, out / "run.mcap", run=sw.run, world_exit_code=code, interrupted=sw.interrupted, broken=sw.broken,
@@ -110,6 +148,7 @@ def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate
     gate_counts = sw.gate_counts()
     what = None if not flood else "tiny puts" if over is None else "over the limit" if over > 0 else "at the limit"
     return {"limits": limits, "gate": gate, "rate_limit_hz": rate_hz, "flood": what, "flooder_nice": nice if flood else None,
+            "flooder_cpu": cpu if flood else None,
             "world_exit_code": code, "wall_s": round(wall, 2),
             "puts_sent": sent["puts"], "bytes_sent": sent["bytes"],
             "recording_bytes": (out / "run.mcap").stat().st_size if (out / "run.mcap").exists() else None,
@@ -129,6 +168,8 @@ def main() -> None:
                     "(a busy machine's drift falls on every cell alike); the table gives each cell's median")
     ap.add_argument("--nice", type=int, default=19, help="the flooder's nice value (19: it stands for a machine elsewhere, "
                     "whose CPU this one's swarm would not share; 0: it competes for this machine's cores)")
+    ap.add_argument("--flooder-cpu", type=float, default=None, help="hold the flooder to this fraction of one core "
+                    "(a cgroup of its own; root): a sender elsewhere, as fast as its share lets it")
     ap.add_argument("--rate-limit-hz", type=float, default=None,
                     help="instead: the quiet and the at-the-limit runs, gate off, with a router rate limit (Zenoh "
                          "downsampling) of this many puts per second on every agent key (swarmrt.security.rate_limits)")
@@ -151,7 +192,7 @@ def main() -> None:
         for gate, flood, over in cells:
             what = "quiet" if not flood else "flood-tiny" if over is None else "flood-over" if over else "flood-at-limit"
             name = f"gate-{'on' if gate else 'off'}-{what}" + (f"-rate-{a.rate_limit_hz:g}hz" if a.rate_limit_hz else "") + f"-{rep}"
-            r = one_run(sc, work / name, True, flood, over, a.rate_limit_hz, gate=gate, nice=a.nice)
+            r = one_run(sc, work / name, True, flood, over, a.rate_limit_hz, gate=gate, nice=a.nice, cpu=a.flooder_cpu)
             r["numbers_equal_in_process"] = r.pop("numbers") == ref_numbers
             r["repeat"] = rep
             rows.append(r)
@@ -170,6 +211,7 @@ def main() -> None:
         print(f"  {k}: {statistics.median(v):.2f} (of {', '.join(f'{x:.2f}' for x in v)})")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps({"scenario": sc.name, "n_sats": sc.n_sats, "duration_s": a.duration, "flooder_nice": a.nice,
+                                       "flooder_cpu": a.flooder_cpu,
                                        "median_wall_s": {k: statistics.median(v) for k, v in table.items()}, "rows": rows}, indent=1))
 
 

@@ -212,8 +212,11 @@ class SelectorProtocol:
                     yield from self.plan(0, min(live), live=live, cams=np.ones((self.n, 6), dtype=bool))
                     continue
                 need = [i for i in live if i in self.steps[k - 1]]
-                got = yield Wait(lambda k=k, need=need: self.done or max(self.steps) > k
-                                 or all(i in self.cams_at.get(k - 1, {}) for i in need), world_wait_s(self.sc.emulator))
+
+                def reported(k: int = k, need: list[int] = need) -> bool:
+                    return self.done or max(self.steps) > k or all(i in self.cams_at.get(k - 1, {}) for i in need)
+
+                got = yield Wait(reported, world_wait_s(self.sc.emulator))
                 if self.done or max(self.steps) > k:
                     continue  # a newer step to plan
                 if not got:

@@ -25,8 +25,9 @@ where or in which order they ran.
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -52,7 +53,7 @@ def one_run(args: tuple[str, str, int, list[str]]) -> dict:
     sc = load_scenario(path, extra, seed=seed)
     if config == "single":
         sc = load_scenario(path, [*extra, *single_observer(sc.n_sats)], seed=seed)
-    rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    rows: list[tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
 
     def on_step(s) -> None:
         for v in s.views:
@@ -98,7 +99,7 @@ def one_run(args: tuple[str, str, int, list[str]]) -> dict:
             nees.append(float(e @ np.linalg.solve(P, e)) / 3.0)
     summ = res.summary()
 
-    def mean(x: list[float]) -> float:
+    def mean(x: Sequence[Any]) -> float:
         return float(np.mean(x)) if x else float("nan")
 
     second_half = (K - K // 2) * (sc.n_sats - 1)
