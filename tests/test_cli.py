@@ -182,3 +182,27 @@ def test_starfox_study_runs_both_configurations_and_refuses_an_unknown_one(tmp_p
     assert doc["aggregate"]["single"]["err_pct"]["mean"] > doc["aggregate"]["several"]["err_pct"]["mean"]
     bad = CliRunner().invoke(app, ["starfox", scenario, "--configs", "single,lonely", "--out", str(tmp_path / "x")], prog_name="swarm")
     assert bad.exit_code == 2 and "lonely" in bad.output, bad.output
+
+
+def test_starfox_per_estimator_table(tmp_path):
+    """`swarm starfox --estimators`: one seed per estimator on the same seed, the table per
+    estimator written (the JSON lines resumable: a second call runs nothing more); an
+    unknown estimator is a usage error that names it."""
+    from typer.testing import CliRunner
+
+    from swarm.cli import app
+
+    root = Path(__file__).resolve().parents[1]
+    scenario = str(root / "scenarios" / "starfox.yaml")
+    args = ["starfox", scenario, "--estimators", "ci,gbp", "--configs", "several", "--runs", "1", "--out", str(tmp_path),
+            "--set", "duration_s=200", "--set", "links.enabled=false"]
+    r = CliRunner().invoke(app, args, prog_name="swarm")
+    assert r.exit_code == 0, r.output
+    rows = [json.loads(line) for line in (tmp_path / "per-estimator.jsonl").read_text().splitlines()]
+    assert sorted(x["estimator"] for x in rows) == ["ci", "gbp"] and len({x["seed"] for x in rows}) == 1
+    table = (tmp_path / "per-estimator.md").read_text()
+    assert "| several | ci | 1 |" in table and "| several | gbp | 1 |" in table, table
+    again = CliRunner().invoke(app, args, prog_name="swarm")
+    assert again.exit_code == 0 and len((tmp_path / "per-estimator.jsonl").read_text().splitlines()) == 2
+    bad = CliRunner().invoke(app, [*args[:3], "ci,nosuch", *args[4:]], prog_name="swarm")
+    assert bad.exit_code == 2 and "nosuch" in bad.output, bad.output

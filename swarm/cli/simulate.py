@@ -324,6 +324,9 @@ def starfox(
     configs: str = typer.Option("single,several", "--configs", help="comma-separated: single (satellite 0 the only observer), "
                                 "several (every satellite observes every other)"),
     workers: int = typer.Option(2, "--workers", "-w", min=1, help="parallel worker processes"),
+    estimators: str | None = typer.Option(None, "--estimators", help="instead: the percentage-of-range table per estimator "
+                                          "(comma-separated kinds, e.g. full,ci,pairwise,gbp), paired seeds, one process, "
+                                          "resumable: OUT/per-estimator.jsonl (each run as it finishes) and OUT/per-estimator.md"),
     sets: list[str] | None = SetOpt,
     cluster: str | None = ClusterOpt,
 ):
@@ -331,9 +334,10 @@ def starfox(
     StarFOX flight's comparison): satellite 0's relative position error and 1σ as a
     percentage of range over the second half of each run, and the consistency (NEES) of
     its filter. Writes OUT/starfox.json (every run and the aggregate) and
-    OUT/percent-of-range.png (median and 10–90 % band over time)."""
+    OUT/percent-of-range.png (median and 10–90 % band over time); with --estimators, the
+    table per estimator instead."""
     from swarm.studies.executor import open_executor
-    from swarm.studies.starfox import CONFIGS, plot, run_starfox
+    from swarm.studies.starfox import CONFIGS, estimator_table, plot, run_per_estimator, run_starfox
 
     _load(scenario, sets)  # a bad file or field is a usage error before anything runs
     cs = tuple(c.strip() for c in configs.split(",") if c.strip())
@@ -341,6 +345,19 @@ def starfox(
         console.print(f"[red]error:[/red] --configs {configs!r}: expected some of {', '.join(CONFIGS)}", highlight=False)
         raise typer.Exit(2)
     out.mkdir(parents=True, exist_ok=True)
+    if estimators is not None:
+        ests = tuple(e.strip() for e in estimators.split(",") if e.strip())
+        for e in ests:
+            _load(scenario, [*(sets or ()), f"estimator.kind={e}"])  # an unknown kind is a usage error naming it
+        with _progress() as prog:
+            task = prog.add_task(f"starfox {scenario.name} per estimator", total=len(ests) * len(cs) * runs)
+            res = _study(run_per_estimator, scenario, runs, out / "per-estimator.jsonl", ests, cs, tuple(sets or ()),
+                         log=lambda _line: prog.advance(task))
+        table = estimator_table(res, ests, cs)
+        (out / "per-estimator.md").write_text(table + "\n")
+        console.print(table, highlight=False)
+        console.print(f"wrote {out / 'per-estimator.jsonl'} and {out / 'per-estimator.md'}")
+        return
     with _study(open_executor, workers, cluster) as ex, _progress() as prog:
         task = prog.add_task(f"starfox {scenario.name} {len(cs)}×{runs}", total=len(cs) * runs)
         doc = _study(run_starfox, scenario, runs, ex, cs, tuple(sets or ()), progress=lambda k, K: prog.update(task, completed=k))
