@@ -12,7 +12,7 @@
 //! Start: the world's prior (`init/<i>`); a restarted agent (or one that comes when the run
 //! is under way) starts cold from its own star tracker and GPS (ci has no warm rejoin).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::{BTreeMap, BTreeSet, VecDeque};
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
@@ -77,7 +77,10 @@ pub struct State {
     pub done: bool,
     world_seen: bool,
     sends: Vec<Out>,
-    previous: Vec<Out>,
+    // The messages of the steps before the current one, oldest first: the last
+    // `recorder_max_lag_steps + 1` (with `sends`, `recorder_max_lag_steps + 2` steps), for a
+    // recorder that comes back up to that many steps behind (`swarmrt.protocol.Outbox`).
+    earlier: VecDeque<Vec<Out>>,
     // Fault commands carried out (their bytes): the world sends its last steps' commands
     // again when the bus or the recorder comes back, and a command is carried out once.
     commands_seen: BTreeSet<Vec<u8>>,
@@ -112,7 +115,7 @@ impl State {
             done: false,
             world_seen: false,
             sends: vec![],
-            previous: vec![],
+            earlier: VecDeque::new(),
             commands_seen: BTreeSet::new(),
             sc,
         }
@@ -128,10 +131,18 @@ impl State {
             // The bus came back, or a token we held came back: send this step's messages
             // (and the last step's) again; receivers drop what they already have.
             Ev::Bus { alive: true } | Ev::Resync { .. } => {
-                if let Ev::Resync { key } = &ev {
-                    log::debug(&format!("{key} came back within the hold: sending the step's messages again"));
-                }
-                return Ok(self.previous.iter().chain(&self.sends).cloned().collect());
+                // Every step kept when our own bus or the recorder came back (the recorder may
+                // be up to recorder_max_lag_steps behind); the previous and current step when
+                // another peer's token did (no step ends while a peer's token is held).
+                let all = match &ev {
+                    Ev::Resync { key } => {
+                        log::debug(&format!("{key} came back within the hold: sending the step's messages again"));
+                        key.contains("/alive/recorder/")
+                    }
+                    _ => true,
+                };
+                let skip = if all { 0 } else { self.earlier.len().saturating_sub(1) };
+                return Ok(self.earlier.iter().skip(skip).flatten().chain(&self.sends).cloned().collect());
             }
             Ev::Held { key } => log::debug(&format!("{key} gone: held for the grace")),
             Ev::Bus { alive: false } => {}
@@ -528,7 +539,11 @@ impl Agent {
 
     fn step(&mut self, k: u64) -> Result<(), Exit> {
         let i = self.st.i;
-        self.st.previous = std::mem::take(&mut self.st.sends);
+        let done = std::mem::take(&mut self.st.sends);
+        self.st.earlier.push_back(done);
+        while self.st.earlier.len() > self.st.sc.emulator.recorder_max_lag_steps + 1 {
+            self.st.earlier.pop_front();
+        }
         let clock = self.st.clocks.remove(&k).expect("the step's clock");
         let t = clock.t_s;
         if !self.st.ci.started() && !clock.live_agents.contains(&(i as u32)) {

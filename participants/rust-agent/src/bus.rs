@@ -76,10 +76,22 @@ pub struct Broken {
 pub const EXIT_BUS_LOST: i32 = 3;
 pub const EXIT_WORLD_LOST: i32 = 4;
 
+#[derive(Clone)]
 pub struct BusLimits {
     pub hold_s: f64,
     pub bus_grace_s: f64,
     pub bus_lost_after_s: f64,
+}
+
+impl BusLimits {
+    /// How long a vanished token of `role` is held before it counts as gone.
+    pub fn hold_for(&self, role: &str) -> f64 {
+        if role == "world" || role == "recorder" {
+            self.bus_lost_after_s
+        } else {
+            self.hold_s
+        }
+    }
 }
 
 pub struct Node {
@@ -347,14 +359,18 @@ impl Node {
                 log::warn(&format!("bus back after {:.2} s", now.duration_since(since).as_secs_f64()));
                 self.bus_down_since = None;
                 self.epoch += 1;
-                let at = now + Duration::from_secs_f64(self.limits.bus_grace_s);
+                let limits = self.limits.clone();
                 for v in self.held.values_mut() {
-                    v.1 = Some(at);
+                    let role = if let Ev::Alive { role, .. } = &v.0 { role.as_str() } else { "" };
+                    v.1 = Some(now + Duration::from_secs_f64(limits.bus_grace_s.max(limits.hold_for(role))));
                 }
                 Some(Ev::Bus { alive: true })
             }
             Ev::Alive { key, role, sat, alive: false } => {
-                let at = if self.bus_down_since.is_some() { None } else { Some(now + Duration::from_secs_f64(self.limits.hold_s)) };
+                // The world's and the recorder's tokens are held as long as a bus loss is
+                // (`Node.set_bus_limits`): a world may only be stalled, a recorder failing over.
+                let hold = self.limits.hold_for(&role);
+                let at = if self.bus_down_since.is_some() { None } else { Some(now + Duration::from_secs_f64(hold)) };
                 self.held.insert(key.clone(), (Ev::Alive { key: key.clone(), role, sat, alive: false }, at));
                 Some(Ev::Held { key })
             }

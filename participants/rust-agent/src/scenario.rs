@@ -34,6 +34,9 @@ pub struct Emulator {
     pub bus_grace_s: f64,
     pub bus_lost_after_s: f64,
     pub shutdown_linger_s: f64,
+    /// The world runs at most this many steps ahead of the recorder: an agent keeps its
+    /// messages of the last `recorder_max_lag_steps + 2` steps for a recorder that comes back.
+    pub recorder_max_lag_steps: usize,
 }
 
 #[derive(Clone, Debug)]
@@ -298,6 +301,7 @@ impl Scenario {
                 bus_grace_s: d.f("emulator.bus_grace_s")?,
                 bus_lost_after_s: d.f("emulator.bus_lost_after_s")?,
                 shutdown_linger_s: d.f("emulator.shutdown_linger_s")?,
+                recorder_max_lag_steps: d.f("emulator.recorder_max_lag_steps")?.max(1.0) as usize,
             },
         })
     }
