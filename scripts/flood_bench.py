@@ -186,6 +186,9 @@ def main() -> None:
     if a.flooder:
         _flooder(json.loads(a.flooder))
         return
+    # SIGTERM ends the bench as Ctrl-C does: through the finally blocks (the swarm stopped,
+    # the flooder ended, its cgroup removed), not by dying with them left behind.
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     sc = load_scenario(a.scenario, [f"duration_s={a.duration}", "emulator.security=true"])
     ref = simulate_scenario(sc).summary()
     ref_numbers = json.loads(json.dumps({k: ref.get(k) for k in NUMBERS}))
