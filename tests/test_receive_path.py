@@ -29,6 +29,8 @@ ALLOWED = {
     # reader checks each against the swarm size it infers from the truth messages (a size
     # the recorder did not know), and skips what does not fit.
     "swarm/record/recording.py": "recordings read from disk (already received by the recorder)",
+    # The same: two campaigns' recordings compared message by message (make soak-twice).
+    "scripts/twice_diff.py": "recordings read from disk (already received by the recorder)",
     # The codec's benchmark measures decode itself, on payloads it encoded.
     "swarm/bench/bus.py": "codec benchmark",
     # A fault command the CLI built, validated before it is sent (an encoder's check).
