@@ -192,7 +192,8 @@ class LocalSwarm:
         grace = _ORPHAN_RECORDER_GRACE_S if name == "recorder" else _ORPHAN_GRACE_S
         # The run's credentials go with it, even when the supervisor is SIGKILLed and cannot
         # delete them itself: its orphaned children do.
-        cleanup = ["--remove-when-orphaned", str(self.keys_dir)] if self.keys_dir is not None else []
+        # A supervisor SIGKILLed leaves no credentials nor gate sockets behind: its children remove them.
+        cleanup = [a for d in (self.keys_dir, self._gate_dir) if d is not None for a in ("--remove-when-orphaned", str(d))]
         cmd = [self.python, "-m", "swarm.supervise.lifeline", "--fd", str(r), "--grace-s", str(grace), *cleanup, *args]
         env = dict(os.environ, PYTHONUNBUFFERED="1", **(env_extra or {}))
         return subprocess.Popen(cmd, stdin=subprocess.DEVNULL, env=env, pass_fds=(r,), start_new_session=True, **kw)
