@@ -232,6 +232,19 @@ def size_limit_of(kind: str, n_sats: int) -> int:
     return MAX_PAYLOAD_BYTES.get(kind, MAX_PAYLOAD_DEFAULT)
 
 
+def put_kinds(keys: Keys, identity: str, links: bool) -> list[tuple[str, str]]:
+    """Each key ``identity`` may put (its grants) with the message kind it carries; keys of
+    no message kind (liveliness) left out. What the router's size limits and the ingress
+    gate's step budgets are sized from."""
+    out = []
+    for key in grants(keys, identity, links=links).put:
+        try:
+            out.append((key, parse_key(key.replace("*", "0"))[1]))
+        except MessageError:
+            continue
+    return out
+
+
 def size_limits(run: str, n_sats: int, links: bool = False) -> list[dict]:
     """Zenoh's ``low_pass_filter`` section for one run: for every key some identity may put
     (the same :func:`swarmrt.bus.messages.grants` the access rules come from), a put larger
@@ -245,11 +258,7 @@ def size_limits(run: str, n_sats: int, links: bool = False) -> list[dict]:
     for name in [*IDENTITIES, *agent_identities(n_sats)]:
         if name == "mesh":
             continue  # a router meshed with this one forwards what its own clients put (and its filter checked)
-        for key in grants(keys, name, links=links).put:
-            try:
-                kind = parse_key(key.replace("*", "0"))[1]
-            except MessageError:
-                continue
+        for key, kind in put_kinds(keys, name, links):
             by_limit.setdefault(size_limit_of(kind, n_sats), set()).add(key)
     return [{"id": f"size-{limit}", "flows": ["ingress"], "messages": ["put"], "key_exprs": sorted(ks), "size_limit": limit}
             for limit, ks in sorted(by_limit.items())]

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 _READ_BYTES = 64 * 1024  # one read from a connection: the unit the bucket is charged
-_OTHER = "other"  # the shared entry: identities without their own port (tools, the fault CLI)
+OTHER = "other"  # the shared entry: identities without their own port (tools, the fault CLI)
 
 
 @dataclass
@@ -107,19 +107,15 @@ def gate_limits(n_sats: int, recorder_max_lag_steps: int, links: bool, identitie
     steps per second than a lockstep run of this machine kind ever goes, so an honest role is
     never held); its burst is what a role sends at once when its bus comes back (its last
     ``recorder_max_lag_steps + 2`` steps, :class:`swarmrt.protocol.Outbox`) and one step more."""
-    from swarmrt.bus.messages import MAX_PAYLOAD_BYTES, Keys, MessageError, grants, parse_key
-    from swarmrt.security import size_limit_of
+    from swarmrt.bus.messages import MAX_PAYLOAD_BYTES, Keys
+    from swarmrt.security import put_kinds, size_limit_of
 
     bounded = {"est", "health", "fault", "recorded"}
     keys = Keys("gate")
     out: dict[str, tuple[float, float]] = {}
     for name in identities:
         budget = 0.0
-        for key in grants(keys, name, links=links).put:
-            try:
-                kind = parse_key(key.replace("*", "0"))[1]
-            except MessageError:
-                continue
+        for _key, kind in put_kinds(keys, name, links):
             if kind in bounded:
                 budget += size_limit_of(kind, n_sats)
             elif kind in MAX_PAYLOAD_BYTES:
@@ -248,12 +244,7 @@ class CountsFile:
         self._last: str | None = None
 
     def total(self) -> dict[str, dict[str, Any]]:
-        now = self.gate.counts()
-        out: dict[str, dict[str, Any]] = {}
-        for ident in sorted(set(now) | set(self.base)):
-            a, b = now.get(ident, {}), self.base.get(ident, {})
-            out[ident] = {k: round(a.get(k, 0) + b.get(k, 0), 4) for k in (set(a) | set(b))}
-        return out
+        return _sum_counts([self.base, self.gate.counts()])
 
     def write(self) -> None:
         text = json.dumps(self.total(), sort_keys=True)
@@ -268,19 +259,23 @@ class CountsFile:
             logging.warning("gate: could not write %s: %s", self.path, err)
 
 
-def merged_counts(paths: list[Path]) -> dict[str, dict[str, Any]]:
-    """The counts of every router's gate of a run, summed per identity."""
+def _sum_counts(docs: list[dict[str, dict[str, Any]]]) -> dict[str, dict[str, Any]]:
+    """Counts per identity, summed over ``docs``."""
     out: dict[str, dict[str, Any]] = {}
-    for p in paths:
-        try:
-            doc = json.loads(p.read_text())
-        except (OSError, ValueError):
-            continue
+    for doc in docs:
         for ident, c in doc.items():
             acc = out.setdefault(ident, {})
             for k, v in c.items():
                 acc[k] = round(acc.get(k, 0) + v, 4)
-    return out
+    return dict(sorted(out.items()))
 
 
-OTHER = _OTHER
+def merged_counts(paths: list[Path]) -> dict[str, dict[str, Any]]:
+    """The counts of every router's gate of a run, summed per identity."""
+    docs = []
+    for p in paths:
+        try:
+            docs.append(json.loads(p.read_text()))
+        except (OSError, ValueError):
+            continue
+    return _sum_counts(docs)
