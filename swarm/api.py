@@ -408,10 +408,8 @@ def run(scenario: Scenario | str | Path | Mapping[str, Any] | None = None, *, ou
         finally:
             swarm.stop()
     outcome = run_outcome(sc, folder / "run.mcap", run=swarm.run, world_exit_code=code, interrupted=swarm.interrupted,
-                          broken=swarm.broken, broken_code=swarm.broken_code, router_faults=swarm.router_faults, log=say)
-    gate: dict[str, Any] = swarm.gate_counts() if isinstance(swarm, LocalSwarm) else {}
-    if gate:
-        outcome.summary["router_gate"] = gate
+                          broken=swarm.broken, broken_code=swarm.broken_code, router_faults=swarm.router_faults, log=say,
+                          router_gate=swarm.gate_counts())
     write_json(folder / "summary.json", outcome.summary)
     return Result(sc, outcome.summary, "run", folder, recording=folder / "run.mcap", outcome=outcome)
 

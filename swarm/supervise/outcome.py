@@ -60,7 +60,7 @@ def summary_of_steps_recorded(path: Path, sc: Scenario, log=None) -> dict:
 
 def run_outcome(sc: Scenario, recording: Path, *, run: str, world_exit_code: int | None, interrupted: signal.Signals | None,
                 broken: str | None, router_faults: list[dict[str, Any]] = (), log=None,  # type: ignore[assignment]
-                broken_code: int | None = None) -> RunOutcome:
+                broken_code: int | None = None, router_gate: dict[str, Any] | None = None) -> RunOutcome:
     """The summary and exit status of a run (see the module docstring). ``world_exit_code``
     None: the run was interrupted before the world ended (or the supervisor stopped a broken
     run: ``broken_code``, its status)."""
@@ -90,6 +90,8 @@ def run_outcome(sc: Scenario, recording: Path, *, run: str, world_exit_code: int
     for f in router_faults:
         if (f["action"], f["target"], f["phase"]) not in known:
             summary.setdefault("faults", []).append({k: v for k, v in f.items() if not k.endswith("_unix_s")})
+    if router_gate:
+        summary["router_gate"] = router_gate  # what the routers' ingress gates counted, per identity
     summary["run"] = run
     summary["world_exit_code"] = world_exit_code
     if sig is not None:
