@@ -21,8 +21,7 @@ import pytest
 import zenoh
 from forgery import _open
 
-from swarm.supervise.gate import OTHER, _Bucket, gate_limits, merged_counts
-from swarm.supervise.launch import free_port
+from swarm.supervise.gate import OTHER, Entry, _Bucket, gate_limits, merged_counts, read_plan, write_plan
 from swarmcore.scenario import Emulator
 from swarmrt.bus import messages as M
 from swarmrt.protocol import outbox_steps
@@ -89,13 +88,10 @@ def gated_router(tmp_path):
     limits = gate_limits(4, 4, False, [*(i for i in M.IDENTITIES if i != "mesh"), *agent_identities(4)], 50.0)
     limits["agent-1"] = (200e3, 100e3)
     limits[OTHER] = limits["agent-0"]
-    ports = {name: free_port() for name in limits}
     sockdir = tmp_path / "s"
     sockdir.mkdir(mode=0o700)
     plan = tmp_path / "plan.json"
-    plan.write_text(json.dumps({"upstream": str(sockdir / "r.sock"),
-                                "entries": [{"identity": k, "port": ports[k], "rate_bytes_per_s": r, "burst_bytes": b}
-                                            for k, (r, b) in limits.items()]}))
+    write_plan(plan, [Entry(k, 0, r, b) for k, (r, b) in limits.items()], str(sockdir / "r.sock"))
     counts = tmp_path / "gate-router.json"
     log = tmp_path / "router.log"
     with log.open("wb") as err:
@@ -112,7 +108,9 @@ def gated_router(tmp_path):
 
     try:
         assert b"READY" in p.stdout.readline(), log.read_text()
-        yield {k: f"tcp/127.0.0.1:{v}" for k, v in ports.items()}, keys, counts, stop, limits
+        bound, _ = read_plan(plan)  # the gate wrote back the ports it bound for the plan's 0s
+        assert all(e.port > 0 for e in bound) and len({e.port for e in bound}) == len(bound)
+        yield {e.identity: f"tcp/127.0.0.1:{e.port}" for e in bound}, keys, counts, stop, limits
     finally:
         try:
             stop()

@@ -166,6 +166,9 @@ class Gate:
                 srv = loop.run_until_complete(asyncio.start_server(
                     functools.partial(self._serve, e), self.host, e.port, reuse_address=True, limit=_READ_BYTES))
                 self._servers.append(srv)
+                # Port 0 in the plan: the kernel's choice, bound here and kept (write_plan), so
+                # that no other process can take it between a pick and this bind.
+                e.port = srv.sockets[0].getsockname()[1]
         except OSError as err:
             self._error = err
             self._ready.set()
@@ -230,6 +233,18 @@ def read_plan(path: str | Path) -> tuple[list[Entry], str]:
     [{"identity", "port", "rate_bytes_per_s", "burst_bytes"}, ...]}``."""
     doc = json.loads(Path(path).read_text())
     return [Entry(**e) for e in doc["entries"]], doc["upstream"]
+
+
+def write_plan(path: str | Path, entries: list[Entry], upstream: str) -> None:
+    """Write a gate plan (atomically: a reader sees the old plan or the new one). The router
+    writes its plan back once its gate listens, with the ports it bound for the plan's 0s:
+    the supervisor reads them from there, and a restarted router binds the same ones."""
+    path = Path(path)
+    doc = {"upstream": upstream, "entries": [{"identity": e.identity, "port": e.port, "rate_bytes_per_s": e.rate_bytes_per_s,
+                                              "burst_bytes": e.burst_bytes} for e in entries]}
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(doc))
+    tmp.replace(path)
 
 
 class CountsFile:

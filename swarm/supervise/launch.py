@@ -224,7 +224,7 @@ class LocalSwarm:
         """The ingress gate (:mod:`swarm.supervise.gate`): a port per identity on each
         router, each with its bucket; the routers listen on Unix sockets in a private
         directory. Off with ``emulator.gate: false`` (or ``SWARM_ROUTER_GATE=off``, to measure)."""
-        from swarm.supervise.gate import OTHER, gate_limits
+        from swarm.supervise.gate import OTHER, Entry, gate_limits, write_plan
         from swarmrt.bus.messages import IDENTITIES
         from swarmrt.security import agent_identities
 
@@ -238,13 +238,24 @@ class LocalSwarm:
         limits = gate_limits(self.sc.n_sats, em.recorder_max_lag_steps, self.sc.links.enabled, names, em.gate_steps_per_s)
         limits[OTHER] = limits["agent-0"]  # tools, the fault CLI, a kit: an agent's bucket
         self._gate_dir = Path(tempfile.mkdtemp(prefix="swarm-gate-"))
-        ports = {name: [free_port() for _ in range(self.n_routers)] for name in [*names, OTHER]}
+        self.gate_endpoints = {}
+        # Port 0: each router's gate binds the kernel's choice and writes it back into its plan
+        # (_gate_ports), never a port picked here and bound later, which another process may
+        # take in between (seen: a router that could not start, one port in a dozen taken).
         for i in range(self.n_routers):
-            plan = {"upstream": str(self._gate_dir / f"r{i}.sock"),
-                    "entries": [{"identity": name, "port": ports[name][i], "rate_bytes_per_s": rate, "burst_bytes": burst}
-                                for name, (rate, burst) in limits.items()]}
-            (self._gate_dir / f"router-{i}.json").write_text(json.dumps(plan))
-        self.gate_endpoints = {name: [f"tcp/127.0.0.1:{p}" for p in ps] for name, ps in ports.items()}
+            write_plan(self._gate_dir / f"router-{i}.json",
+                       [Entry(name, 0, rate, burst) for name, (rate, burst) in limits.items()], str(self._gate_dir / f"r{i}.sock"))
+
+    def _gate_ports(self, i: int) -> None:
+        """Router ``i``'s ports, as its gate bound them (its plan, written back once it listens)."""
+        from swarm.supervise.gate import OTHER, read_plan
+
+        assert self._gate_dir is not None
+        entries, _ = read_plan(self._gate_dir / f"router-{i}.json")
+        for e in entries:
+            if e.port == 0:
+                raise RuntimeError(f"router {i}'s gate did not say which port it bound for {e.identity}")
+            self.gate_endpoints.setdefault(e.identity, [""] * self.n_routers)[i] = f"tcp/127.0.0.1:{e.port}"
         self.endpoints = self.gate_endpoints[OTHER]
 
     def _role_args(self, identity: str) -> list[str]:
@@ -285,7 +296,6 @@ class LocalSwarm:
         # (Short-lived; if it fails, each agent compiles for itself as before.)
         warm = subprocess.Popen([self.python, "-c", _WARM], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self._plan_gate()
-        self.endpoint = self.endpoints[0]
         if self.sc.emulator.security:
             from swarmrt.security import make_keys
 
@@ -297,6 +307,7 @@ class LocalSwarm:
                      "any process on this machine can publish anything on this run's bus, fault commands included")
         for i in range(self.n_routers):
             self._start_router(i, timeout=30.0)
+        self.endpoint = self.endpoints[0]
         self.bus = self.bus_as("supervisor")
         self.node = node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
         node.hold_s = self.sc.emulator.liveliness_hold_s
@@ -384,6 +395,8 @@ class LocalSwarm:
         self._check_interrupted()
         if not line or b"READY" not in line:
             raise RuntimeError(f"the Zenoh router {name} did not start (see {self.out / 'logs' / (name + '.log')})")
+        if gate is not None:
+            self._gate_ports(i)
 
     def _node(self) -> Node:
         """The supervisor's own bus node (open from :meth:`start` until :meth:`stop`)."""

@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     gate = None
     listen = a.listen or ["tcp/0.0.0.0:7447"]
     if a.gate:
-        from swarm.supervise.gate import Gate, read_plan
+        from swarm.supervise.gate import Gate, read_plan, write_plan
 
         entries, upstream = read_plan(a.gate)
         Path(upstream).unlink(missing_ok=True)  # ours: a killed predecessor's socket file
@@ -74,6 +74,7 @@ def main(argv=None) -> int:
             from swarm.supervise.gate import CountsFile
 
             gate.start()
+            write_plan(a.gate, gate.entries, gate.upstream)  # the ports it bound, for the supervisor and a restart
             logging.info("ingress gate: %s", ", ".join(f"{e.identity} on {e.port}" for e in gate.entries[:4])
                          + (f" and {len(gate.entries) - 4} more" if len(gate.entries) > 4 else ""))
             counts = CountsFile(gate, a.gate_counts) if a.gate_counts else None
