@@ -254,3 +254,41 @@ def test_the_recorders_router_killed_while_it_lags_behind_the_recording_loses_no
     phases = {(f["action"], f["phase"]) for f in summary["faults"]}
     for action in ("stall-recorder", "kill-router"):
         assert (action, "command") in phases and (action, "done") in phases, summary["faults"]
+
+
+def _run_faults(tmp_path, name: str, faults: list[dict]):
+    sc = scenario(duration_s=16, selection={"strategy": "greedy", "budget": 4}, faults=faults)
+    sw = LocalSwarm(sc, tmp_path / name, log=lambda s: None, routers=2)
+    try:
+        sw.start()
+        code = sw.run_to_end(timeout=300)
+    finally:
+        sw.stop()
+    assert code == 0, sw.broken
+    rec = load_recording(tmp_path / name / "run.mcap", sc.n_sats, sc.steps)
+    return rec, rec.summary(sc)
+
+
+def test_a_router_killed_while_an_agent_on_it_is_stalled_waits_for_the_stall_and_changes_nothing(tmp_path):
+    """Issue 35 (the repeat benchmark's seeds 1, 11, 13): agent 1 is stalled (SIGSTOP, 2 s)
+    and router 0, the one it is on, is killed at the same step while the world is on router 1
+    (router 0 killed and restarted first: every role fails over to router 1; agent 1 then
+    restarted: it connects to router 0). A stopped agent cannot fail over: killed under it,
+    the router would take its token, the world would count it gone after liveliness_hold_s
+    or not as the wall clock fell, and the same campaign would give other numbers (or the
+    supervisor would call the run broken). The kill waits for the stall to end: the run has
+    the numbers of the same run without the stall and the second kill, and the router
+    fault's record says it waited."""
+    before = [{"at_step": 2, "action": "kill-router", "target": 0}, {"at_step": 3, "action": "restart-router", "target": 0},
+              {"at_step": 4, "action": "restart-agent", "target": 1}]
+    ref, ref_summary = _run_faults(tmp_path, "reference", before)
+    rec, summary = _run_faults(tmp_path, "stalled", [*before, {"at_step": 8, "action": "stall-agent", "target": 1, "down_s": 2.0},
+                                                     {"at_step": 8, "action": "kill-router", "target": 0}])
+    np.testing.assert_array_equal(rec.schedule, ref.schedule)
+    np.testing.assert_array_equal(rec.alive, ref.alive)
+    for key in EQUAL_KEYS:
+        assert summary[key] == ref_summary[key], key
+    done = [f for f in summary["faults"] if f["phase"] == "done" and f["k"] >= 8]
+    assert {f["action"] for f in done} == {"stall-agent", "kill-router"}, summary["faults"]
+    [kill] = [f for f in done if f["action"] == "kill-router"]
+    assert "once the stall of pid" in kill["detail"], kill
