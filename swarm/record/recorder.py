@@ -368,18 +368,18 @@ class Recorder:
                                     last_step_before=self.last_k, first_step_after=-1))
         if self.gaps:
             self._write_gaps(-1)
-        for key, count in sorted(self.not_recorded.items()):
-            # What the flood cap cut, on a channel of its own (the count as the payload).
-            body = Malformed(key=key, error=f"not recorded: {count} messages over the recorder's flood cap ({FLOOD_CAP_PER_STEP} "
-                             f"per key and step, {FLOOD_CAP_MALFORMED_PER_KEY} malformed per key)",
-                             payload=str(count).encode()).SerializeToString()
-            self.w.add(self._channel(f"{self.keys.root}/_not_recorded", "malformed"), body, time.time_ns())
-            log.warning("not recorded: %d messages on %s (over the flood cap)", count, key)
-        for key, count in sorted(self.resent.items()):
-            # Resends of what is recorded (after a bus gap): counted, on a channel of their own.
-            body = Malformed(key=key, error=f"sent again: {count} messages identical to one already recorded (not written again)",
-                             payload=str(count).encode()).SerializeToString()
-            self.w.add(self._channel(f"{self.keys.root}/_resent", "malformed"), body, time.time_ns())
+        # Counts per key, each on a channel of its own (the count as the payload): what the
+        # flood cap cut, and resends of what is recorded (after a bus gap) not written again.
+        cut = (f"over the recorder's flood cap ({FLOOD_CAP_PER_STEP} per key and step, {FLOOD_CAP_MALFORMED_PER_KEY} "
+               "malformed per key)")
+        for channel, counts, why in (("_not_recorded", self.not_recorded, f"not recorded: {{}} messages {cut}"),
+                                     ("_resent", self.resent, "sent again: {} messages identical to one already recorded "
+                                                              "(not written again)")):
+            for key, count in sorted(counts.items()):
+                body = Malformed(key=key, error=why.format(count), payload=str(count).encode()).SerializeToString()
+                self.w.add(self._channel(f"{self.keys.root}/{channel}", "malformed"), body, time.time_ns())
+                if channel == "_not_recorded":
+                    log.warning("not recorded: %d messages on %s (over the flood cap)", count, key)
         for undeclare in [*(s.undeclare for s in self._subs), self._transports.undeclare]:
             with contextlib.suppress(Exception):
                 undeclare()

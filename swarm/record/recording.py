@@ -194,15 +194,13 @@ def load_recording(path: str | Path, n: int | None = None, K: int | None = None,
         except MessageError:
             # Our alive / _malformed channels, and the derived Foxglove ones.
             kind, sat = topic if topic.startswith("/") else topic.rsplit("/", 1)[-1], None
-        if kind == "_not_recorded":  # the recorder's flood cap: one record per key it cut, the count its payload
+        # The recorder's counts, one record per key, the count its payload: what its flood cap
+        # cut, and the resends it did not write again.
+        tally = {"_not_recorded": bus.not_recorded, "_resent": bus.resent_not_written}.get(kind)
+        if tally is not None:
             with contextlib.suppress(DecodeError, ValueError):
                 m = Malformed.FromString(data)
-                bus.not_recorded[m.key] = bus.not_recorded.get(m.key, 0) + int(m.payload.decode())
-            continue
-        if kind == "_resent":  # the recorder's count of resends it did not write again: one record per key
-            with contextlib.suppress(DecodeError, ValueError):
-                m = Malformed.FromString(data)
-                bus.resent_not_written[m.key] = bus.resent_not_written.get(m.key, 0) + int(m.payload.decode())
+                tally[m.key] = tally.get(m.key, 0) + int(m.payload.decode())
             continue
         counts[kind] = counts.get(kind, 0) + 1
         if kind == "alive":
