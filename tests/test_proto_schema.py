@@ -218,3 +218,36 @@ def test_protoc_decodes_an_estimators_message_in_a_batch_to_the_python_values(ki
     assert _numbers(block, "data") == cov.ravel().tolist()
     if kind == "pairwise":
         assert _numbers(body, "partners") == [2]
+
+
+def test_the_scenario_model_knows_exactly_the_schemas_fault_actions_and_which_need_a_target():
+    """The schema's FaultAction (proto/swarm/v1/fault.proto) is the one list: the bus
+    validator and the Rust agent's checks take theirs from it, and the scenario model (in the
+    core, which imports no schema) holds the same actions, needing a target exactly where
+    the schema's numbering (below 50) says so."""
+    from swarmcore.scenario import FAULT_ACTIONS, TARGETED_FAULTS
+    from swarmrt.bus.validation import WIRE_FAULT_ACTIONS, WIRE_FAULT_PHASES, WIRE_TARGETED_FAULTS
+
+    assert sorted(WIRE_FAULT_ACTIONS) == sorted(FAULT_ACTIONS)
+    assert sorted(WIRE_TARGETED_FAULTS) == sorted(TARGETED_FAULTS)
+    assert WIRE_FAULT_PHASES == ("command", "done", "failed")
+    assert "kill-agent" in WIRE_TARGETED_FAULTS and "kill-router" not in WIRE_TARGETED_FAULTS
+
+
+def test_a_fault_with_an_action_or_phase_the_schema_does_not_declare_is_refused_by_name():
+    from swarmrt.bus.validation import validate
+    from swarmrt.bus.wire import MessageError
+
+    ok = M.Fault(schema_version=M.SCHEMA_VERSION, run="r", sender="cli", k=0, t_s=0.0, action="kill-router", phase="command")
+    validate(ok, n_sats=4)
+    for field, bad in (("action", "unspecified"), ("action", "kill_agent"), ("phase", "unspecified")):
+        m = M.Fault()
+        m.CopyFrom(ok)
+        setattr(m, field, bad)
+        with pytest.raises(MessageError, match=field):
+            validate(m, n_sats=4)
+    needs = M.Fault()
+    needs.CopyFrom(ok)
+    needs.action = "kill-agent"
+    with pytest.raises(MessageError, match="needs a target"):
+        validate(needs, n_sats=4)

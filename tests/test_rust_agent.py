@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import yaml
 import zenoh
-from rust_build import ROOT, build
+from rust_build import ROOT, TARGET, build, cargo
 
 from swarm.record.recording import load_recording
 from swarm.supervise.launch import write_scenario_json
@@ -180,6 +180,16 @@ CASES = {
     "links": (["duration_s=30", "links.enabled=true", "links.latency.speed_of_light=false", "links.loss.model=bernoulli",
                "links.loss.rate=0.25", "filter.late=drop"], TOL, None),
 }
+
+
+def test_the_rust_agents_own_unit_tests_pass(agent):
+    """``cargo test`` of the agent: its message checks (the fault actions and phases taken
+    from the schema's enums, forged and mutated messages refused, never a panic), its
+    linear algebra, quaternions and random streams equal to numpy's."""
+    p = subprocess.run([cargo(), "test", "--locked", "--target-dir", str(TARGET)], cwd=ROOT / "participants" / "rust-agent",
+                       capture_output=True, text=True, timeout=1800)
+    assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-4000:]
+    assert "fault_actions_and_phases_are_the_schemas ... ok" in p.stdout and " 0 failed" in p.stdout, p.stdout[-4000:]
 
 
 @pytest.mark.parametrize("case", list(CASES))

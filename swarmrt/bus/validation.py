@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from swarmcore.scenario import FAULT_ACTIONS, STALL_FAULTS, TARGETED_FAULTS
+from swarmcore.scenario import STALL_FAULTS
 from swarmrt.bus.v1.claim_pb2 import Claim
 from swarmrt.bus.v1.clock_pb2 import Clock, Recorded
 from swarmrt.bus.v1.common_pb2 import Matrix
 from swarmrt.bus.v1.estimate_pb2 import Estimate, FullEstimate
 from swarmrt.bus.v1.estimators_pb2 import EstimatorMessage
-from swarmrt.bus.v1.fault_pb2 import Fault
+from swarmrt.bus.v1.fault_pb2 import Fault, FaultAction, FaultPhase
 from swarmrt.bus.v1.health_pb2 import Health
 from swarmrt.bus.v1.images_pb2 import Images
 from swarmrt.bus.v1.links_pb2 import Delivery, LinkStats, RejoinFate
@@ -35,8 +35,22 @@ from swarmrt.bus.v1.sensors_pb2 import CameraOutput, Sensors
 from swarmrt.bus.v1.truth_pb2 import Truth
 from swarmrt.bus.wire import MAX_SAT_ID, MODELS, QUAT_TOL, RUN_ID_RE, SCHEMA_VERSION, SYM_TOL, MessageError
 
-# Fault actions are declared once, with the scenario's FaultSpec (swarmcore/scenario.py).
-_FAULT_NEEDS_TARGET = TARGETED_FAULTS
+
+def wire_names(enum, prefix: str, below: int | None = None) -> tuple[str, ...]:
+    """The names a schema enum's values go by on the wire (proto/swarm/v1/fault.proto): the
+    value's name without ``prefix``, lower case, "-" for "_" (``FAULT_ACTION_KILL_AGENT``:
+    ``kill-agent``); the unspecified value (0) left out; ``below``: only the values numbered
+    below it."""
+    return tuple(v.name.removeprefix(prefix).lower().replace("_", "-") for v in enum.DESCRIPTOR.values
+                 if v.number and (below is None or v.number < below))
+
+
+# The fault actions and phases as the schema declares them, the list the Rust agent's checks
+# are generated from; swarmcore.scenario's (the scenario model's, which imports no schema)
+# are the same (tests/test_proto_schema.py). Numbered below 50: the action needs a satellite.
+WIRE_FAULT_ACTIONS = wire_names(FaultAction, "FAULT_ACTION_")
+WIRE_TARGETED_FAULTS = wire_names(FaultAction, "FAULT_ACTION_", below=50)
+WIRE_FAULT_PHASES = wire_names(FaultPhase, "FAULT_PHASE_")
 
 
 def validate(msg, kind: str | None = None, shallow: bool = False, n_sats: int | None = None) -> None:
@@ -592,11 +606,11 @@ def _select(m: Select, top: int) -> None:
 
 
 def _fault(m: Fault, top: int) -> None:
-    _choice("action", m.action, FAULT_ACTIONS)
-    _choice("phase", m.phase, ("command", "done", "failed"))
+    _choice("action", m.action, WIRE_FAULT_ACTIONS)
+    _choice("phase", m.phase, WIRE_FAULT_PHASES)
     if m.HasField("target"):
         _id(top, "target", m.target)
-    elif m.action in _FAULT_NEEDS_TARGET:
+    elif m.action in WIRE_TARGETED_FAULTS:
         raise MessageError(f"target: {m.action} needs a target satellite")
     if m.HasField("camera") and m.camera > 5:
         raise MessageError(f"camera: {m.camera} is not a face camera (0-5)")

@@ -377,41 +377,37 @@ fn delivery(m: &Delivery, top: u32) -> R {
     Ok(())
 }
 
-const FAULT_ACTIONS: [&str; 20] = [
-    "kill-agent",
-    "restart-agent",
-    "stop-agent",
-    "camera",
-    "kill-selector",
-    "restart-selector",
-    "drop",
-    "partition",
-    "heal",
-    "netem",
-    "kill-router",
-    "restart-router",
-    "stall-agent",
-    "stall-world",
-    "stall-selector",
-    "stall-recorder",
-    "stall-router",
-    "link",
-    "kill-node",
-    "partition-nodes",
-];
-const TARGETED: [&str; 10] =
-    ["kill-agent", "restart-agent", "stop-agent", "camera", "drop", "partition", "heal", "netem", "stall-agent", "link"];
+/// A fault action's schema value from its name on the wire (proto/swarm/v1/fault.proto:
+/// "kill-agent" is `FAULT_ACTION_KILL_AGENT`); the schema is the one list, nothing is copied
+/// here. None for a name it does not declare, and for the unspecified value.
+fn wire_enum<T>(name: &str, prefix: &str, from: fn(&str) -> Option<T>) -> Option<T> {
+    if name.is_empty() || name.len() > 64 || !name.bytes().all(|b| b.is_ascii_lowercase() || b == b'-') {
+        return None;
+    }
+    from(&format!("{prefix}{}", name.to_ascii_uppercase().replace('-', "_"))).filter(|_| name != "unspecified")
+}
+
+/// The schema's names of an enum's values as they go on the wire, for error messages.
+fn wire_names(prefix: &str, names: impl Iterator<Item = &'static str>) -> Vec<String> {
+    names.map(|n| n.trim_start_matches(prefix).to_ascii_lowercase().replace('_', "-")).collect()
+}
+
+fn fault_actions() -> Vec<String> {
+    wire_names("FAULT_ACTION_", (1..100).filter_map(|i| pb::FaultAction::try_from(i).ok()).map(|a| a.as_str_name()))
+}
 
 fn fault(m: &Fault, top: u32) -> R {
-    if !FAULT_ACTIONS.contains(&m.action.as_str()) {
-        return Err(format!("action: {:?} is not one of {FAULT_ACTIONS:?}", truncate(&m.action, 40)));
-    }
-    if !["command", "done", "failed"].contains(&m.phase.as_str()) {
-        return Err(format!("phase: {:?} is not one of [command, done, failed]", truncate(&m.phase, 40)));
+    let Some(action) = wire_enum(&m.action, "FAULT_ACTION_", pb::FaultAction::from_str_name) else {
+        return Err(format!("action: {:?} is not one of {:?}", truncate(&m.action, 40), fault_actions()));
+    };
+    if wire_enum(&m.phase, "FAULT_PHASE_", pb::FaultPhase::from_str_name).is_none() {
+        let phases = wire_names("FAULT_PHASE_", (1..4).filter_map(|i| pb::FaultPhase::try_from(i).ok()).map(|p| p.as_str_name()));
+        return Err(format!("phase: {:?} is not one of {phases:?}", truncate(&m.phase, 40)));
     }
     match m.target {
         Some(t) => id(top, "target", t)?,
-        None if TARGETED.contains(&m.action.as_str()) => return Err(format!("target: {} needs a target satellite", m.action)),
+        // The schema's numbering: an action below 50 acts on a satellite.
+        None if (action as i32) < 50 => return Err(format!("target: {} needs a target satellite", m.action)),
         None => {}
     }
     if m.camera.is_some_and(|c| c > 5) {
@@ -660,6 +656,36 @@ mod tests {
         assert_eq!(parse_key("swarm/r1/batches/x"), None);
     }
 
+    /// The fault actions and phases come from the schema (fault.proto), by their wire names.
+    #[test]
+    fn fault_actions_and_phases_are_the_schemas() {
+        let all = fault_actions();
+        assert_eq!(all.len(), 20, "{all:?}");
+        assert!(all.iter().any(|a| a == "partition-nodes") && all.iter().any(|a| a == "stall-router"), "{all:?}");
+        let f = |action: &str, phase: &str, target: Option<u32>| Fault {
+            schema_version: 1,
+            run: "r".into(),
+            sender: "cli".into(),
+            action: action.into(),
+            phase: phase.into(),
+            target,
+            ..Default::default()
+        };
+        assert!(fault(&f("kill-router", "command", None), 4).is_ok());
+        assert!(fault(&f("kill-agent", "done", Some(2)), 4).is_ok());
+        for (m, why) in [
+            (f("kill-agent", "command", None), "needs a target"),
+            (f("kill_agent", "command", Some(1)), "action"),
+            (f("unspecified", "command", Some(1)), "action"),
+            (f("KILL-AGENT", "command", Some(1)), "action"),
+            (f("kill-agent", "unspecified", Some(1)), "phase"),
+            (f("kill-agent", "Done", Some(1)), "phase"),
+        ] {
+            let e = fault(&m, 4).unwrap_err();
+            assert!(e.contains(why), "{e}");
+        }
+    }
+
     /// Valid messages of every kind this agent reads, mutated (bytes flipped, cut, spliced)
     /// many times over: every result is a verdict, never a panic.
     #[test]
@@ -792,6 +818,7 @@ mod tests {
             done: false,
             malformed: 0,
             key_mismatch: 0,
+            ..Default::default()
         };
         let m = decode("clock", &c.encode_to_vec(), 4).unwrap();
         assert!(check_key("swarm/r/clock", "clock", None, &m).unwrap_err().key_mismatch);

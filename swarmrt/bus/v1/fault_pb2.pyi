@@ -1,8 +1,65 @@
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
 from google.protobuf import descriptor as _descriptor
 from google.protobuf import message as _message
 from typing import ClassVar as _ClassVar, Optional as _Optional
 
 DESCRIPTOR: _descriptor.FileDescriptor
+
+class FaultAction(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    FAULT_ACTION_UNSPECIFIED: _ClassVar[FaultAction]
+    FAULT_ACTION_KILL_AGENT: _ClassVar[FaultAction]
+    FAULT_ACTION_RESTART_AGENT: _ClassVar[FaultAction]
+    FAULT_ACTION_STOP_AGENT: _ClassVar[FaultAction]
+    FAULT_ACTION_CAMERA: _ClassVar[FaultAction]
+    FAULT_ACTION_DROP: _ClassVar[FaultAction]
+    FAULT_ACTION_PARTITION: _ClassVar[FaultAction]
+    FAULT_ACTION_HEAL: _ClassVar[FaultAction]
+    FAULT_ACTION_NETEM: _ClassVar[FaultAction]
+    FAULT_ACTION_STALL_AGENT: _ClassVar[FaultAction]
+    FAULT_ACTION_LINK: _ClassVar[FaultAction]
+    FAULT_ACTION_KILL_SELECTOR: _ClassVar[FaultAction]
+    FAULT_ACTION_RESTART_SELECTOR: _ClassVar[FaultAction]
+    FAULT_ACTION_KILL_ROUTER: _ClassVar[FaultAction]
+    FAULT_ACTION_RESTART_ROUTER: _ClassVar[FaultAction]
+    FAULT_ACTION_STALL_WORLD: _ClassVar[FaultAction]
+    FAULT_ACTION_STALL_SELECTOR: _ClassVar[FaultAction]
+    FAULT_ACTION_STALL_RECORDER: _ClassVar[FaultAction]
+    FAULT_ACTION_STALL_ROUTER: _ClassVar[FaultAction]
+    FAULT_ACTION_KILL_NODE: _ClassVar[FaultAction]
+    FAULT_ACTION_PARTITION_NODES: _ClassVar[FaultAction]
+
+class FaultPhase(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    FAULT_PHASE_UNSPECIFIED: _ClassVar[FaultPhase]
+    FAULT_PHASE_COMMAND: _ClassVar[FaultPhase]
+    FAULT_PHASE_DONE: _ClassVar[FaultPhase]
+    FAULT_PHASE_FAILED: _ClassVar[FaultPhase]
+FAULT_ACTION_UNSPECIFIED: FaultAction
+FAULT_ACTION_KILL_AGENT: FaultAction
+FAULT_ACTION_RESTART_AGENT: FaultAction
+FAULT_ACTION_STOP_AGENT: FaultAction
+FAULT_ACTION_CAMERA: FaultAction
+FAULT_ACTION_DROP: FaultAction
+FAULT_ACTION_PARTITION: FaultAction
+FAULT_ACTION_HEAL: FaultAction
+FAULT_ACTION_NETEM: FaultAction
+FAULT_ACTION_STALL_AGENT: FaultAction
+FAULT_ACTION_LINK: FaultAction
+FAULT_ACTION_KILL_SELECTOR: FaultAction
+FAULT_ACTION_RESTART_SELECTOR: FaultAction
+FAULT_ACTION_KILL_ROUTER: FaultAction
+FAULT_ACTION_RESTART_ROUTER: FaultAction
+FAULT_ACTION_STALL_WORLD: FaultAction
+FAULT_ACTION_STALL_SELECTOR: FaultAction
+FAULT_ACTION_STALL_RECORDER: FaultAction
+FAULT_ACTION_STALL_ROUTER: FaultAction
+FAULT_ACTION_KILL_NODE: FaultAction
+FAULT_ACTION_PARTITION_NODES: FaultAction
+FAULT_PHASE_UNSPECIFIED: FaultPhase
+FAULT_PHASE_COMMAND: FaultPhase
+FAULT_PHASE_DONE: FaultPhase
+FAULT_PHASE_FAILED: FaultPhase
 
 class Fault(_message.Message):
     __slots__ = ("schema_version", "run", "sender", "k", "t_s", "action", "phase", "target", "camera", "state", "rate", "detail", "netem", "down_s", "peer", "delay_s")
