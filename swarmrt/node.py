@@ -26,6 +26,7 @@ __all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scena
 
 _TICK_S = 0.25  # the stall ticker's period
 _STALL_S = 2.0  # a gap in its ticks this long: this process was stalled
+_TOKEN_QUERY_S = 5.0  # the longest wait for the routers' answer on a token held past its hold (a loaded machine)
 
 
 
@@ -182,8 +183,26 @@ class Node:
         for key, (ev, at) in self._held.items():
             if at is not None and at <= now:
                 del self._held[key]
+                if self._still_declared(ev.key):
+                    # Its going and its coming back crossed on their way here (a client failing
+                    # over between meshed routers: its new declaration can arrive before the old
+                    # one's removal, or this node is slow to read either): it is on the bus now,
+                    # so it never went. (Seen: a run declared broken over an agent that was back
+                    # in 7 ms, issue 35.)
+                    self.log.warning("the %s's liveliness went and is declared again: not gone", ev.role or ev.key)
+                    self._epoch += 1
+                    return Event(ev.key, "resync", ev.sat, role=ev.role)
                 return ev
         return None
+
+    def _still_declared(self, key: str) -> bool:
+        """Whether a liveliness token on ``key`` is declared on the bus now, as the routers
+        answer (their view, not the order in which this node heard of it)."""
+        try:
+            return any(r.ok is not None for r in self.session.liveliness().get(key, timeout=_TOKEN_QUERY_S))
+        except zenoh.ZError as exc:
+            self.log.warning("liveliness query %s: %s", key, exc)
+            return False
 
     def _next_wake(self) -> float | None:
         times = [at for _e, at in self._held.values() if at is not None]

@@ -292,3 +292,46 @@ def test_a_router_killed_while_an_agent_on_it_is_stalled_waits_for_the_stall_and
     assert {f["action"] for f in done} == {"stall-agent", "kill-router"}, summary["faults"]
     [kill] = [f for f in done if f["action"] == "kill-router"]
     assert "once the stall of pid" in kill["detail"], kill
+
+
+def test_a_token_whose_going_arrives_after_its_return_is_not_counted_gone():
+    """A client failing over between meshed routers re-declares its token on the second
+    router; the removal of its old declaration (the first router's) can reach a watcher
+    after the new one, or be read late. The node then holds the token and, its hold over,
+    asks the routers: declared, so not gone (a resync). A token really gone still counts
+    gone after its hold. (Issue 35: a run declared broken over an agent back in 7 ms.)"""
+    import json as _json
+
+    from swarm.supervise.launch import free_port
+    from swarmrt.node import Node
+    from swarmrt.protocol import Event
+
+    port = free_port()
+    rc = zenoh.Config()
+    rc.insert_json5("mode", '"router"')
+    rc.insert_json5("listen/endpoints", _json.dumps([f"tcp/127.0.0.1:{port}"]))
+    rc.insert_json5("scouting/multicast/enabled", "false")
+    router = zenoh.open(rc)
+    bus = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"])
+    n = Node("world", 0, "t", 4, bus, announce=False)
+    peer = zenoh.open(bus.zenoh_config())
+    key = Keys("t").alive("agent", 2)
+    try:
+        n.watch_liveliness()
+        token = peer.liveliness().declare_token(key)
+        seen: list = []
+        assert n.wait_for(lambda: any(e.kind == "alive" and e.alive for e in seen), 10.0, seen.append)
+        # The crossed order: its going heard after its (still standing) declaration.
+        n.inbox.put_event(Event(key, "alive", 2, alive=False, role="agent"))
+        seen.clear()
+        assert n.wait_for(lambda: any(e.kind in ("resync", "alive") for e in seen), 10.0, seen.append), seen
+        assert [e.kind for e in seen] == ["held", "resync"], seen
+        # Really gone: counted gone once held for liveliness_hold_s.
+        token.undeclare()
+        seen.clear()
+        assert n.wait_for(lambda: any(e.kind == "alive" for e in seen), 10.0, seen.append), seen
+        assert [e.kind for e in seen] == ["held", "alive"] and seen[-1].alive is False, seen
+    finally:
+        n.close()
+        peer.close()
+        router.close()
