@@ -1,5 +1,6 @@
 """What every harness of this folder shares: instrument the project's modules for
-atheris's coverage, then fuzz one target of :mod:`swarm.bench.fuzz_targets`.
+atheris's coverage, then fuzz one target of :mod:`fuzz.targets` (this folder's targets.py;
+the repository root is put on ``sys.path``, so ``fuzz`` is this folder, imported as a package).
 
 A harness is ``python fuzz/fuzz_<x>.py [harness options] [libFuzzer/atheris arguments]``
 (corpus folders, ``-runs=N``, ``-max_total_time=S``, ``-timeout=S``...); ``scripts/fuzz.py``
@@ -32,17 +33,17 @@ NEVER = ["swarmrt.bus.fastcheck", "swarmcore.kernels", "swarmcore.mekf"]  # numb
 def fuzz(name: str, argv: list[str], include: tuple[str, ...] = (), own: tuple[str, ...] = (),
          imports: tuple[str, ...] = ()) -> None:
     """Fuzz target ``name`` with atheris; ``include``: more packages to instrument (beyond
-    swarmrt and swarm); ``own``: the harness's own options (what libFuzzer must repeat when it
+    swarmrt, swarm and the targets' own package, fuzz); ``own``: the harness's own options (what libFuzzer must repeat when it
     starts the harness again itself, as ``-merge=1`` and ``-fork`` do); ``imports``: more
     modules the target imports when first called (see below)."""
-    with atheris.instrument_imports(include=["swarmrt", "swarm", *include], exclude=NEVER):
+    with atheris.instrument_imports(include=["swarmrt", "swarm", "fuzz", *include], exclude=NEVER):
         # What the targets import when first called: instrumented too. Only a module
         # imported inside this block is: one the target imports at its first call is plain
         # bytecode, its branches invisible to the fuzzer.
         import swarmrt.netem
         import swarmrt.scenario_files
         import swarmrt.security  # noqa: F401
-        from swarm.bench.fuzz_targets import target
+        from fuzz.targets import target
 
         for module in imports:
             importlib.import_module(module)

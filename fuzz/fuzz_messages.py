@@ -1,6 +1,6 @@
 """Bus messages: ``python fuzz/fuzz_messages.py --kind est [atheris args]``; every kind of
 swarmrt.bus.messages.MODELS, through the receiver's whole path (decode, validate, the key,
-the conversions) and the recorder's (swarm.bench.fuzz_targets.message_target)."""
+the conversions) and the recorder's (fuzz.targets.message_target)."""
 
 import argparse
 import sys

@@ -17,7 +17,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from swarm.bench.fuzz import harnesses, keep_found, run_harness, write_seeds
+from fuzz.runner import harnesses, keep_found, run_harness, write_seeds
 
 
 def main() -> int:

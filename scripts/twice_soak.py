@@ -80,7 +80,7 @@ def _campaign(seed: int, a) -> dict:
 
 def _check_second(out: Path, report: dict, routers: int) -> dict:
     """Invariants a–d of the second run (the command checks the first run's)."""
-    from swarm.studies.chaos import Episode, check_run
+    from swarm.chaos.campaign import Episode, check_run
     from swarmrt.scenario_files import load_scenario
 
     run2 = out / "run-2"

@@ -1,4 +1,7 @@
-"""The netem impairment's argument grammar: what a ``netem`` Fault carries.
+"""The netem impairment's argument grammar: what a ``netem`` Fault carries (the runtime's
+part of netem: every receiver of a Fault checks it). The other two: :mod:`swarm.supervise.netem`
+(the ``tc`` commands that apply it to a compose container) and :mod:`swarm.supervise.netemd`
+(the fallback daemon for kernels without netem).
 
 Values in, values out: :class:`Netem` parses and validates the CLI's strings and writes
 the canonical netem argument string (``delay 200ms 50ms loss 10% rate 1mbit``) that the

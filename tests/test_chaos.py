@@ -1,5 +1,5 @@
 """Chaos campaigns (issue 24, P2): the seeded schedule and the invariant checks
-(swarm/studies/chaos.py, bus-free), and one short campaign of `swarm chaos` for real."""
+(swarm/chaos/campaign.py, bus-free), and one short campaign of `swarm chaos` for real."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from swarm.studies.chaos import (
+from swarm.chaos.campaign import (
     CLUSTER_KINDS,
     KINDS,
     NODE_KINDS,
@@ -184,7 +184,7 @@ def test_failover_kills_one_of_two_routers_and_brings_it_back():
 def test_stalls_stop_each_role_for_a_survivable_time():
     """A stall episode stops one role (SIGSTOP) for a time drawn from its role's range — short
     enough to be survived with the numbers of an unstalled run — then continues it."""
-    from swarm.studies.chaos import STALL_ROLES
+    from swarm.chaos.campaign import STALL_ROLES
 
     eps = [e for seed in range(30) for e in draw_schedule(_sc(), 8, seed=seed, routers=2, kinds=("stall",))]
     assert {e.role for e in eps} == set(STALL_ROLES)
@@ -224,7 +224,7 @@ def test_compose_campaigns_add_a_containers_network_and_drop_failover():
     """Under compose (`--compose`): netem (delay with jitter and loss on an agent's container,
     then cleared) and partition (off the bus network, then healed) are drawn, failover never;
     locally they cannot be asked for. Every episode's commands are what `swarm fault` sends."""
-    from swarm.studies.chaos import COMPOSE_KINDS, Command
+    from swarm.chaos.campaign import COMPOSE_KINDS, Command
     from swarmrt.netem import validate_field
 
     sc = _sc()
@@ -279,7 +279,7 @@ def test_reconvergence_is_the_first_of_enough_steps_within_3_sigma():
 
 
 def test_an_estimate_lost_to_the_recorders_gap_and_a_kill_is_excused_and_nothing_else():
-    from swarm.studies.chaos import _lost_to_a_gap_and_a_kill
+    from swarm.chaos.campaign import _lost_to_a_gap_and_a_kill
 
     s = {"bus_gaps": [{"observer": "recorder", "last_step_before": 12, "first_step_after": 12}],
          "faults": [{"action": "kill-agent", "phase": "done", "target": 2, "k": 13}]}
@@ -297,7 +297,7 @@ def test_an_estimate_lost_to_the_recorders_gap_and_a_kill_is_excused_and_nothing
 
 
 def test_an_estimate_of_an_agent_off_the_bus_network_is_excused():
-    from swarm.studies.chaos import _partitioned
+    from swarm.chaos.campaign import _partitioned
 
     s = {"faults": [{"action": "partition", "phase": "done", "target": 1, "k": 15},
                     {"action": "heal", "phase": "done", "target": 1, "k": 18},
@@ -310,7 +310,7 @@ def test_an_agent_killed_as_its_step_began_is_excused_under_compose_and_nothing_
     """The times of the CI campaign that failed (seed 31, compose, 2026-12-06): agent 2's token
     went 33 ms before the clock of step 47, which listed it live (the world held the token
     0.3 s); it never published step 47."""
-    from swarm.studies.chaos import _killed_as_its_step_began
+    from swarm.chaos.campaign import _killed_as_its_step_began
 
     ms = 1_000_000
     clocks = {46: ({0, 1, 2, 3}, 720_420 * ms), 47: ({0, 1, 2, 3}, 720_563 * ms), 48: ({0, 1, 3}, 721_551 * ms)}
@@ -327,7 +327,7 @@ def test_an_agent_killed_as_its_step_began_is_excused_under_compose_and_nothing_
 
 
 def test_few_pairs_one_miss_is_no_evidence_many_misses_are():
-    from swarm.studies.chaos import _below
+    from swarm.chaos.campaign import _below
 
     assert not _below(91 / 92, 92)  # 1.1 % outside, one pair: a consistent filter does that one time in five
     assert _below(0.95, 200)  # 10 misses in 200 at a 1 % rate: p ≈ 5e-5

@@ -373,8 +373,8 @@ def test_compose_cluster_profile_runs_a_study(tmp_path, cluster_image):
     cluster needs no keys: none are made)."""
     import uuid
 
+    from swarm.chaos.compose import compose_command
     from swarm.studies.executor import connect
-    from swarm.supervise.compose_chaos import compose_command
     from swarm.supervise.launch import free_port
 
     try:

@@ -24,7 +24,7 @@ pytestmark = [pytest.mark.docker, pytest.mark.integration, pytest.mark.timeout(6
 
 
 def _compose_cmd() -> list[str]:
-    from swarm.supervise.compose_chaos import compose_command
+    from swarm.chaos.compose import compose_command
 
     try:
         return compose_command()

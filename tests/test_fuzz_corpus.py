@@ -11,8 +11,8 @@ import time
 
 import pytest
 
-from swarm.bench.fuzz import CORPUS, ROOT, harnesses
-from swarm.bench.fuzz_targets import TARGETS, seeds
+from fuzz.runner import CORPUS, ROOT, harnesses
+from fuzz.targets import TARGETS, seeds
 from swarmrt.bus import messages as M
 
 pytestmark = pytest.mark.filterwarnings("error::RuntimeWarning")
@@ -46,7 +46,7 @@ def test_committed_seeds_are_what_the_builders_make():
 
 @pytest.mark.parametrize("kind", sorted(M.MODELS))
 def test_message_seeds_are_valid_on_their_keys(kind):
-    from swarm.bench.fuzz_targets import receive
+    from fuzz.targets import receive
 
     for p in sorted((CORPUS / f"msg_{kind}").glob("valid-*")):
         receive(kind, p.read_bytes())
@@ -61,7 +61,7 @@ def test_the_mcap_harness_instruments_what_its_target_imports():
 import importlib, pathlib, sys
 from fuzz_mcap import IMPORTS
 from _harness import NEVER
-from swarm.bench.fuzz_targets import mcap_target
+from fuzz.targets import mcap_target
 for m in IMPORTS:
     importlib.import_module(m)
 before = set(sys.modules)
@@ -79,7 +79,7 @@ print(sorted(late))
 
 def test_scratch_folders_of_gone_fuzzers_are_swept(tmp_path):
     # libFuzzer ends a harness with exit(): no atexit handler of Python's removes its folder.
-    from swarm.bench.fuzz_targets import _sweep
+    from fuzz.targets import _sweep
 
     gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True).stdout.strip()
     for name in (f"swarm-fuzz-{gone}-abc", f"swarm-fuzz-{os.getpid()}-def", "swarm-fuzz-xyz", "other"):

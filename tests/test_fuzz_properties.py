@@ -25,7 +25,7 @@ import yaml
 from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
-from swarm.bench import fuzz_targets as F
+from fuzz import targets as F
 from swarm.record.mcaplog import iter_messages, recover
 from swarm.record.recording import RecordingError, load_recording
 from swarmcore.scenario import Scenario

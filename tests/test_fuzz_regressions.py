@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from swarm.bench import fuzz_targets as F
+from fuzz import targets as F
 from swarm.record.mcaplog import CheckpointWriter, iter_messages, recover
 from swarm.record.recording import RecordingError, load_recording
 from swarmrt.bus import messages as M

@@ -95,7 +95,7 @@ def test_the_scan_sees_every_way_of_calling_the_codec(tmp_path):
 
 
 def test_fuzz_targets_call_the_receive_function_itself():
-    from swarm.bench import fuzz_targets as F
+    from fuzz import targets as F
 
     assert F.bus_receive is receive
 
@@ -108,7 +108,7 @@ N = 4
 def _est(n_rows: int, own: int = 2, ids=None, run: str = RUN, sender: str | None = None) -> bytes:
     import numpy as np
 
-    from swarm.bench.fuzz_targets import _estimate
+    from fuzz.targets import _estimate
 
     msg = estimate_msg(_estimate(np.random.default_rng(1), n_rows), run=run, sender=sender or f"agent-{own}", own=own)
     if ids is not None:
@@ -163,7 +163,7 @@ def test_shallow_batches_leave_the_estimator_messages_to_the_agent():
     # message when its estimator reads it (check_estimator_message).
     import numpy as np
 
-    from swarm.bench.fuzz_targets import seeds
+    from fuzz.targets import seeds
 
     valid = next(data for name, data in seeds()["msg_batches"] if name.startswith("valid"))
     msg = M.StepBatches.FromString(valid)

@@ -1,5 +1,5 @@
 """``swarm chaos``: a seeded random fault campaign against a distributed run
-(:mod:`swarm.studies.chaos` draws the schedule and checks the run; this only wires and prints)."""
+(:mod:`swarm.chaos.campaign` draws the schedule and checks the run; this only wires and prints)."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ def chaos(
     gone; the recording readable and every fired fault in summary.json; every step complete
     and the filters within 3σ once reconverged (recovery time per kind, p50/p99); the same
     seed, the same schedule. Writes OUT/chaos.json; exit 1 if an invariant fails."""
-    from swarm.studies.chaos import (
+    from swarm.chaos.campaign import (
         CLUSTER_KINDS,
         COMPOSE_KINDS,
         KINDS,
@@ -79,7 +79,7 @@ def chaos(
             console.print(f"[red]error:[/red] {exc}", highlight=False)
             raise typer.Exit(2) from None
     if compose:
-        from swarm.supervise.compose_chaos import PACE
+        from swarm.chaos.compose import PACE
 
         if routers != 1 or twice:
             console.print("[red]error:[/red] --compose runs one router, once (its faults come from outside the swarm: "
@@ -181,9 +181,9 @@ def _print_node_faults(rows: list[dict]) -> None:
 
 def _compose_campaign(scenario: Path, sets: list[str], sc, episodes, seed: int, faults: int, settle, kinds, out: Path,
                       timeout) -> None:
-    """The campaign under docker compose (swarm/supervise/compose_chaos.py runs it)."""
-    from swarm.studies.chaos import check_run
-    from swarm.supervise.compose_chaos import run_compose_campaign
+    """The campaign under docker compose (swarm/chaos/compose.py runs it)."""
+    from swarm.chaos.campaign import check_run
+    from swarm.chaos.compose import run_compose_campaign
 
     root = Path(__file__).resolve().parents[2]
     commands = sorted((c for e in episodes for c in e.commands()), key=lambda c: c.at_step)
@@ -217,7 +217,7 @@ def _finish(report, out: Path, wall_s: float) -> None:
 
 
 def _print_report(report) -> None:
-    from swarm.studies.chaos import FIRED_COLUMNS, fired_rows
+    from swarm.chaos.campaign import FIRED_COLUMNS, fired_rows
 
     t = Table(title=f"faults fired ({report.scenario}, seed {report.seed})")
     for col in FIRED_COLUMNS:

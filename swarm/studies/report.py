@@ -32,8 +32,8 @@ import matplotlib.pyplot as plt
 import numpy as np
 from scipy.stats import chi2
 
+from swarm.chaos.campaign import FIRED_COLUMNS, fired_rows
 from swarm.outputs import NO_DATA, no_data_reason, number
-from swarm.studies.chaos import FIRED_COLUMNS, fired_rows
 from swarmcore.result import LINK_TOTALS, RunResult
 
 __all__ = ["RunData", "LinkData", "load_run", "make_report"]

@@ -1,4 +1,6 @@
 """Real network impairment of a compose satellite: Linux traffic control (``tc`` netem).
+This module owns the ``tc`` commands (run in a helper container); the argument grammar is
+:mod:`swarmrt.netem`'s, the fallback for kernels without netem :mod:`swarm.supervise.netemd`'s.
 
 ``swarm fault --compose netem 3 --delay 200ms --jitter 50ms --loss 10% --rate 1mbit`` puts
 a netem queueing discipline on the egress of satellite 3's container::

@@ -1,4 +1,8 @@
 """A packet delayer for kernels without netem: NFQUEUE, held verdicts, iptables, tc tbf.
+This module owns the fallback daemon (``python -m swarm.supervise.netemd`` in a helper
+container, started by :mod:`swarm.supervise.faults`); the argument grammar is
+:mod:`swarmrt.netem`'s, the ``tc`` netem commands and this daemon's arguments
+(``netemd_args``) :mod:`swarm.supervise.netem`'s.
 
 ``swarm fault --compose netem`` uses the kernel's netem qdisc (:mod:`swarm.supervise.netem`). Some
 kernels are built without it (``CONFIG_NET_SCH_NETEM`` unset: ``tc`` answers "Specified

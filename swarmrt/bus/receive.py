@@ -4,7 +4,7 @@
 Every reader of the bus calls :func:`receive` and nothing else to open a sample: the roles'
 :class:`swarmrt.node.Node` (subscriptions and query replies), the recorder, the live view,
 the conformance kit, the chaos checks, the supervisor's router watch and the fuzz harnesses
-(``swarm.bench.fuzz_targets``: the 10⁶-input campaigns run this very function).
+(``fuzz/targets.py``: the 10⁶-input campaigns run this very function).
 ``tests/test_receive_path.py`` fails if a module outside this one and the codec
 (:mod:`swarmrt.bus.messages`) calls ``decode``, ``validate`` or ``check_key`` itself.
 

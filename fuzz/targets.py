@@ -8,7 +8,7 @@ MCAP recording. Each target takes bytes and returns normally when the input was 
 refused with the error its loader documents; any other exception is a finding. The same
 functions serve the atheris harnesses (``fuzz/fuzz_*.py``), the corpus replay in CI
 (``tests/test_fuzz_corpus.py``) and the seed corpus (:func:`seeds`, written by
-``python -m swarm.bench.fuzz seeds``).
+``python scripts/fuzz.py --seeds``).
 """
 
 from __future__ import annotations
@@ -412,7 +412,7 @@ def seeds() -> dict[str, list[tuple[str, bytes]]]:
     out: dict[str, list[tuple[str, bytes]]] = {}
     for kind, msgs in seed_messages().items():
         out[f"msg_{kind}"] = [(f"valid-{i}", M.encode(m)) for i, m in enumerate(msgs)]
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[1]
     out["scenario"] = [(p.name, p.read_bytes()) for p in sorted((root / "scenarios").glob("*.yaml"))]
     import json
 

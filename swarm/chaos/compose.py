@@ -7,7 +7,7 @@ that claim their satellites); every command of the schedule is sent as ``swarm f
 world's clock reaches its step, watched from the host as the ``cli`` identity. Then
 ``docker compose down``, and the run folder (``run.mcap`` and ``summary.json`` from the
 recorder, ``run.json`` and ``compose.log`` from here) is left for
-:func:`swarm.studies.chaos.check_run`.
+:func:`swarm.chaos.campaign.check_run`.
 
 Unlike a local campaign, whose world carries out each scheduled fault at the start of its
 step and waits for it, these commands come from outside the swarm and land during their step
@@ -72,7 +72,7 @@ def run_compose_campaign(root: Path, scenario: Path, sets: list[str], commands: 
                          timeout_s: float | None = None) -> int | None:
     """Run the compose swarm of checkout ``root`` on ``scenario`` (a file of its
     ``scenarios/``, which compose mounts) with ``sets``, sending each of ``commands``
-    (:class:`swarm.studies.chaos.Command`, in step order) at its step. Leaves the run in
+    (:class:`swarm.chaos.campaign.Command`, in step order) at its step. Leaves the run in
     ``out/run``; returns the world container's exit status (None: it did not end)."""
     scen_dir = (root / "scenarios").resolve()
     scenario = Path(scenario).resolve()

@@ -21,7 +21,7 @@ from pathlib import Path
 
 __all__ = ["ROOT", "CORPUS", "harnesses", "command", "run_harness", "write_seeds", "keep_found", "HarnessResult"]
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[1]
 CORPUS = ROOT / "fuzz" / "corpus"
 MESSAGE_KINDS = ("claim", "clock", "sensors", "cam", "img", "meas", "batches", "est", "full_est", "select", "fault", "health",
                  "truth", "rx", "links", "rejoin", "recorded")
@@ -44,7 +44,7 @@ def command(harness: str) -> list[str]:
 def write_seeds(corpus: Path = CORPUS) -> dict[str, int]:
     """(Re)write the seed files of every harness (``valid-*``, the shipped scenarios, two small
     recordings) made by the project's own builders; found inputs (``crash-*``, ...) are kept."""
-    from swarm.bench.fuzz_targets import seeds
+    from fuzz.targets import seeds
 
     out = {}
     for harness, items in seeds().items():
