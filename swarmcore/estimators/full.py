@@ -211,15 +211,16 @@ class FullEstimator(Estimator):
             # The own reading and every peer's that the radio brought on time; late ones
             # are inserted at their step and replayed (``filter.late: replay``) like late
             # relative measurements, or dropped and counted.
-            absolute = {**({self.own: inputs.absolute} if inputs.absolute is not None else {})}
+            readings: dict[int, AbsoluteMeasurement] = {} if inputs.absolute is None else {self.own: inputs.absolute}
             for r in inputs.received:
                 a = self.absolute_in(r.payload) if r.sender != self.own else None
                 if a is None:
                     continue
                 if r.step == inputs.step:
-                    absolute[r.sender] = a
+                    readings[r.sender] = a
                 else:
                     late_abs.setdefault(r.step, {})[r.sender] = a
+            absolute = readings
         late: dict[int, list] = {}
         for r in inputs.late():
             late.setdefault(r.step, []).append(r.measurements)
