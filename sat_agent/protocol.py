@@ -424,6 +424,9 @@ class AgentProtocol:
         t0 = time.perf_counter()
         rel_own, cams = self._own_measurements(k)
         ms_own = (time.perf_counter() - t0) * 1e3
+        absolute = None if sens is None else absolute_from_sensors(sens)
+        if self.started:  # its own reading, which the centralized reference sends
+            e.absolute_reading(k, absolute)
         message = self.codec.to_msg(e.transmit(k)) if self.started else None
         batch = batch_msg(rel_own, cams, run=self.run_id, sender=self.name, k=k, t_s=t, observer=self.i, estimator=message)
         self.bytes_sent = radio_bytes(batch)
@@ -434,7 +437,7 @@ class AgentProtocol:
             received = yield from self._linked_radio(k, clock, timeout)
         else:
             received = yield from self._ideal_radio(k, clock, timeout)
-        inputs = StepInputs(k, t, _gyro(sens), None if sens is None else absolute_from_sensors(sens), rel_own, received,
+        inputs = StepInputs(k, t, _gyro(sens), absolute, rel_own, received,
                             self._peer_batch if not self.linked else None)
         t0, c0 = time.perf_counter(), time.thread_time()
         if not self.started:

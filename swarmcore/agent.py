@@ -16,11 +16,14 @@ Late (out-of-sequence) measurements: a batch taken at step s < k that arrives at
 input and applied measurements, inserts the late ones at their own step and re-runs the
 filter forward from there (reprocessing: exact for the filter's linearisation schedule,
 so delivering a batch late gives the posterior of delivering it on time, to round-off).
-Older than the history, or ``late: drop``: dropped and counted.
+Older than the history, or ``late: drop``: dropped and counted. The centralized
+reference's late peer absolute readings (star tracker, GPS that came over the radio) are
+inserted and replayed the same way (``late_absolute``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -286,10 +289,13 @@ class AgentFilter:
         absolute: Absolute,
         relative: RelativeMeasurements,
         late: dict[int, RelativeMeasurements] | None = None,
+        late_absolute: dict[int, dict[int, AbsoluteMeasurement]] | None = None,
     ) -> tuple[UpdateReport, LateReport]:
         """Step ``k``: insert ``late`` measurements (taken at earlier steps) and replay,
-        then predict to k (unless :meth:`predict_to` already did) and update."""
-        lrep = self._insert_late(late or {})
+        then predict to k (unless :meth:`predict_to` already did) and update.
+        ``late_absolute`` ``{step: {sat: reading}}``: peers' absolute readings of earlier
+        steps that came late (the centralized reference), inserted and replayed alike."""
+        lrep = self._insert_late(late or {}, late_absolute or {})
         if not self.prior_pending:
             self.predict_to(k, gyro)
         if self.est.step != k:
@@ -309,23 +315,35 @@ class AgentFilter:
         for s in [s for s in self._hist if s < k - self.history_steps]:
             del self._hist[s]
 
-    def _insert_late(self, late: dict[int, RelativeMeasurements]) -> LateReport:
+    def _insert_late(self, late: dict[int, RelativeMeasurements],
+                     late_absolute: dict[int, dict[int, AbsoluteMeasurement]] | None = None) -> LateReport:
         rep = LateReport()
         last = self.est.step - 1 if self.prior_pending else self.est.step  # the last updated step
         first = None
-        for s in sorted(late):
-            m = usable(late[s], self.params.own, self.mode)
-            if not len(m):
+        late_absolute = late_absolute or {}
+        for s in sorted(set(late) | set(late_absolute)):
+            m = usable(late[s], self.params.own, self.mode) if s in late else RelativeMeasurements.empty()
+            # Peers' absolute readings (one each; the own one is never late).
+            a = {i: r for i, r in late_absolute.get(s, {}).items() if i != self.params.own}
+            if not len(m) and not a:
                 continue
             if s > last:
                 raise ValueError(f"measurements of step {s} are not late: the filter has updated up to step {last}")
             rec = self._hist.get(s)
             if self.late != "replay" or rec is None:
-                rep.dropped += len(m)
+                rep.dropped += len(m) + len(a)
                 continue
-            rec.relative = RelativeMeasurements.concat([rec.relative, m]).canonical()
+            if len(m):
+                rec.relative = RelativeMeasurements.concat([rec.relative, m]).canonical()
+            if a:
+                # The step's readings as {sat: reading} (absolute_rows sorts them: the order
+                # they came in changes nothing).
+                held = rec.absolute
+                if not isinstance(held, Mapping):
+                    held = {} if held is None else {self.params.own: held}
+                rec.absolute = {**held, **a}
             rec.updated = True
-            rep.used += len(m)
+            rep.used += len(m) + len(a)
             first = s if first is None else first
         if first is None:
             return rep

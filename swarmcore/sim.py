@@ -155,6 +155,8 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
                    for i in range(n)}
             for i in up:
                 rec.taken_at(k, i, own[i][0].target)
+            for i in running:  # its own absolute reading, which the centralized reference sends
+                ests[i].absolute_reading(k, absm[i] if G[i, i] else None)
             sent = {i: ests[i].transmit(k) if i in running else None for i in range(n)}
             peers_of: dict[int, RelativeMeasurements] = {}
             if lm is None:
@@ -171,14 +173,14 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
                 received = _through_links(lm, k, truth, own, sent, wire_size, rec, up)
             if sc.bound_on:
                 f = sc.bound.filter
-                _count_for_bound(sc, rec, k, up, own, received, G, f is not None and ests[f].hears_peer_absolute)
+                _count_for_bound(sc, rec, k, up, own, received, G,
+                                 type(ests[f]).absolute_in if f is not None and ests[f].hears_peer_absolute else None)
             views = []
-            anchors = {j: absm[j] for j in up if G[j, j]}  # every live anchor's reading (one dict for all filters)
             for i in up:
                 e = ests[i]
                 t0, c0 = time.perf_counter(), time.thread_time()
                 inputs = StepInputs(k, truth.t, None if gyro is None else gyro[i], absm[i] if G[i, i] else None, own[i][0],
-                                    received[i], peers_of.get(i), anchors)
+                                    received[i], peers_of.get(i))
                 if i in cold:
                     if not e.cold_start(inputs):
                         continue
@@ -211,12 +213,12 @@ def simulate(sc: Scenario, model: MeasurementModel | None = None, progress: Call
 
 
 def _count_for_bound(sc: Scenario, rec: RunBuilder, k: int, up: list[int], own: dict, received: dict, G: np.ndarray,
-                     hears_all: bool = False) -> None:
+                     absolute_in: Callable[[object], object] | None = None) -> None:
     """What the Cramér–Rao bound (``sc.bound``) counts of step k: centralized, every live
     satellite's relative measurements and absolute reading; of filter f, its own and what
     reached it (a late delivery counted at the step it was taken), and its own absolute
-    reading, or every live anchor's when it hears them (``hears_all``: the centralized
-    reference)."""
+    reading, and (``absolute_in``: the centralized reference, whose messages carry their
+    sender's reading) every peer's reading that reached it, likewise."""
     f = sc.bound.filter
     if f is None:
         for i in up:
@@ -226,7 +228,9 @@ def _count_for_bound(sc: Scenario, rec: RunBuilder, k: int, up: list[int], own: 
         rec.measured_at(k, own[f][0])
         for r in received[f]:
             rec.measured_at(r.step, r.measurements)
-        rec.absolute_at(k, [j for j in up if G[j, j]] if hears_all else [f] if G[f, f] else [])
+            if absolute_in is not None and absolute_in(r.payload) is not None:
+                rec.absolute_at(r.step, [r.sender])
+        rec.absolute_at(k, [f] if G[f, f] else [])
 
 
 def _through_links(lm: LinkModel, k: int, truth, own: dict, sent: dict, wire_size: WireSize, rec: RunBuilder,

@@ -299,3 +299,119 @@ def test_ci_replays_late_deliveries_at_their_own_step():
     assert dl["used"] == 0 and dl["dropped"] > 0
     assert rpos < 0.5 * dpos, (rpos, dpos)
     assert rnees < 1.4
+
+
+# ------------------------------------------------------------ the centralized reference's message
+
+
+def _reading(star=True, gps=True, seed=0):
+    rng = np.random.default_rng(seed)
+    q = rng.standard_normal(4)
+    return AbsoluteMeasurement(q_BI=q / np.linalg.norm(q) if star else None, r_H=rng.standard_normal(3) * 17.3 if gps else None,
+                               sigma_att_rad=1.7e-5, sigma_pos_m=0.0031)
+
+
+@pytest.mark.parametrize("parts", [(True, True), (True, False), (False, True)], ids=["star+gps", "star", "gps"])
+@pytest.mark.parametrize("kind", [{"kind": "central"}, {"kind": "full", "central": True}], ids=["central", "full-central"])
+def test_central_message_crosses_the_bus_bit_for_bit(kind, parts):
+    """Its message is the sender's absolute reading, float64 in, float64 out: a peer applies
+    the very numbers the sender's own filter applies (sized with the batch by the links)."""
+    from swarmcore.estimators.full import CentralMessage
+
+    sc = _sc(estimator=kind)
+    codec = codec_for(sc)
+    e = builtin_estimator(sc, 0)
+    e.start(initial_estimate(sc, initial_truth(sc), 0, e.prior_ids()))
+    reading = _reading(*parts)
+    e.absolute_reading(0, reading)
+    assert e.transmit(1) is None  # a reading of another step is not sent
+    payload = e.transmit(0)
+    assert isinstance(payload, CentralMessage) and payload.absolute is reading
+    assert len(payload.encode()) == 1 + 8 * (2 + 4 * parts[0] + 3 * parts[1])
+    msg = codec.to_msg(payload)
+    assert msg.kind == kind["kind"] and msg.WhichOneof("body") == "opaque"
+    wire = M.encode(M.MeasBatch(run="r", sender="agent-0", k=0, t_s=0.0, observer=0, estimator=msg, R_Bi=M.Matrix(shape=[0, 6, 6])))
+    got = codec.from_msg(M.decode("meas", wire).estimator, 0, 0)
+    assert got == payload and type(e).absolute_in(got) is not None
+    a, b = got.absolute, reading
+    for f in ("q_BI", "r_H"):
+        x, y = getattr(a, f), getattr(b, f)
+        assert (x is None) == (y is None) and (x is None or (x.dtype == np.float64 and x.tobytes() == np.asarray(y).tobytes())), f
+    assert (a.sigma_att_rad, a.sigma_pos_m) == (b.sigma_att_rad, b.sigma_pos_m)
+    size = batch_wire_size("x", codec.to_msg)
+    none = (0, 0, 0.0, RelativeMeasurements.empty(), np.zeros(0, dtype=int))
+    assert size(*none, payload) > size(*none, None)
+    # No reading (not anchored, or neither sensor): nothing sent. Plain full sends nothing.
+    e.absolute_reading(1, None)
+    assert e.transmit(1) is None
+    e.absolute_reading(2, AbsoluteMeasurement(None, None, 1e-5, 1e-3))
+    assert e.transmit(2) is None
+    f = builtin_estimator(_sc(), 0)
+    f.absolute_reading(0, reading)
+    assert f.transmit(0) is None and not f.hears_peer_absolute and type(f).absolute_in(payload) is not None
+
+
+@pytest.mark.parametrize("data, why", [
+    (b"", "empty"),
+    (b"\x00" + bytes(16), "unknown flags"),
+    (b"\x04" + bytes(16), "unknown flags"),
+    (b"\x03" + bytes(16 + 32), "bytes where flags"),
+    (b"\x02" + bytes(16 + 24) + b"\x00", "bytes where flags"),
+    (b"\x02" + np.array([1e-5, np.nan, 0, 0, 0], dtype="<f8").tobytes(), "not finite"),
+    (b"\x01" + np.array([1e-5, 1e-3, 0, 0, np.inf, 1], dtype="<f8").tobytes(), "not finite"),
+])
+def test_malformed_central_messages_are_refused(data, why):
+    with pytest.raises(ValueError, match=why):
+        BUILTIN["central"].decode(data)
+
+
+def _central_steps(sc, late_at: int | None, deliver_at: int, steps: int = 6):
+    """Satellite 1's centralized reference over ``steps`` steps of a 4-satellite swarm, every
+    peer's batch and reading delivered on time but satellite 3's reading of step ``late_at``,
+    which comes at ``deliver_at``. Returns its estimator and the reports."""
+    from swarmcore.estimators import Received
+    from swarmcore.estimators.full import CentralMessage
+
+    wp = world_params(sc)
+    truth = initial_truth(sc)
+    e = builtin_estimator(sc, 1)
+    e.start(initial_estimate(sc, truth, 1, e.prior_ids()))
+    obs, tgt = np.nonzero(~np.eye(4, dtype=bool))
+    held = None
+    reports = []
+    for k in range(steps):
+        gyro = None
+        if k > 0:
+            truth, g = step_truth(wp, truth)
+            gyro = g[1]
+        absm = absolute_measurements(wp, truth)
+        rel = synthetic_batch(wp, truth, obs, tgt)
+        e.predict(k, gyro)
+        got = []
+        for j in (0, 2, 3):
+            msg = CentralMessage(absm[j])
+            if k == late_at and j == 3:
+                held, msg = msg, None
+            got.append(Received(j, k, rel.subset(rel.observer == j), msg))
+        if k == deliver_at and held is not None:
+            got.insert(0, Received(3, late_at, RelativeMeasurements.empty(), held))
+        reports.append(e.step(StepInputs(k, truth.t, gyro, absm[1], rel.subset(rel.observer == 1), got)))
+    return e, reports
+
+
+def test_central_replays_a_late_peer_reading_at_its_own_step():
+    """A peer's absolute reading that comes late is inserted at its step and the filter
+    re-run from there (``filter.late: replay``): the posterior is the one of the reading on
+    time; with ``drop`` (or older than the history) it is dropped and counted."""
+    sc = _sc(estimator={"kind": "central"}, links={"enabled": True})
+    on_time, _ = _central_steps(sc, None, 4)
+    late, reps = _central_steps(sc, 2, 4)
+    assert (reps[4].late_used, reps[4].late_dropped, reps[4].replayed_steps) == (1, 0, 2)  # steps 2 and 3 re-run
+    never, _ = _central_steps(sc, 2, 99)
+    a, b, c = on_time.view().full, late.view().full, never.view().full
+    for f in ("q_BI", "r_H", "v_H", "P"):
+        np.testing.assert_allclose(getattr(b, f), getattr(a, f), rtol=1e-12, atol=1e-15, err_msg=f)
+    assert not np.allclose(c.P, a.P, rtol=1e-12, atol=0)  # the test means something: the reading mattered
+    dropped, reps = _central_steps(_sc(estimator={"kind": "central"}, links={"enabled": True}, filter={"late": "drop"}), 2, 4)
+    assert (reps[4].late_used, reps[4].late_dropped, reps[4].replayed_steps) == (0, 1, 0)
+    np.testing.assert_array_equal(dropped.view().full.P, c.P)

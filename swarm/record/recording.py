@@ -105,8 +105,10 @@ class BoundInputs:
     what its radio brought it: the ideal radio's batches of the step (``batches``, f's own
     rows skipped, or ``batches/<f>``) or the link model's deliveries (``rx/<f>``, each batch
     counted at the step it was taken, in (step, observer) order, late ones too), and its
-    own absolute reading. An agent of a distributed run never hears its peers' absolute
-    readings (they do not travel on the radio), so filter f's bound counts only its own."""
+    own absolute reading. The peers' absolute readings reach f only in the centralized
+    reference's estimator messages (:class:`swarmcore.estimators.full.CentralMessage`, kind
+    ``central`` or ``full``): those delivered to f (well formed) are counted too, each at the
+    step it was taken, as the simulator counts them."""
 
     def __init__(self, n: int, K: int, f: int | None):
         self.n, self.K, self.f = n, K, f
@@ -114,6 +116,7 @@ class BoundInputs:
         self.heard: dict[int, list[tuple[int, int, RelativeMeasurements]]] = {}  # step → (taken at, observer, batch) delivered
         self.absolute: dict[int, set[int]] = {}  # step → satellites given an absolute reading
         self.sensed: dict[int, set[int]] = {}  # step → satellites the world sent their sensors (live)
+        self.heard_absolute: dict[int, set[tuple[int, int]]] = {}  # step → (taken at, sender) of peers' readings delivered
 
     def wants(self, kind: str, sat: int | None) -> bool:
         """Whether the message of ``kind`` on satellite ``sat``'s key (None: a key of no
@@ -139,11 +142,16 @@ class BoundInputs:
                 self.absolute.setdefault(k, set()).add(int(m.sat))
         elif kind == "batches":  # one message of the step's batches: in observer order already
             self.heard.setdefault(k, []).append((k, -1, relative_from_step(m, skip=self.f)))
+            for o, e in zip(m.observers, m.estimators, strict=False):
+                if o != self.f and self._carries_reading(e):
+                    self.heard_absolute.setdefault(k, set()).add((k, int(o)))
         elif kind == "rx":
             got = self.heard.setdefault(k, [])
             for it in m.items:
                 if it.batch.observer != self.f and 0 <= it.batch.k < self.K:
                     got.append((int(it.batch.k), int(it.batch.observer), relative_from_batches([it.batch])))
+                    if it.batch.HasField("estimator") and self._carries_reading(it.batch.estimator):
+                        self.heard_absolute.setdefault(k, set()).add((int(it.batch.k), int(it.batch.observer)))
 
     def count(self, b) -> None:
         """Hand what was gathered to ``b`` (its ``measured_at`` and ``absolute_at``), step
@@ -160,7 +168,23 @@ class BoundInputs:
                     b.measured_at(k, self.own[(k, f)])
                 for s, _o, rel in sorted(self.heard.get(k, ()), key=lambda x: (x[0], x[1])):
                     b.measured_at(s, rel)
+                for s, j in sorted(self.heard_absolute.get(k, ())):
+                    b.absolute_at(s, [j])
                 b.absolute_at(k, [f] if f in self.absolute.get(k, ()) else [])
+
+    @staticmethod
+    def _carries_reading(e) -> bool:
+        """Whether an estimator message is the centralized reference's with its sender's
+        absolute reading (what its receiver applies: one it decodes)."""
+        from swarmcore.estimators.full import CentralEstimator, CentralMessage
+
+        if e.kind not in ("central", "full") or e.version != CentralEstimator.message_version or e.WhichOneof("body") != "opaque":
+            return False
+        try:
+            CentralMessage.decode(bytes(e.opaque))
+        except ValueError:
+            return False
+        return True
 
 
 _USED = ("truth", "est", "select", "meas", "fault", "links", "rejoin")

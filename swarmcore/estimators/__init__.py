@@ -2,7 +2,7 @@
 
 Built in: ``full`` (:mod:`.full`, the full-swarm MEKF), ``central`` (:mod:`.full`, the
 full-swarm MEKF that also applies every anchor's absolute reading: the centralized
-reference, in-process only), ``ci``
+reference; the anchors send their readings on the radio), ``ci``
 (:mod:`.ci`, covariance intersection), ``pairwise`` (:mod:`.pairwise`, Luft et al.'s
 pairwise cross-covariance factors), ``gbp`` (:mod:`.gbp`, Gaussian belief propagation on
 the swarm's factor graph, a Robot Web). Plug-ins from other packages are found by the runtime

@@ -10,7 +10,9 @@ bit-equality of in-process, processes and containers by construction. Step k of 
 2. :meth:`Estimator.predict` to step k with the own gyro sample of the interval (no-op at
    k = 0): its prior of the step, before anything of step k is measured;
    :meth:`Estimator.prediction` is what an image pipeline starts from;
-3. :meth:`Estimator.transmit` — the estimator's message of step k, which the agent puts on
+3. :meth:`Estimator.absolute_reading` with its own absolute reading of step k (the one
+   :class:`StepInputs` will carry; most estimators ignore it here, the centralized
+   reference puts it in its message), then :meth:`Estimator.transmit` — the estimator's message of step k, which the agent puts on
    its radio together with its measurement batch. It crosses the link model like the
    batch (sized as its encoded bytes), reaches the peers the channel delivers it to, when
    it delivers it; its wire form is :mod:`swarmrt.bus.convert`'s (built-in estimators
@@ -37,7 +39,7 @@ numbers in, numbers out, like the rest of the core.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -116,11 +118,6 @@ class StepInputs:
     #: Every on-time peer measurement in one batch (observer order), when the caller has them
     #: so (the radio's message is columnar); else :meth:`on_time_measurements` gathers them.
     peer_measurements: RelativeMeasurements | None = None
-    #: Every live anchor's absolute reading of this step ``{sat: reading}`` (the own one
-    #: among them, if anchored): the in-process simulator's (the centralized reference
-    #: applies its peers'); None where they do not travel (a distributed agent: they are not
-    #: on the radio).
-    peer_absolute: Mapping[int, AbsoluteMeasurement] | None = None
 
     def on_time(self) -> list[Received]:
         return [r for r in self.received if r.step == self.step]
@@ -231,9 +228,16 @@ class Estimator(ABC):
 
     @property
     def hears_peer_absolute(self) -> bool:
-        """True when it applies its peers' absolute readings (:attr:`StepInputs.peer_absolute`;
-        the centralized reference): the Cramér–Rao bound of this filter counts them."""
+        """True when it applies the absolute readings its peers send in their messages (the
+        centralized reference, :meth:`absolute_in`): the Cramér–Rao bound of this filter
+        counts those that reached it."""
         return False
+
+    @classmethod
+    def absolute_in(cls, payload: Any) -> AbsoluteMeasurement | None:
+        """The sender's absolute reading (star tracker, GPS) a message of this estimator
+        carries (None: none; only an estimator that :attr:`hears_peer_absolute` sends one)."""
+        return None
 
     def __init__(self, sc: Any, own: int, params: EstimatorParams | None = None):
         self.sc = sc
@@ -323,6 +327,13 @@ class Estimator(ABC):
     def selection_reference(self) -> tuple[SwarmEstimate, Any] | None:
         """The whole-swarm estimate and its filter parameters a selector plans from (only
         estimators that ``provides_swarm_covariance``)."""
+        return None
+
+    def absolute_reading(self, k: int, reading: AbsoluteMeasurement | None) -> None:
+        """Its own absolute reading of step ``k`` (star tracker and GPS; None: no such
+        sensors), handed over before :meth:`transmit` (the same reading :meth:`step` then
+        gets in :attr:`StepInputs.absolute`). The default ignores it; the centralized
+        reference sends it on its radio."""
         return None
 
     @abstractmethod
