@@ -131,10 +131,6 @@ class LocalSwarm:
             raise ValueError(f"--routers {routers}: 1 or 2 (two routers in a mesh)")
         if (why := sc.vision.distributed_refusal()) is not None:
             raise ValueError(why)
-        from swarmcore.estimators.full import central_refusal
-
-        if (why := central_refusal(sc)) is not None:
-            raise ValueError(why)
         self.sc = sc
         self.out = Path(out)
         self.out.mkdir(parents=True, exist_ok=True)

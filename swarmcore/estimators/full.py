@@ -28,15 +28,7 @@ from ..mekf import Absolute, AbsoluteMeasurement, RelativeMeasurements, SwarmEst
 from .base import EstimateView, Estimator, EstimatorParams, StepInputs, StepReport
 from .views import full_view
 
-__all__ = ["FullEstimator", "FullParams", "CentralEstimator", "CentralMessage", "central_refusal"]
-
-
-def central_refusal(sc) -> str | None:
-    """Why a distributed run (``swarm run``) cannot fly the scenario's estimator, or None.
-    The centralized reference used to be in-process only; its agents now send their
-    absolute readings on the radio (:class:`CentralMessage`), so nothing is refused here
-    (kept for the callers that ask)."""
-    return None
+__all__ = ["FullEstimator", "FullParams", "CentralEstimator", "CentralMessage"]
 
 
 #: Layout of :class:`CentralMessage`'s bytes: one byte of flags (bit 0: a star-tracker
