@@ -96,6 +96,9 @@ def test_a_short_coverage_guided_run_of_every_harness_finds_nothing(tmp_path):
     p = subprocess.run([sys.executable, str(ROOT / "scripts" / "fuzz.py"), "--runs", "300", "--out", str(tmp_path)],
                        capture_output=True, text=True, timeout=900)
     rows = json.loads((tmp_path / "fuzz.json").read_text())
-    assert p.returncode == 0, (p.stdout[-3000:], p.stderr[-3000:])
+    found = [f"{r['harness']}: {r['crashes']} crash(es), artifacts {r['artifacts']}; its log ends:\n"
+             + "\n".join((tmp_path / "logs" / f"{r['harness']}.log").read_text(errors="replace").splitlines()[-40:])
+             for r in rows if r["crashes"]]
+    assert p.returncode == 0, "\n\n".join(found) or (p.stdout[-3000:], p.stderr[-3000:])
     assert sorted(r["harness"] for r in rows) == sorted(harnesses()), rows
     assert all(r["executions"] >= 300 and r["crashes"] == 0 for r in rows), rows
