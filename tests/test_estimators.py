@@ -359,6 +359,9 @@ def test_central_message_crosses_the_bus_bit_for_bit(kind, parts):
     (b"\x02" + bytes(16 + 24) + b"\x00", "bytes where flags"),
     (b"\x02" + np.array([1e-5, np.nan, 0, 0, 0], dtype="<f8").tobytes(), "not finite"),
     (b"\x01" + np.array([1e-5, 1e-3, 0, 0, np.inf, 1], dtype="<f8").tobytes(), "not finite"),
+    (b"\x01" + np.array([1e-5, 1e-3, 0, 0, 0, 2], dtype="<f8").tobytes(), "unit quaternion"),
+    (b"\x02" + np.array([1e-5, 0.0, 1, 2, 3], dtype="<f8").tobytes(), "positive"),
+    (b"\x02" + np.array([-1e-5, 1e-3, 1, 2, 3], dtype="<f8").tobytes(), "positive"),
 ])
 def test_malformed_central_messages_are_refused(data, why):
     with pytest.raises(ValueError, match=why):

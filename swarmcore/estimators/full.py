@@ -73,7 +73,11 @@ class CentralMessage:
         x = np.frombuffer(data, dtype="<f8", offset=1).astype(float)
         if not np.all(np.isfinite(x)):
             raise ValueError("central: a reading that is not finite")
+        if not (x[0] > 0.0 and x[1] > 0.0):
+            raise ValueError(f"central: sigma_att_rad {x[0]!r} and sigma_pos_m {x[1]!r} must be positive")
         q = x[2:6].copy() if flags & _STAR else None
+        if q is not None and abs(float(np.linalg.norm(q)) - 1.0) > 1e-6:
+            raise ValueError(f"central: q_BI is not a unit quaternion (norm {float(np.linalg.norm(q))!r})")
         r = x[-3:].copy() if flags & _GPS else None
         return cls(AbsoluteMeasurement(q_BI=q, r_H=r, sigma_att_rad=float(x[0]), sigma_pos_m=float(x[1])))
 
