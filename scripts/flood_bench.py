@@ -7,7 +7,8 @@ For each cell it runs the same lockstep swarm on loopback, security on, the gate
 where agent 1 connects, puts as fast as it can on ``est/1`` and ``health/1`` (the keys that
 identity may put; every other key the access rules already refuse it) garbage exactly at the
 size limits (it passes the router's size filter), one byte over them (the filter drops it), or
-16 bytes (the most messages per byte). The flooder runs at ``--nice`` (19 by default: it
+16 bytes (the most messages per byte), from before the world starts to the run's end (every
+step is flooded; the run's wall is also given from the world's start). The flooder runs at ``--nice`` (19 by default: it
 stands for a machine elsewhere, whose CPU the swarm would not share). Printed and written
 (``--out``): puts offered and bytes, what the gate let in and how long it held agent 1 back,
 whether it held anyone else, the recording's size, malformed messages recorded and over the
@@ -29,6 +30,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -62,11 +64,15 @@ def _flooder(spec: dict) -> None:
     bus = BusConfig(mode="client", connect=spec["connect"], credential_file=spec["credential"])
     with zenoh.open(bus.zenoh_config()) as s:
         pubs = [(s.declare_publisher(k), bytes([0xFF - i]) * n) for i, (k, n) in enumerate(spec["targets"])]
+        first = True
         while not stop.is_set():
             for pub, payload in pubs:
                 pub.put(payload)
                 sent["puts"] += 1
                 sent["bytes"] += len(payload)
+            if first:  # the bench starts the world once the flood is on
+                print("FLOODING", flush=True)
+                first = False
     print(json.dumps(sent), flush=True)
 
 
@@ -84,6 +90,23 @@ def _start_flooder(sw: LocalSwarm, n_sats: int, over: int | None, nice: int) -> 
     spec = {"connect": bus.connect, "credential": bus.credential_file, "targets": targets}
     return subprocess.Popen([sys.executable, __file__, "--flooder", json.dumps(spec)], stdout=subprocess.PIPE, text=True,
                             preexec_fn=lambda: os.nice(nice))
+
+
+class _FloodedSwarm(LocalSwarm):
+    """A local run whose flood starts before its world does (``before_world``, called once
+    as the world is spawned: every step of the run is flooded, not only those after a
+    flooder has started up); ``t_world`` is when the world was spawned."""
+
+    before_world: Callable[[], None] | None = None
+    t_world: float | None = None
+
+    def _spawn(self, name: str, args: list[str], env_extra: dict[str, str] | None = None) -> subprocess.Popen:
+        if name == "world" and self.before_world is not None:
+            start, self.before_world = self.before_world, None
+            start()
+        if name == "world":
+            self.t_world = time.monotonic()
+        return super()._spawn(name, args, env_extra)
 
 
 class _CpuCap:
@@ -126,18 +149,27 @@ def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate
         os.environ["SWARM_ROUTER_RATE_LIMIT_HZ"] = f"{rate_hz:g}"
     else:
         os.environ.pop("SWARM_ROUTER_RATE_LIMIT_HZ", None)
-    sw = LocalSwarm(sc, out, log=lambda s: None)
+    sw = _FloodedSwarm(sc, out, log=lambda s: None)
     cap = _CpuCap(cpu) if cpu is not None else _CpuCap(0.0)
-    flooder = None
+    flooder: subprocess.Popen | None = None
     sent = {"puts": 0, "bytes": 0}
     t0 = t_end = time.monotonic()
     code = None
+
+    def start_flood() -> None:
+        nonlocal flooder
+        flooder = _start_flooder(sw, sc.n_sats, over, nice)
+        if cpu is not None:
+            cap.add(flooder.pid)
+        assert flooder.stdout is not None
+        line = flooder.stdout.readline()  # its first puts are out (or it died: an empty line)
+        if line.strip() != "FLOODING":
+            raise RuntimeError(f"the flooder did not start flooding (it said {line!r})")
+
     try:
-        sw.start()
         if flood:
-            flooder = _start_flooder(sw, sc.n_sats, over, nice)
-            if cpu is not None:
-                cap.add(flooder.pid)
+            sw.before_world = start_flood
+        sw.start()
         code = sw.run_to_end(timeout=1800)
         t_end = time.monotonic()  # the run's end: the flooder's and the processes' teardown after it are not the run
     finally:
@@ -151,6 +183,7 @@ def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate
         cap.remove()
         sw.stop()
     wall = (t_end if code is not None else time.monotonic()) - t0
+    steps_wall = None if sw.t_world is None or code is None else t_end - sw.t_world
     summary = run_outcome(sc, out / "run.mcap", run=sw.run, world_exit_code=code, interrupted=sw.interrupted, broken=sw.broken,
                           broken_code=sw.broken_code, router_faults=sw.router_faults).summary
     gate_counts = sw.gate_counts()
@@ -158,6 +191,7 @@ def one_run(sc, out: Path, limits: bool, flood: bool, over: int | None = 1, rate
     return {"limits": limits, "gate": gate, "rate_limit_hz": rate_hz, "flood": what, "flooder_nice": nice if flood else None,
             "flooder_cpu": cpu if flood else None,
             "world_exit_code": code, "wall_s": round(wall, 2),
+            "world_wall_s": None if steps_wall is None else round(steps_wall, 2),
             "puts_sent": sent["puts"], "bytes_sent": sent["bytes"],
             "recording_bytes": (out / "run.mcap").stat().st_size if (out / "run.mcap").exists() else None,
             "malformed_recorded": summary.get("messages", {}).get("_malformed", 0),
@@ -214,16 +248,23 @@ def main() -> None:
                   f"recording {r['recording_bytes'] / 1e6:.2f} MB, {r['malformed_recorded']} malformed recorded, "
                   f"{r['not_recorded_over_the_flood_cap']} over the flood cap, numbers equal in-process: "
                   f"{r['numbers_equal_in_process']}", flush=True)
-    table = {}
+    table: dict[str, list[float]] = {}
+    world: dict[str, list[float]] = {}
     for r in rows:
-        table.setdefault(f"gate {'on' if r['gate'] else 'off'}, {r['flood'] or 'quiet'}", []).append(r["wall_s"])
-    print("median wall (s) per cell:")
+        cell = f"gate {'on' if r['gate'] else 'off'}, {r['flood'] or 'quiet'}"
+        table.setdefault(cell, []).append(r["wall_s"])
+        if r["world_wall_s"] is not None:
+            world.setdefault(cell, []).append(r["world_wall_s"])
+    print("median wall (s) per cell: the whole run / from the world's start (the flood already on) to the run's end:")
     for k, v in table.items():
-        print(f"  {k}: {statistics.median(v):.2f} (of {', '.join(f'{x:.2f}' for x in v)})")
+        w = world.get(k, [])
+        print(f"  {k}: {statistics.median(v):.2f} / {statistics.median(w) if w else float('nan'):.2f} "
+              f"(of {', '.join(f'{x:.2f}' for x in v)} / {', '.join(f'{x:.2f}' for x in w)})")
     Path(a.out).parent.mkdir(parents=True, exist_ok=True)
     Path(a.out).write_text(json.dumps({"scenario": sc.name, "n_sats": sc.n_sats, "duration_s": a.duration, "flooder_nice": a.nice,
                                        "flooder_cpu": a.flooder_cpu,
-                                       "median_wall_s": {k: statistics.median(v) for k, v in table.items()}, "rows": rows}, indent=1))
+                                       "median_wall_s": {k: statistics.median(v) for k, v in table.items()},
+                                       "median_world_wall_s": {k: statistics.median(v) for k, v in world.items()}, "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":
