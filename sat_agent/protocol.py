@@ -231,7 +231,7 @@ class AgentProtocol:
             self.log.info("dropping %.0f%% of outgoing messages from step %d", 100 * self.drop_rate, first)
             # The report says from which step: the world's radio then knows which batches
             # will never come (it makes the same draws: swarmrt.protocol.message_dropped).
-            return [Send(self.keys.fault_report(self.name), replace(f, phase="done", sender=self.name, k=first))]
+            return self.outbox.keep([Send(self.keys.fault_report(self.name), replace(f, phase="done", sender=self.name, k=first))])
         return []
 
     # -- start ------------------------------------------------------------------

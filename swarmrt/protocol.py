@@ -156,6 +156,14 @@ class Outbox:
                 self.sends.append(action)
             reply = yield action
 
+    def keep(self, sends: list[Send]) -> list[Send]:
+        """Keep ``sends`` made outside the machine's run (a fault's report, made as its
+        command is handled) with the current step's, to be sent again as they are; returns
+        them. (Seen: an agent's drop report put while the recorder was stalled and never sent
+        again, missing from the recording, issue 35.)"""
+        self.sends.extend(s for s in sends if not s.key.endswith(self.skip))
+        return sends
+
     def again(self, ev: Event) -> list[Send]:
         """The sends to repeat for event ``ev`` (none unless the bus came back): every step
         kept when this role's own bus or the recorder came back (the recorder may be up to

@@ -233,6 +233,12 @@ def test_drop_and_camera_faults_addressed_to_this_agent():
     d.feed(radio_event(0, [world.batch(1, 0)]))
     assert not d.sent_on(K.meas(0)) and not d.sent_on(K.est(0)[:-1] + "0"), "rate 1: every outgoing batch and estimate lost"
     assert d.sent_on(K.health(0))[-1].drop_rate == 1.0
+    # The recorder comes back (it was stalled, say, when the report went out): the drop's
+    # report is sent again with the agent's last steps (issue 35: it was missing from a
+    # recording), and the recorder writes it once.
+    d.take()
+    d.feed(Event(K.alive("recorder", 0), "resync", 0, role="recorder"))
+    assert done in d.sent_on(K.fault_report("agent-0")), "the drop's report sent again"
 
 
 def test_unknown_satellite_is_refused():

@@ -312,9 +312,9 @@ class WorldProtocol:
             self.camera_ok[f.target, f.camera] = f.state == "on"
             log.info("camera %d of satellite %d %s", f.camera, f.target, f.state)
             done = replace(f, phase="done", sender="world", k=self.k, t_s=self.k * self.sc.dt_s)
-            return [Send(self.keys.fault_report("world"), done)]
+            return self.outbox.keep([Send(self.keys.fault_report("world"), done)])
         if f.action == "link":
-            return [Send(self.keys.fault_report("world"), self._link_fault(f))]
+            return self.outbox.keep([Send(self.keys.fault_report("world"), self._link_fault(f))])
         return []
 
     def _link_fault(self, f: Fault) -> Fault:

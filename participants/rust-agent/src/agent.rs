@@ -238,7 +238,11 @@ impl State {
                 // The report says from which step: the world's radio then knows which
                 // batches will never come (it makes the same draws).
                 let done = Fault { phase: "done".into(), sender: self.name.clone(), k: first, ..f };
-                vec![(self.key(&format!("fault/{}", self.name)), done.encode_to_vec())]
+                let out = (self.key(&format!("fault/{}", self.name)), done.encode_to_vec());
+                // Kept with the step's messages, sent again when the bus or the recorder comes
+                // back (`Outbox.keep`): a report put while the recorder was away is not lost.
+                self.sends.push(out.clone());
+                vec![out]
             }
             _ => vec![],
         }
