@@ -62,6 +62,7 @@ class Node:
         self.bus_down_since: float | None = None
         self.gaps: list[tuple[float, float]] = []  # (down, up), time.monotonic()
         self._held: dict[str, tuple[Event, float | None]] = {}  # token key -> (its DELETE, when it counts)
+        self._asked: set[str] = set()  # held tokens whose hold is over, the routers asked whether they still have them
         self._epoch = 0  # bumped whenever the bus came back: waits restart their timeout
         self._routers: set[str] = set()
         self._routers_lock = threading.Lock()
@@ -152,6 +153,7 @@ class Node:
                     return None
                 self.bus_down_since = now
                 self._held = {k: (e, None) for k, (e, _t) in self._held.items()}
+                self._asked.clear()  # their answers, if any come, are of no use now: asked again once the bus is back
                 self.log.warning("bus lost: no Zenoh router reachable (%s); waiting for it to come back (at most %.0f s)",
                                  ",".join(self.bus.connect) or "no endpoint", self.bus_lost_after_s)
                 return ev
@@ -164,6 +166,8 @@ class Node:
             self._held = {k: (e, now + max(self.bus_grace_s, self.hold_for.get(e.role or "", 0.0)))
                           for k, (e, _t) in self._held.items()}
             return ev
+        if ev.kind == "_declared":
+            return self._answered(ev)
         if ev.kind == "alive":
             if not ev.alive:
                 hold = self.hold_for.get(ev.role or "", self.hold_s)
@@ -172,6 +176,7 @@ class Node:
                                      ev.role, hold)
                 self._held[ev.key] = (ev, None if self.bus_down_since is not None else now + hold)
                 return Event(ev.key, "held", ev.sat, role=ev.role)  # gone, or only out of reach: not known yet
+            self._asked.discard(ev.key)
             if self._held.pop(ev.key, None) is not None:
                 if ev.role in self.hold_for:
                     self.log.warning("the %s is back", ev.role)
@@ -180,29 +185,57 @@ class Node:
         return ev
 
     def _due(self, now: float) -> Event | None:
+        """A held token whose hold is over: the routers are asked whether they still have it
+        (:meth:`_ask`); it counts gone when they answer no (:meth:`_answered`), or if no
+        answer comes within ``_TOKEN_QUERY_S``."""
         for key, (ev, at) in self._held.items():
             if at is not None and at <= now:
-                del self._held[key]
-                if self._still_declared(ev.key):
-                    # Its going and its coming back crossed on their way here (a client failing
-                    # over between meshed routers: its new declaration can arrive before the old
-                    # one's removal, or this node is slow to read either): it is on the bus now,
-                    # so it never went. (Seen: a run declared broken over an agent that was back
-                    # in 7 ms, issue 35.)
-                    self.log.warning("the %s's liveliness went and is declared again: not gone", ev.role or ev.key)
-                    self._epoch += 1
-                    return Event(ev.key, "resync", ev.sat, role=ev.role)
-                return ev
+                if key in self._asked:  # no answer in time: gone, as before there was a question
+                    self._asked.discard(key)
+                    del self._held[key]
+                    return ev
+                self._held[key] = (ev, now + _TOKEN_QUERY_S)
+                self._ask(key)
         return None
 
-    def _still_declared(self, key: str) -> bool:
-        """Whether a liveliness token on ``key`` is declared on the bus now, as the routers
-        answer (their view, not the order in which this node heard of it)."""
+    def _ask(self, key: str) -> None:
+        """Ask the routers whether a liveliness token on ``key`` is declared now (their view,
+        not the order in which this node heard of its going and coming back); the answer
+        comes as a local event ``_declared`` once the query is over. Not waited for here: a
+        query into a mesh whose other router just died can take its whole timeout, and the
+        role's loop must go on meanwhile."""
+        self._asked.add(key)
+        found: list[bool] = []
+
+        def on_reply(reply) -> None:
+            if reply.ok is not None:
+                found.append(True)
+
+        def on_done() -> None:
+            self.inbox.put_event(Event(key, "_declared", None, alive=bool(found)))
+
         try:
-            return any(r.ok is not None for r in self.session.liveliness().get(key, timeout=_TOKEN_QUERY_S))
+            self.session.liveliness().get(key, zenoh.handlers.Callback(on_reply, on_done), timeout=_TOKEN_QUERY_S)
         except zenoh.ZError as exc:
             self.log.warning("liveliness query %s: %s", key, exc)
-            return False
+            on_done()
+
+    def _answered(self, ans: Event) -> Event | None:
+        """The routers' answer on a held token (:meth:`_ask`)."""
+        if ans.key not in self._asked:
+            return None  # it came back meanwhile, or the bus went: nothing to decide
+        self._asked.discard(ans.key)
+        ev, _at = self._held.pop(ans.key)
+        if ans.alive:
+            # Its going and its coming back crossed on their way here (a client failing
+            # over between meshed routers: its new declaration can arrive before the old
+            # one's removal, or this node is slow to read either): it is on the bus now, so
+            # it never went. (Seen: a run declared broken over an agent that was back in
+            # 7 ms, issue 35.)
+            self.log.warning("the %s's liveliness went and is declared again: not gone", ev.role or ev.key)
+            self._epoch += 1
+            return Event(ev.key, "resync", ev.sat, role=ev.role)
+        return ev
 
     def _next_wake(self) -> float | None:
         times = [at for _e, at in self._held.values() if at is not None]
@@ -338,6 +371,14 @@ class Node:
             if (due := self._due(now)) is not None:
                 return due
             if self.bus_down_since is not None and now - self.bus_down_since >= self.bus_lost_after_s:
+                # What is queued first: the bus may have come back while this thread was busy
+                # or starved of CPU (seen on a loaded machine: a fault CLI gave up on a router
+                # restart whose return was waiting in its inbox).
+                queued = self.inbox.get(0)
+                if queued is not None:
+                    if (queued := self._filter(queued)) is not None:
+                        return queued
+                    continue
                 raise BusLost(f"{self.name}: no Zenoh router reachable for {now - self.bus_down_since:.1f} s "
                               f"({','.join(self.bus.connect) or 'no endpoint'}): the run is broken")
             wake = self._next_wake()

@@ -257,7 +257,11 @@ def test_the_recorders_router_killed_while_it_lags_behind_the_recording_loses_no
 
 
 def _run_faults(tmp_path, name: str, faults: list[dict]):
-    sc = scenario(duration_s=16, selection={"strategy": "greedy", "budget": 4}, faults=faults)
+    # The radio's link model on, as in the repeat benchmark: a restarted agent then gets its
+    # state through the radio in rounds, the same in every run (without it, which peer's
+    # estimate it borrows is the first to answer).
+    sc = scenario(duration_s=16, selection={"strategy": "greedy", "budget": 4}, faults=faults,
+                  links={"enabled": True, "latency": {"speed_of_light": False}})
     sw = LocalSwarm(sc, tmp_path / name, log=lambda s: None, routers=2)
     try:
         sw.start()
