@@ -308,6 +308,11 @@ class LocalSwarm:
         self.node = node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
         node.hold_s = self.sc.emulator.liveliness_hold_s
         node.bus_grace_s = self.sc.emulator.bus_grace_s  # never gives up on the bus: it owns the router
+        # A recorder whose token went is held as long as the roles hold it (Node.set_bus_limits):
+        # stalled, or failing over once it resumes. Held only liveliness_hold_s here, a stalled
+        # recorder whose router was killed was called gone and the run broken (repeat benchmark
+        # seeds 8 and 16).
+        node.hold_for["recorder"] = self.sc.emulator.bus_lost_after_s
         node.subscribe(self.keys.faults())  # commands to carry out, and every report
         node.subscribe(self.keys.clock())
         node.watch_liveliness()
