@@ -347,6 +347,7 @@ def test_rust_agent_exit_statuses(agent, tmp_path, case):
 
 @pytest.mark.parametrize("field,value", [
     ("estimator.kind", "full"),
+    ("estimator.kind", "central"),  # the centralized reference flies distributed, but not in this agent
     ("filter.late", "replay"),  # with links on (below): it drops late batches, it does not replay them
     ("emulator.time_mode", "free"),
     ("vision.pipeline", "stereo"),
