@@ -180,8 +180,7 @@ class Node:
             if self._held.pop(ev.key, None) is not None:
                 if ev.role in self.hold_for:
                     self.log.warning("the %s is back", ev.role)
-                self._epoch += 1
-                return Event(ev.key, "resync", ev.sat, role=ev.role)  # never gone, as far as anyone need know
+                return self._resync(ev)
         return ev
 
     def _due(self, now: float) -> Event | None:
@@ -233,9 +232,14 @@ class Node:
             # it never went. (Seen: a run declared broken over an agent that was back in
             # 7 ms, issue 35.)
             self.log.warning("the %s's liveliness went and is declared again: not gone", ev.role or ev.key)
-            self._epoch += 1
-            return Event(ev.key, "resync", ev.sat, role=ev.role)
+            return self._resync(ev)
         return ev
+
+    def _resync(self, ev: Event) -> Event:
+        """A held token back before it counted as gone: never gone, as far as anyone need
+        know (waits restart their timeout; machines send their last messages again)."""
+        self._epoch += 1
+        return Event(ev.key, "resync", ev.sat, role=ev.role)
 
     def _next_wake(self) -> float | None:
         times = [at for _e, at in self._held.values() if at is not None]

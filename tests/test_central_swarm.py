@@ -13,6 +13,7 @@ import json
 import numpy as np
 import pytest
 from swarm_harness import scenario
+from test_integration_swarm import assert_same_arrays
 
 from swarm.simulation import simulate_scenario
 from swarmcore.result import RunBuilder
@@ -60,17 +61,6 @@ def test_the_bound_of_one_filter_counts_the_peer_readings_that_reached_it(monkey
     assert np.any(res.bound.pos_m2[2:, ANCHORS] > ideal.bound.pos_m2[2:, ANCHORS] * 1.01)
 
 
-def _arrays(r, prefix=""):
-    import dataclasses
-
-    for f in dataclasses.fields(r):
-        v = getattr(r, f.name)
-        if isinstance(v, np.ndarray):
-            yield prefix + f.name, v
-        elif dataclasses.is_dataclass(v) and f.name in ("truth", "est"):
-            yield from _arrays(v, f"{f.name}.")
-
-
 @pytest.mark.integration
 @pytest.mark.parametrize("links", [False, True], ids=["ideal", "links"])
 def test_swarm_run_of_central_equals_swarm_sim(tmp_path, links):
@@ -94,10 +84,7 @@ def test_swarm_run_of_central_equals_swarm_sim(tmp_path, links):
     assert got is not None and want is not None and got.kind == "filter 1"
     for name in ("att_rad2", "pos_m2", "rel_pos_m2", "att_axes_rad2", "pos_axes_m2"):
         assert np.array_equal(getattr(got, name), getattr(want, name)), name
-    for name, a in _arrays(res.recording):
-        b = dict(_arrays(sim))[name]
-        if name not in ("step_ms", "cpu_ms", "schedule"):
-            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+    assert_same_arrays(res.recording, sim)
     # The anchors' messages carry their readings: their bytes are above the others'.
     sent = sim.bytes_sent.sum(axis=0)
     assert min(sent[j] for j in ANCHORS) > max(sent[j] for j in range(sc.n_sats) if j not in ANCHORS)

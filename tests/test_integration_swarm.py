@@ -41,10 +41,7 @@ def test_distributed_run_equals_in_process_run(tmp_path):
     assert summary["steps"] == sc.steps and rec.alive.all()
     # One result schema: the recording's RunResult is the simulator's, array for array (but
     # the wall-clock times, and the schedule: without a selector no `select` is recorded).
-    for name, a in _arrays(rec):
-        b = dict(_arrays(res))[name]
-        if name not in ("step_ms", "cpu_ms", "schedule"):
-            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+    assert_same_arrays(rec, res)
     _check_complete_recording(tmp_path / "run" / "run.mcap", sc)
     # Every message's one-way bus latency (publisher's Zenoh timestamp → recorder) is
     # recorded: on loopback, small and positive for every sender.
@@ -70,10 +67,7 @@ def test_graph_radio_run_equals_in_process_run(tmp_path, estimator):
     ref = res.summary()
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean"):
         assert json.dumps(summary[key]) == json.dumps(ref[key]), key  # NaN (pairs never estimated) equal too
-    for name, a in _arrays(rec):
-        b = dict(_arrays(res))[name]
-        if name not in ("step_ms", "cpu_ms", "schedule"):
-            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
+    assert_same_arrays(rec, res)
     _check_complete_recording(tmp_path / "run" / "run.mcap", sc)
 
 
@@ -95,8 +89,16 @@ def test_bearing_run_equals_in_process_run(tmp_path):
     assert ref["gate"]["accepted"] + int(res.late_used.sum()) > 0  # bearings were fused (on time or replayed)
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate", "nis", "measurements_per_step_mean"):
         assert json.dumps(summary[key]) == json.dumps(ref[key]), key
+    assert_same_arrays(rec, res)
+
+
+def assert_same_arrays(rec, res) -> None:
+    """A recording's RunResult holds the simulator's arrays, dtype and bits (NaN equal to
+    NaN), but the wall-clock times and the schedule (no `select` is recorded without a
+    selector)."""
+    want = dict(_arrays(res))
     for name, a in _arrays(rec):
-        b = dict(_arrays(res))[name]
+        b = want[name]
         if name not in ("step_ms", "cpu_ms", "schedule"):
             assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), name
 

@@ -57,7 +57,6 @@ from swarm.supervise.launch import LocalSwarm
 from swarmcore.scenario import Scenario
 from swarmrt.bus.messages import Fault, opt
 from swarmrt.bus.session import BusConfig
-from swarmrt.node import Node
 from swarmrt.protocol import BUS_LEASE_S, EXIT_AGENT_LOST
 
 __all__ = ["RaySwarm", "RemoteProc", "parse_cluster", "cluster_shape", "LEASE_S"]
@@ -432,17 +431,7 @@ class RaySwarm(LocalSwarm):
             h.watch()
         self.bus = BusConfig(mode="client", connect=[self.endpoints[0]],
                              credential_file=str(self.keys_dir / "supervisor.json") if self.keys_dir is not None else None)
-        self.node = node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
-        node.hold_s = self.sc.emulator.liveliness_hold_s
-        node.bus_grace_s = self.sc.emulator.bus_grace_s
-        # A recorder whose token went is held as long as the roles hold it (Node.set_bus_limits):
-        # stalled, or failing over once it resumes. Held only liveliness_hold_s here, a stalled
-        # recorder whose router was killed was called gone and the run broken (repeat benchmark
-        # seeds 8 and 16).
-        node.hold_for["recorder"] = self.sc.emulator.bus_lost_after_s
-        node.subscribe(self.keys.faults())
-        node.subscribe(self.keys.clock())
-        node.watch_liveliness()
+        self.node = self._open_node()
         self._spawn_role("recorder", ["--flush-every-s", str(self.sc.emulator.flush_every_s)])
         self._wait_alive("recorder", 60.0)
         self._check_interrupted()

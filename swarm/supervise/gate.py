@@ -36,7 +36,7 @@ import logging
 import socket
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -240,8 +240,7 @@ def write_plan(path: str | Path, entries: list[Entry], upstream: str) -> None:
     writes its plan back once its gate listens, with the ports it bound for the plan's 0s:
     the supervisor reads them from there, and a restarted router binds the same ones."""
     path = Path(path)
-    doc = {"upstream": upstream, "entries": [{"identity": e.identity, "port": e.port, "rate_bytes_per_s": e.rate_bytes_per_s,
-                                              "burst_bytes": e.burst_bytes} for e in entries]}
+    doc = {"upstream": upstream, "entries": [asdict(e) for e in entries]}  # read_plan's Entry(**e) back
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(doc))
     tmp.replace(path)

@@ -305,17 +305,7 @@ class LocalSwarm:
             self._start_router(i, timeout=30.0)
         self.endpoint = self.endpoints[0]
         self.bus = self.bus_as("supervisor")
-        self.node = node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
-        node.hold_s = self.sc.emulator.liveliness_hold_s
-        node.bus_grace_s = self.sc.emulator.bus_grace_s  # never gives up on the bus: it owns the router
-        # A recorder whose token went is held as long as the roles hold it (Node.set_bus_limits):
-        # stalled, or failing over once it resumes. Held only liveliness_hold_s here, a stalled
-        # recorder whose router was killed was called gone and the run broken (repeat benchmark
-        # seeds 8 and 16).
-        node.hold_for["recorder"] = self.sc.emulator.bus_lost_after_s
-        node.subscribe(self.keys.faults())  # commands to carry out, and every report
-        node.subscribe(self.keys.clock())
-        node.watch_liveliness()
+        self.node = self._open_node()
         self._spawn(
             "recorder",
             [
@@ -398,6 +388,24 @@ class LocalSwarm:
             raise RuntimeError(f"the Zenoh router {name} did not start (see {self.out / 'logs' / (name + '.log')})")
         if gate is not None:
             self._gate_ports(i)
+
+    def _open_node(self) -> Node:
+        """The supervisor's own bus node on ``self.bus`` (a local run's and a cluster's): fault
+        commands and reports, clocks and liveliness."""
+        em = self.sc.emulator
+        assert self.bus is not None, "the supervisor's bus is set once the routers are up"
+        node = Node("supervisor", 0, self.run, self.sc.n_sats, self.bus)
+        node.hold_s = em.liveliness_hold_s
+        node.bus_grace_s = em.bus_grace_s  # never gives up on the bus: it owns the router
+        # A recorder whose token went is held as long as the roles hold it (Node.set_bus_limits):
+        # stalled, or failing over once it resumes. Held only liveliness_hold_s here, a stalled
+        # recorder whose router was killed was called gone and the run broken (repeat benchmark
+        # seeds 8 and 16).
+        node.hold_for["recorder"] = em.bus_lost_after_s
+        node.subscribe(self.keys.faults())  # commands to carry out, and every report
+        node.subscribe(self.keys.clock())
+        node.watch_liveliness()
+        return node
 
     def _node(self) -> Node:
         """The supervisor's own bus node (open from :meth:`start` until :meth:`stop`)."""
@@ -617,8 +625,9 @@ class LocalSwarm:
             until = max(t for t, _q, _f, _n, _s in short) - t_wait
             n.wait_for(lambda: not any(x in self._stalled for x in short) or over(), until + 5.0, on_event, wake=tick)
             n.wait_for(lambda: not n._held or over(), self.sc.emulator.bus_grace_s, on_event, wake=tick)
-            waited = f" (carried out once the stall of pid {who} had ended: {time.monotonic() - t_wait:.2f} s later)"
-            self.say(f"step {self.k}: {f.action} {i} waited {time.monotonic() - t_wait:.2f} s for the stall of pid {who} to end")
+            wait_s = time.monotonic() - t_wait
+            waited = f" (carried out once the stall of pid {who} had ended: {wait_s:.2f} s later)"
+            self.say(f"step {self.k}: {f.action} {i} waited {wait_s:.2f} s for the stall of pid {who} to end")
         t_down = time.time()
         was_running = p is not None and p.poll() is None
         killed = ""  # "SIGKILL pid <pid>" when it was running
