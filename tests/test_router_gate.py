@@ -21,7 +21,7 @@ import pytest
 import zenoh
 from forgery import _open
 
-from swarm.supervise.gate import OTHER, Entry, _Bucket, gate_limits, merged_counts, read_plan, write_plan
+from swarm.supervise.gate import OTHER, Entry, _Bucket, gate_limits, gate_message_limits, merged_counts, read_plan, write_plan
 from swarmcore.scenario import Emulator
 from swarmrt.bus import messages as M
 from swarmrt.protocol import outbox_steps
@@ -82,16 +82,21 @@ def test_counts_of_every_router_add_up(tmp_path):
 
 @pytest.fixture
 def gated_router(tmp_path):
-    """A real router behind a gate: agent 1's bucket small (200 kB/s, 100 kB burst) so a
-    flood shows within a second or two; everyone else as sized for a 4-satellite run."""
+    """A real router behind a gate: agent 1's buckets small (200 kB/s, 100 kB burst; 200
+    messages/s, 100 at once) so a flood shows within a second or two; everyone else as sized
+    for a 4-satellite run."""
     keys = make_keys(tmp_path / "keys", 4)
-    limits = gate_limits(4, 4, False, [*(i for i in M.IDENTITIES if i != "mesh"), *agent_identities(4)], 50.0)
+    names = [*(i for i in M.IDENTITIES if i != "mesh"), *agent_identities(4)]
+    limits = gate_limits(4, 4, False, names, 50.0)
     limits["agent-1"] = (200e3, 100e3)
     limits[OTHER] = limits["agent-0"]
+    msg_limits = gate_message_limits(4, 4, False, names, 50.0)
+    msg_limits["agent-1"] = (200.0, 100.0)
+    msg_limits[OTHER] = msg_limits["agent-0"]
     sockdir = tmp_path / "s"
     sockdir.mkdir(mode=0o700)
     plan = tmp_path / "plan.json"
-    write_plan(plan, [Entry(k, 0, r, b) for k, (r, b) in limits.items()], str(sockdir / "r.sock"))
+    write_plan(plan, [Entry(k, 0, r, b, *msg_limits[k]) for k, (r, b) in limits.items()], str(sockdir / "r.sock"))
     counts = tmp_path / "gate-router.json"
     log = tmp_path / "router.log"
     with log.open("wb") as err:
@@ -110,7 +115,7 @@ def gated_router(tmp_path):
         assert b"READY" in p.stdout.readline(), log.read_text()
         bound, _ = read_plan(plan)  # the gate wrote back the ports it bound for the plan's 0s
         assert all(e.port > 0 for e in bound) and len({e.port for e in bound}) == len(bound)
-        yield {e.identity: f"tcp/127.0.0.1:{e.port}" for e in bound}, keys, counts, stop, limits
+        yield {e.identity: f"tcp/127.0.0.1:{e.port}" for e in bound}, keys, counts, stop, limits, msg_limits
     finally:
         try:
             stop()
@@ -122,7 +127,7 @@ def gated_router(tmp_path):
 
 @pytest.mark.integration
 def test_a_flood_is_held_to_its_identitys_rate_and_an_honest_agent_still_gets_through(gated_router):
-    ports, keys, counts, stop, limits = gated_router
+    ports, keys, counts, stop, limits, _ = gated_router
     k = M.Keys(RUN)
     rate, burst = limits["agent-1"]
     payload = b"\xff" * 60_000  # under est's size limit: the router's size filter lets it through
@@ -189,6 +194,71 @@ def test_a_flood_is_held_to_its_identitys_rate_and_an_honest_agent_still_gets_th
 
 
 @pytest.mark.integration
+def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
+    """Tiny puts stay far under any byte rate an honest role needs, but each costs every
+    receiver: the gate counts Zenoh messages too. A batch of more messages than the
+    identity's whole burst (what a flood at full speed sends: the client packs thousands of
+    tiny puts into one) is not relayed and its connection is cut; in all, no more messages
+    come in than the burst, the rate for as long as the test lasts, and that one batch."""
+    ports, keys, counts, stop, _, msg_limits = gated_router
+    k = M.Keys(RUN)
+    rate, burst = msg_limits["agent-1"]
+    got = {"flood": 0, "honest": set()}
+    first_flood = threading.Event()
+    lock = threading.Lock()
+
+    def on_sample(sample) -> None:
+        with lock:
+            if str(sample.key_expr) == k.est(1):
+                got["flood"] += 1
+                first_flood.set()
+            else:
+                got["honest"].add(sample.payload.to_bytes())
+
+    t0 = time.monotonic()
+    with _open(ports["recorder"], str(keys / "recorder.json")) as rec, \
+            _open(ports["agent-1"], str(keys / "agent-1.json")) as thief, \
+            _open(ports["agent-2"], str(keys / "agent-2.json")) as honest:
+        sub = rec.declare_subscriber(k.est(), on_sample)
+        pub = thief.declare_publisher(k.est(1))
+        deadline = time.monotonic() + 30
+        while not first_flood.is_set() and time.monotonic() < deadline:
+            pub.put(b"\x01")
+            first_flood.wait(0.05)
+        assert first_flood.is_set(), "nothing of agent 1's reached the recorder"
+        offered = 0
+        t_flood = time.monotonic()
+        while time.monotonic() - t_flood < 2.0:  # a flood at full speed: 2 s of tiny puts
+            for _ in range(1000):
+                pub.put(b"\x02")
+            offered += 1000
+        for i in range(20):
+            honest.put(k.est(2), f"honest {i}".encode())
+        want = {f"honest {i}".encode() for i in range(20)}
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            with lock:
+                if want <= got["honest"]:
+                    break
+            time.sleep(0.05)  # polling a counter another thread fills (not synchronisation of an event)
+        with lock:
+            assert want <= got["honest"], f"the honest agent's puts did not all arrive: {len(got['honest'])} of 20"
+        sub.undeclare()
+    elapsed = time.monotonic() - t0
+    stop()
+    c = json.loads(counts.read_text())["agent-1"]
+    assert c["unparsed"] == 0, c
+    assert c["cut"] > 0 or c["held_for_messages"] > 0, c  # the flood met the message limit
+    # Relayed: each connection's burst (a connection after a cut only once a burst has
+    # refilled: burst / rate later), and the rate.
+    assert c["messages_in"] <= burst * (1 + elapsed * rate / burst) + rate * elapsed, (c, offered)
+    with lock:
+        assert got["flood"] <= c["messages_in"] < offered / 10, (got["flood"], c, offered)
+    others = json.loads(counts.read_text())
+    assert others["agent-2"]["held"] == 0 and others["agent-2"]["cut"] == 0 and others["recorder"]["held"] == 0
+
+
+@pytest.mark.integration
 def test_a_local_run_goes_through_the_gate_with_the_numbers_of_swarm_sim(tmp_path):
     from swarm.api import run, simulate
     from swarmrt.scenario_files import load_scenario
@@ -200,4 +270,7 @@ def test_a_local_run_goes_through_the_gate_with_the_numbers_of_swarm_sim(tmp_pat
     gate = got.summary["router_gate"]
     assert {f"agent-{i}" for i in range(4)} | {"world", "recorder", "supervisor"} <= set(gate)
     assert all(c["held"] == 0 for c in gate.values()), gate  # an honest run is never held back
+    # Every message of every limited identity read (none charged at the worst case), none cut.
+    assert all(c["unparsed"] == 0 and c["cut"] == 0 for c in gate.values()), gate
+    assert all(c["messages_in"] > 0 for name, c in gate.items() if name.startswith("agent-")), gate
     assert all(c["bytes_in"] > 0 for name, c in gate.items() if name.startswith("agent-"))

@@ -220,7 +220,7 @@ class LocalSwarm:
         """The ingress gate (:mod:`swarm.supervise.gate`): a port per identity on each
         router, each with its bucket; the routers listen on Unix sockets in a private
         directory. Off with ``emulator.gate: false`` (or ``SWARM_ROUTER_GATE=off``, to measure)."""
-        from swarm.supervise.gate import OTHER, Entry, gate_limits, write_plan
+        from swarm.supervise.gate import OTHER, Entry, gate_limits, gate_message_limits, write_plan
         from swarmrt.bus.messages import IDENTITIES
         from swarmrt.security import agent_identities
 
@@ -233,6 +233,8 @@ class LocalSwarm:
         names = [*(i for i in IDENTITIES if i != "mesh"), *agent_identities(self.sc.n_sats)]
         limits = gate_limits(self.sc.n_sats, em.recorder_max_lag_steps, self.sc.links.enabled, names, em.gate_steps_per_s)
         limits[OTHER] = limits["agent-0"]  # tools, the fault CLI, a kit: an agent's bucket
+        msg_limits = gate_message_limits(self.sc.n_sats, em.recorder_max_lag_steps, self.sc.links.enabled, names, em.gate_steps_per_s)
+        msg_limits[OTHER] = msg_limits["agent-0"]
         self._gate_dir = Path(tempfile.mkdtemp(prefix="swarm-gate-"))
         self.gate_endpoints = {}
         # Port 0: each router's gate binds the kernel's choice and writes it back into its plan
@@ -240,7 +242,7 @@ class LocalSwarm:
         # take in between (seen: a router that could not start, one port in a dozen taken).
         for i in range(self.n_routers):
             write_plan(self._gate_dir / f"router-{i}.json",
-                       [Entry(name, 0, rate, burst) for name, (rate, burst) in limits.items()], str(self._gate_dir / f"r{i}.sock"))
+                       [Entry(name, 0, rate, burst, *msg_limits[name]) for name, (rate, burst) in limits.items()], str(self._gate_dir / f"r{i}.sock"))
 
     def _gate_ports(self, i: int) -> None:
         """Router ``i``'s ports, as its gate bound them (its plan, written back once it listens)."""

@@ -493,6 +493,7 @@ impl Agent {
     }
 
     fn initialise(&mut self) -> Result<(), Exit> {
+        const INIT_RETRY_S: f64 = 0.2;
         let i = self.st.i;
         let startup = self.st.sc.emulator.startup_timeout_s;
         if !self.st.restart {
@@ -508,7 +509,9 @@ impl Agent {
                     self.st.ci.start(prior, true);
                     break;
                 }
-                self.drain()?;
+                // No prior yet (the world's queryable not declared, so the query came back at
+                // once): ask again after a pause, not in a spin of thousands of queries.
+                self.wait_for(|st| !st.clocks.is_empty(), INIT_RETRY_S)?;
                 if !self.st.clocks.is_empty() {
                     // The world serves priors only before the run starts: we are late.
                     log::info("the run is under way; starting cold");
