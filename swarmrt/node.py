@@ -62,6 +62,7 @@ class Node:
         self.bus_down_since: float | None = None
         self.gaps: list[tuple[float, float]] = []  # (down, up), time.monotonic()
         self._held: dict[str, tuple[Event, float | None]] = {}  # token key -> (its DELETE, when it counts)
+        self._run_over = False  # the world's last clock (done) has come
         self._asked: set[str] = set()  # held tokens whose hold is over, the routers asked whether they still have them
         self._epoch = 0  # bumped whenever the bus came back: waits restart their timeout
         self._routers: set[str] = set()
@@ -147,6 +148,8 @@ class Node:
         token with it (they go a moment before the link to it is seen closed), and a client
         failing over to another router re-declares its token in milliseconds."""
         now = time.monotonic()
+        if ev.kind == "clock" and getattr(ev.msg, "done", False):
+            self._run_over = True  # roles leave now: their tokens' going is no news
         if ev.kind == "bus":
             if not ev.alive:
                 if self.bus_down_since is not None:
@@ -171,7 +174,7 @@ class Node:
         if ev.kind == "alive":
             if not ev.alive:
                 hold = self.hold_for.get(ev.role or "", self.hold_s)
-                if ev.role in self.hold_for:
+                if ev.role in self.hold_for and not self._run_over:
                     self.log.warning("the %s's liveliness is gone: stalled or dead? waiting up to %.0f s for it to come back",
                                      ev.role, hold)
                 self._held[ev.key] = (ev, None if self.bus_down_since is not None else now + hold)

@@ -463,10 +463,6 @@ impl Agent {
         Ok(true)
     }
 
-    fn drain(&mut self) -> Result<(), Exit> {
-        self.wait_for(|_| false, 0.0).map(|_| ())
-    }
-
     /// The whole run: start, then every step until the world's clock says done.
     pub fn run(&mut self) -> Result<(), Exit> {
         self.initialise()?;
