@@ -18,7 +18,7 @@ import zenoh
 from swarmcore.scenario import Scenario
 from swarmrt.bus.messages import MAX_PAYLOAD_DEFAULT, KeyMismatch, Keys, MessageError, counted, encode, parse_key, prepare
 from swarmrt.bus.receive import receive
-from swarmrt.bus.session import BusConfig, Inbox, add_bus_args, bus_config_from_args, open_session
+from swarmrt.bus.session import BusConfig, Inbox, RouterLinks, add_bus_args, bus_config_from_args, open_session
 from swarmrt.protocol import BusLost, Event, Query, RunBroken, Send, Wait
 from swarmrt.security import size_limit_of
 
@@ -54,8 +54,8 @@ class Node:
         self._malformed_lock = threading.Lock()
         self.stop = threading.Event()
         self.bus = bus
-        # The bus's health as this node sees it (main thread only, but _routers; see
-        # _on_transport): router links, gaps, liveliness changes held back, limits.
+        # The bus's health as this node sees it (main thread only): router links (RouterLinks,
+        # below), gaps, liveliness changes held back, limits.
         self.hold_s = 0.3
         self.bus_grace_s = 10.0
         self.bus_lost_after_s = float("inf")
@@ -65,8 +65,6 @@ class Node:
         self._run_over = False  # the world's last clock (done) has come
         self._asked: set[str] = set()  # held tokens whose hold is over, the routers asked whether they still have them
         self._epoch = 0  # bumped whenever the bus came back: waits restart their timeout
-        self._routers: set[str] = set()
-        self._routers_lock = threading.Lock()
         # Peers whose vanished token is held longer than hold_s, by role (a stalled world:
         # agents and the selector set {"world": bus_lost_after_s}); while one is held,
         # every wait pauses, as while the bus is down.
@@ -82,7 +80,9 @@ class Node:
         self._size_limited = cred is not None
         self._size_limits: dict[str, int] = {}  # key → the router's limit for it (a role puts on a few keys)
         self.log.info("on the bus at %s as %s", bus.connect or bus.listen, cred.user if cred is not None else "(no credential)")
-        self._transport_listener = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
+        # A link to a router opened or closed: an event ``bus`` (alive = some router
+        # reachable) whenever that changes.
+        self._links = RouterLinks(self.session, lambda up: self.inbox.put_event(Event("", "bus", None, alive=up)))
         self.token: zenoh.LivelinessToken | None = None
         if announce:
             self.announce()
@@ -105,19 +105,6 @@ class Node:
         self.hold_for["recorder"] = em.bus_lost_after_s
 
     # -- the bus's health -------------------------------------------------------------
-    def _on_transport(self, ev) -> None:
-        """(Zenoh's thread) A link to a router opened or closed: an event ``bus`` (alive =
-        some router reachable) whenever that changes."""
-        if ev.transport.whatami != zenoh.WhatAmI.ROUTER:
-            return
-        zid = str(ev.transport.zid)
-        with self._routers_lock:
-            before = bool(self._routers)
-            (self._routers.add if ev.kind == zenoh.SampleKind.PUT else self._routers.discard)(zid)
-            after = bool(self._routers)
-        if before != after:
-            self.inbox.put_event(Event("", "bus", None, alive=after))
-
     def _ticker(self) -> None:
         """(Its own thread) Tick every ``_TICK_S``; a gap over ``_STALL_S`` is a stall."""
         while not self.stop.wait(_TICK_S):
@@ -140,6 +127,12 @@ class Node:
     @property
     def bus_up(self) -> bool:
         return self.bus_down_since is None
+
+    @property
+    def router_linked(self) -> bool:
+        """Whether some router's link is open right now (``bus_up`` lags it: a loss is
+        told the main thread through the inbox)."""
+        return self._links.up
 
     def _filter(self, ev: Event) -> Event | None:
         """(Main thread) What the machine is told of ``ev``. A vanished liveliness token is
@@ -530,7 +523,7 @@ class Node:
         self.stop.set()  # (the stall ticker too)
         self._undeclare_all()
         with contextlib.suppress(Exception):
-            self._transport_listener.undeclare()
+            self._links.undeclare()
         self.session.close()
 
 

@@ -51,7 +51,7 @@ from swarmrt.bus.messages import (
     replace,
 )
 from swarmrt.bus.receive import receive
-from swarmrt.bus.session import Inbox, add_bus_args, bus_config_from_args, open_session
+from swarmrt.bus.session import Inbox, RouterLinks, add_bus_args, bus_config_from_args, open_session
 
 if TYPE_CHECKING:
     from swarm.record.foxglove import FoxgloveDeriver
@@ -130,25 +130,14 @@ class Recorder:
         self.last_k = -1
         self.gaps: list[BusGap] = []  # closed gaps whose first step after is not known yet
         self.down: tuple[int, float] | None = None  # (wall ns, monotonic) since no router is reachable
-        self._routers: set[str] = set()
         self._world_seen = False
         self._world_gone_at: float | None = None
-        self._transports = self.session.info.declare_transport_events_listener(self._on_transport, history=True)
+        self._links = RouterLinks(self.session, lambda up: self.inbox.put_event(_LinkChange(up)))
         self.foxglove: FoxgloveDeriver | None = None
         if derive_foxglove and scenario is not None:
             from swarm.record.foxglove import FoxgloveDeriver
 
             self.foxglove = FoxgloveDeriver.for_scenario(self.w, scenario)
-
-    def _on_transport(self, ev) -> None:
-        import zenoh
-
-        if ev.transport.whatami != zenoh.WhatAmI.ROUTER:
-            return
-        before = bool(self._routers)
-        (self._routers.add if ev.kind == zenoh.SampleKind.PUT else self._routers.discard)(str(ev.transport.zid))
-        if before != bool(self._routers):
-            self.inbox.put_event(_LinkChange(bool(self._routers)))
 
     def _link(self, ch: _LinkChange) -> None:
         if not ch.up and self.down is None:
@@ -380,7 +369,7 @@ class Recorder:
                 self.w.add(self._channel(f"{self.keys.root}/{channel}", "malformed"), body, time.time_ns())
                 if channel == "_not_recorded":
                     log.warning("not recorded: %d messages on %s (over the flood cap)", count, key)
-        for undeclare in [*(s.undeclare for s in self._subs), self._transports.undeclare]:
+        for undeclare in [*(s.undeclare for s in self._subs), self._links.undeclare]:
             with contextlib.suppress(Exception):
                 undeclare()
         with contextlib.suppress(Exception):

@@ -664,7 +664,7 @@ class LocalSwarm:
         # Report once this node is connected again (at once when another router is up)
         # and every liveliness token that went with the router is back: a report put
         # before the others have reconnected would reach nobody.
-        n.wait_for(lambda: (n.bus_up and bool(n._routers)) or over(), 5.0 if f.action == "kill-router" else 30.0, on_event, wake=tick)
+        n.wait_for(lambda: (n.bus_up and n.router_linked) or over(), 5.0 if f.action == "kill-router" else 30.0, on_event, wake=tick)
         if not over():
             n.wait_for(lambda: not n._held or over(), self.sc.emulator.bus_grace_s, on_event, wake=tick)
         self._report(f, "done", detail)

@@ -22,7 +22,8 @@ import zenoh
 
 log = logging.getLogger("swarmrt.bus")
 
-__all__ = ["BusConfig", "add_bus_args", "bus_config_from_args", "open_session", "Inbox", "Sample", "shared_memory_enabled", "apply_shared_memory"]
+__all__ = ["BusConfig", "add_bus_args", "bus_config_from_args", "open_session", "Inbox", "Sample", "RouterLinks",
+           "shared_memory_enabled", "apply_shared_memory"]
 
 
 @dataclass
@@ -166,6 +167,36 @@ class Sample(NamedTuple):
     kind: str  # "put" or "delete"
     published_ns: int | None = None  # the sample's timestamp (publisher's clock, Unix ns), if stamped
     received_ns: int = 0  # when the callback saw it (time.time_ns())
+
+
+class RouterLinks:
+    """Whether a session reaches some router: ``on_change(up)`` is called (on Zenoh's thread,
+    so it must only queue) each time that changes, from its links' open and close events.
+    One place for every reader of the bus's health (a role's ``Node``, the recorder)."""
+
+    def __init__(self, session: zenoh.Session, on_change):
+        self._routers: set[str] = set()
+        self._lock = threading.Lock()
+        self._on_change = on_change
+        self._listener = session.info.declare_transport_events_listener(self._on_event, history=True)
+
+    @property
+    def up(self) -> bool:
+        with self._lock:
+            return bool(self._routers)
+
+    def _on_event(self, ev) -> None:
+        if ev.transport.whatami != zenoh.WhatAmI.ROUTER:
+            return
+        with self._lock:
+            before = bool(self._routers)
+            (self._routers.add if ev.kind == zenoh.SampleKind.PUT else self._routers.discard)(str(ev.transport.zid))
+            after = bool(self._routers)
+        if before != after:
+            self._on_change(after)
+
+    def undeclare(self) -> None:
+        self._listener.undeclare()
 
 
 class Inbox:
