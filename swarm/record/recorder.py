@@ -125,7 +125,6 @@ class Recorder:
         # back, or a world that goes before its last step, ends the recording.
         em = scenario.emulator if scenario is not None else None
         self.bus_lost_after_s = em.bus_lost_after_s if em is not None else 30.0
-        self.hold_s = em.liveliness_hold_s if em is not None else 0.3
         self.broken: str | None = None
         self.last_k = -1
         self.gaps: list[BusGap] = []  # closed gaps whose first step after is not known yet
