@@ -312,6 +312,8 @@ class Gate:
         for w in (writer, up_w):
             with contextlib.suppress(Exception):
                 w.close()
+        if wire is not None:
+            wire.release()  # its counts stay; a batch half read is let go
 
 
 def _nodelay(w: asyncio.StreamWriter) -> None:

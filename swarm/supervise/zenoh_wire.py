@@ -264,6 +264,11 @@ class WireCounter:
             del buf[:at]
         return out
 
+    def release(self) -> None:
+        """The connection ended: drop what is buffered (a flooder that reconnects often
+        must not leave a half batch behind each time)."""
+        self._buf = bytearray()
+
     @property
     def pending(self) -> int:
         """Bytes of a batch not yet whole."""
