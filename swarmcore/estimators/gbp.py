@@ -24,8 +24,9 @@ the *pair potentials* of its factors as one Gaussian over ``[x_i, x_j …]`` (it
 states and those of each graph neighbour j): its own dynamics and readings and every
 relative factor it shares with a neighbour, of every step, each neighbour's row carried
 by that neighbour's dynamics (its attitude turned by the rate the neighbour broadcasts,
-which is also a measurement of its row with the gyro bias prior's σ; its translation by
-the filter's model) and started wide at its first message — and *no neighbour's belief*:
+which is also a measurement of its row with the gyro bias prior's σ_b, the attitude
+random-walking at σ_b √τ for the time τ that rate's error holds, :data:`_RATE_HOLD_S`; its
+translation by the filter's model) and started wide at its first message — and *no neighbour's belief*:
 what j's side knows never enters it, so nothing is counted twice through time. These are
 Kalman updates (the camera, star tracker, GPS noises are independent), linearised at the
 last fused estimate (the mean sits at ``d`` from it, residuals ``y − H d``;
