@@ -5,6 +5,7 @@ study's scenario flown in-process."""
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 
 import numpy as np
@@ -15,9 +16,9 @@ from test_estimators import _own_and_relative_nees
 
 from swarmcore import quat
 from swarmcore.estimators import BUILTIN, Received, StepInputs, builtin_estimator
-from swarmcore.estimators.gbp import GbpEstimator, GbpMessage, factor_message, stack_factors
+from swarmcore.estimators.gbp import GbpEstimator, GbpMessage, factor_message, joint_factors, stack_factors
 from swarmcore.estimators.own import absolute_update
-from swarmcore.mekf import FilterParams, RelativeMeasurements, SwarmEstimate, predict, relative_residuals
+from swarmcore.mekf import FilterParams, RelativeMeasurements, SwarmEstimate, apply_correction, predict, relative_residuals
 from swarmcore.scenario import Scenario
 from swarmcore.sensors import relative_pose
 from swarmcore.sim import simulate
@@ -71,6 +72,111 @@ def test_factor_jacobians_match_numerical_derivatives(seed):
                              est, swarm_state(0), EUCLIDEAN, eps=1e-5)
     np.testing.assert_allclose(num, H, rtol=0, atol=5e-9)
     np.testing.assert_array_equal(R[6:12, 6:12], m0.R_Bi[1])
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_joint_factor_jacobians_match_numerical_derivatives(seed):
+    """``fusion: joint``: the relative factors on the pair potentials' joint (own row 0, two
+    neighbours, both directions and two measurements of one pair): ``∂y/∂δ`` over all 36
+    error states is ``H`` of :func:`joint_factors` (the observer's and target's [a, Δr]
+    blocks, zero elsewhere), its noise the measurements' R."""
+    rng = np.random.default_rng(seed)
+    est = _joint(rng)
+    p = FilterParams(n=3, own=0, dt=1.0, mean_motion=N_E, J=J, arw=3e-7, rrw=3e-10, torque=5e-6, accel=1e-8)
+    obs, tgt = np.array([0, 2, 1, 0]), np.array([2, 0, 0, 1])
+
+    def meas(x: SwarmEstimate) -> RelativeMeasurements:
+        q, r = relative_pose(N_E, x.t, x.q_BI, x.r_H, obs, tgt)
+        return RelativeMeasurements(obs, tgt, q, r, np.tile(np.diag(rng.uniform(1e-6, 1e-2, 6)), (4, 1, 1)))
+
+    m0 = meas(est)
+    y0, Hi, Hj = relative_residuals(est, p, m0)
+    np.testing.assert_allclose(y0, 0.0, atol=1e-12)
+    H, R = joint_factors(m0, Hi, Hj, 3)
+    assert H.shape == (24, 36) and R.shape == (24, 24)
+    num = numerical_jacobian(lambda x: relative_residuals(est, p, dataclasses.replace(meas(x), R_Bi=m0.R_Bi))[0].ravel(),
+                             est, swarm_state(0), EUCLIDEAN, eps=1e-5)
+    np.testing.assert_allclose(num, H, rtol=0, atol=5e-9)
+    np.testing.assert_array_equal(R[18:24, 18:24], m0.R_Bi[3])
+
+
+def _flown(sc: Scenario, steps: int):
+    """Every satellite's estimator flown ``steps`` steps by hand on the ideal radio (every
+    message of the step delivered); returns them, the world's state and its parameters."""
+    wp = world_params(sc)
+    truth = initial_truth(sc)
+    n = sc.n_sats
+    ests = [builtin_estimator(sc, i) for i in range(n)]
+    for i, e in enumerate(ests):
+        e.start(initial_estimate(sc, truth, i, e.prior_ids()))
+    for k in range(steps):
+        gyro = [None] * n
+        if k > 0:
+            truth, g = step_truth(wp, truth)
+            gyro = list(g)
+        absm = absolute_measurements(wp, truth)
+        rel = synthetic_batch(wp, truth, *np.nonzero(~np.eye(n, dtype=bool)))
+        for i, e in enumerate(ests):
+            e.predict(k, gyro[i])
+        sent = [e.transmit(k) for e in ests]
+        for i, e in enumerate(ests):
+            heard = [Received(j, k, rel.subset(rel.observer == j), sent[j]) for j in range(n) if j != i]
+            e.step(StepInputs(k, truth.t, gyro[i], absm[i], rel.subset(rel.observer == i), heard))
+    return ests, truth, wp
+
+
+def test_joint_messages_never_enter_the_pair_potentials_nor_their_cavity():
+    """``fusion: joint`` (the default): a neighbour's message of the step, moved by 5 mm,
+    moves the belief and the cavity towards the other neighbour, but neither the cavity
+    towards that neighbour (it never takes its message) nor the pair potentials (messages
+    are fused into a copy of them each step, never accumulated)."""
+    sc = _sc(n_sats=3, duration_s=10, graph={"kind": "complete", "absolute": [1]})
+    ests, truth, wp = _flown(sc, 5)
+    k = 5
+    truth, g = step_truth(wp, truth)
+    absm = absolute_measurements(wp, truth)
+    rel = synthetic_batch(wp, truth, *np.nonzero(~np.eye(3, dtype=bool)))
+    for i, e in enumerate(ests):
+        e.predict(k, g[i])
+    sent = [e.transmit(k) for e in ests]
+    moved = dataclasses.replace(sent[1], r_H=(sent[1].r_H + np.float32(0.005)).astype(np.float32))
+    out = []
+    for m1 in (sent[1], moved):
+        e = copy.deepcopy(ests[0])
+        heard = [Received(1, k, rel.subset(rel.observer == 1), m1), Received(2, k, rel.subset(rel.observer == 2), sent[2])]
+        e.step(StepInputs(k, truth.t, g[0], absm[0], rel.subset(rel.observer == 0), heard))
+        out.append(e)
+    a, b = out
+    pa, pb = a.pairs, b.pairs  # type: ignore[attr-defined]
+    np.testing.assert_array_equal(a.cav[1].P, b.cav[1].P)  # type: ignore[attr-defined]
+    np.testing.assert_allclose(a.cav[1].r_H, b.cav[1].r_H, rtol=0, atol=1e-12)  # type: ignore[attr-defined]
+    assert np.abs(a.cav[2].r_H - b.cav[2].r_H).max() > 1e-4  # type: ignore[attr-defined]
+    assert np.abs(a.e.r_H - b.e.r_H).max() > 1e-4
+    np.testing.assert_array_equal(pa.P, pb.P)
+    ja, jb = (apply_correction(p.ref, e._jfp, p.d, p.P) for p, e in ((pa, a), (pb, b)))  # type: ignore[attr-defined]
+    np.testing.assert_allclose(ja.r_H, jb.r_H, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(quat.local(ja.q_BI, jb.q_BI), 0.0, atol=1e-8)  # the re-centring is first order in d
+
+
+def test_joint_sends_each_cavity_predicted_to_the_step_it_is_used_at():
+    """With a fixed 3 s link latency (late replay), each cavity goes out predicted by three
+    steps (the held rate, the gyro bias prior's σ): the message of step k is the neighbours'
+    fresh message at step k + 3."""
+    sc = _sc(n_sats=3, duration_s=10, graph={"kind": "complete", "absolute": [1]}, filter={"late": "replay", "history_s": 30},
+             links={"enabled": True, "latency": {"fixed_s": 3.0, "speed_of_light": False}})
+    e = builtin_estimator(sc, 0)
+    assert e._lead == 3  # type: ignore[attr-defined]
+    e.start(initial_estimate(sc, initial_truth(sc), 0, e.prior_ids()))
+    msg = e.transmit(0)
+    c = e.cav[1]  # type: ignore[attr-defined]
+    for _ in range(3):
+        c = predict(c, e._pfp, None)  # type: ignore[attr-defined]
+    q, r, P = msg.pose(msg.row(1))  # type: ignore[arg-type]
+    np.testing.assert_allclose(r, c.r_H[0], rtol=0, atol=1e-5)
+    np.testing.assert_allclose(quat.local(q, c.q_BI[0]), 0.0, atol=1e-6)
+    _at_or_above(P, c.P[np.ix_(np.r_[0:3, 6:9], np.r_[0:3, 6:9])])
+    sc0 = _sc(n_sats=3, graph={"kind": "complete", "absolute": [1]})
+    assert builtin_estimator(sc0, 0)._lead == 0  # type: ignore[attr-defined]
 
 
 def test_plain_gbp_update_is_prior_information_plus_factor_message():
@@ -196,15 +302,17 @@ def _nees(fusion: str, seeds) -> tuple[float, float, int]:
     return own, rel, 5 * len(seeds)
 
 
-def test_gbp_is_consistent_over_monte_carlo():
+@pytest.mark.parametrize("fusion", ["joint", "ci"])
+def test_gbp_is_consistent_over_monte_carlo(fusion):
     """NEES/dof of the own and relative estimates over 4 seeds × 5 filters (second half of
     40 s; n = 5, complete graph: every triangle a loop) within the upper χ² bound (97.5 %)
     of the mean of 20 independent χ²(6)/6 (the steps of one filter are correlated: counted
-    as one sample each, the stricter bound). Split CI is conservative by construction, so
-    only the upper bound is held (ci's is below the lower one too: docs/estimators.md)."""
-    own, rel, N = _nees("ci", range(4))
+    as one sample each, the stricter bound). Only the upper bound is held: split CI is
+    conservative by construction (ci's is below the lower one too: docs/estimators.md), and
+    ``joint`` bounds the neighbours' mutual correlation (``peers: bound``)."""
+    own, rel, N = _nees(fusion, range(4))
     hi = chi2.ppf(0.975, 6 * N) / (6 * N)
-    print(f"gbp NEES/dof own {own:.3f}, relative {rel:.3f}; upper bound {hi:.3f}")
+    print(f"gbp ({fusion}) NEES/dof own {own:.3f}, relative {rel:.3f}; upper bound {hi:.3f}")
     assert 0.2 < own <= hi and 0.1 < rel <= hi
 
 
