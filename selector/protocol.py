@@ -37,9 +37,14 @@ from swarmrt.bus.convert import estimate_from_full, select_msg
 from swarmrt.bus.messages import Fault, Keys
 from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost, outbox_steps, world_wait_s
 
-__all__ = ["SelectorProtocol"]
+__all__ = ["SelectorProtocol", "CATCH_UP_S"]
 
 log = logging.getLogger("selector")
+
+#: Lockstep: with no new clock for this long (s), the selector reads the world's latest
+#: clocks (a clock lost on its way costs this, not the world's 20 s wait and a fallback).
+CATCH_UP_S = 2.0
+CATCH_UP_QUERY_S = 2.0
 
 
 class SelectorProtocol:
@@ -69,16 +74,23 @@ class SelectorProtocol:
         # Lockstep: each clock's live agents, and each step's health reports' cameras.
         self.steps: dict[int, list[int]] = {}
         self.cams_at: dict[int, dict[int, np.ndarray]] = {}
+        # Lockstep: read the world's latest clocks (serve_clock) at once: at start (a restart),
+        # when the bus or the world comes back, and when no clock has come for CATCH_UP_S.
+        self._catch_up = self.lockstep
+        self._clock_at = clock()  # when the latest new clock came
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
 
     def handle(self, ev: Event) -> list[Send]:
         if ev.kind in ("bus", "resync"):
+            if (ev.kind == "bus" and ev.alive) or (ev.kind == "resync" and ev.role == "world"):
+                self._catch_up = self.lockstep  # a clock may have gone by meanwhile
             return self.outbox.again(ev)
         if ev.kind == "alive" and ev.role == "world":
             if ev.alive:
                 self.world_seen = True
+                self._catch_up = self.lockstep
             elif self.world_seen and not self.done:
                 raise WorldLost("selector: the world is gone before the end of the run")
         elif ev.kind == "alive" and ev.role in (None, "agent") and ev.sat is not None:
@@ -106,6 +118,8 @@ class SelectorProtocol:
             k = int(ev.msg.k)
             if self.lockstep and not ev.msg.done:
                 # The step's own state: the selection of k is planned from it (the module's docstring).
+                if k not in self.steps and (not self.steps or k > max(self.steps)):
+                    self._clock_at = self.clock()
                 self.steps.setdefault(k, sorted(int(i) for i in ev.msg.live_agents))
                 for old in [s for s in self.steps if s < k - 2]:
                     del self.steps[old]
@@ -152,16 +166,30 @@ class SelectorProtocol:
             return
         deadline = self.clock() + em.step_timeout_s
         while msg is None:
+            # What arrived meanwhile is taken in between asks (a query blocks the loop): a
+            # clock of a later step means the world has left k, and the plan of k is dropped.
+            # (Seen: a restarted selector asked a reference that had been stopped for a step
+            # the world had left, again and again, the clocks of the next steps unread in its
+            # inbox; the world waited 20 s and fell back, in one run of a campaign: issue 35.)
+            if self._newer(k):
+                log.info("step %d: the world has gone on to step %d; not planned", k, max(self.steps, default=k))
+                return
             msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
             if msg is not None and behind and msg.k < k - 1:
                 # Planned on the clock alone, and the reference is still behind (a world that
                 # moved on without its estimate: stalled, say): not its estimate of k − 1 yet.
                 msg = None
-                yield Wait(lambda: self.done or not (k in self._clock_only or (self.lockstep and k in self.steps)), 0.2)
+                yield Wait(lambda: self._newer(k) or not (k in self._clock_only or (self.lockstep and k in self.steps)), 0.2)
+            elif msg is None:
+                # Not served (the reference stalled, or gone: a query with no queryable comes
+                # back at once): asked again shortly, the same agent (the step's reference is
+                # the world's choice, not whoever answers first).
+                yield Wait(lambda: self._newer(k), 0.2)
             if msg is None and (self.clock() >= deadline or self.done):
                 break
         if msg is None:
-            log.warning("step %d: agent %d did not serve its estimate", k, ref)
+            if not self._newer(k):
+                log.warning("step %d: agent %d did not serve its estimate", k, ref)
             return
         est = estimate_from_full(msg, self.n)
         obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(cams, live))
@@ -186,6 +214,25 @@ class SelectorProtocol:
         if msg.k == 0 and not self.clock_seen:
             yield from self.plan(0, ref, msg)
 
+    def _newer(self, k: int) -> bool:
+        """Lockstep: whether the world has put the clock of a step after k (or the run is over)."""
+        return self.done or (self.lockstep and bool(self.steps) and max(self.steps) > k)
+
+    def _catch_up_due(self) -> bool:
+        if not self.lockstep or self.done:
+            return False
+        return self._catch_up or (bool(self.steps) and self.clock() - self._clock_at >= CATCH_UP_S)
+
+    def catch_up(self):
+        """Read the world's last two clocks (its ``clock`` queryable) as if they had come:
+        a selector that (re)started, or whose bus or world came back, has the step the world
+        waits for it to plan without waiting for the next clock (which would never come:
+        the world waits for this step's selection)."""
+        self._catch_up = False
+        self._clock_at = self.clock()
+        for m in (yield Query(self.keys.clock(), "clock", CATCH_UP_QUERY_S, every=True)) or []:
+            self.handle(Event(self.keys.clock(), "clock", None, msg=m))
+
     def run(self):
         return self.outbox.wrap(self._run())
 
@@ -195,10 +242,12 @@ class SelectorProtocol:
             yield Wait(lambda: self.done, float("inf"))
             return
         while not self.done:
+            if self._catch_up_due():
+                yield from self.catch_up()
             # Wake for work, or for step 0 once a new reference agent appears (asking the same
-            # one again is paced by the timeout).
-            yield Wait(lambda: self.done or self._work() is not None or (self._first_pending() and self.ref_agent() != self._asked_first),
-                       0.5)
+            # one again is paced by the timeout), or to read the world's clock.
+            yield Wait(lambda: self.done or self._work() is not None or (self._first_pending() and self.ref_agent() != self._asked_first)
+                       or self._catch_up, 0.5)
             if self.lockstep and self.steps:
                 # The run is under way: plan the step of the latest clock, from its own state.
                 k = self._work()

@@ -38,7 +38,7 @@ reads as its zero value, ``msg.HasField(name)`` (or :func:`opt`) tells.
 
 Key space (one run id per swarm, so swarms can share a router)::
 
-    swarm/<run>/clock                world → all           Clock
+    swarm/<run>/clock                world → all           Clock (and queryable: the last two steps' clocks)
     swarm/<run>/recorded             recorder → world      Recorded (the last step whose clock it has taken in)
     swarm/<run>/sat/<i>/sensors      world → agent i       Sensors
     swarm/<run>/sat/<i>/cam          world → agent i       CameraOutput
