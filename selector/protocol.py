@@ -17,6 +17,13 @@ with whatever commands and liveliness had arrived, a selection of k was made bef
 the faults of step k had been heard (a camera switched off, the reference killed, the
 selector itself killed with its plan of k already sent or not; a command missed in a
 failover and sent again later), and a chaos campaign's two runs differed (issue 35).
+Whether its plan reaches the world in time must not depend on timing either: the plan of a
+step is dropped as soon as the clock of a later step is in (taken in between the asks of the
+reference, which block the loop), and a selector that (re)starts, whose bus or world comes
+back, or that has heard no clock for ``CATCH_UP_S``, reads the world's last two clocks (its
+``clock`` queryable) rather than wait for a clock that will not come before its selection.
+The reference of step k is always the lowest agent the clock of k lists live, asked again
+until it serves or the world goes on, never whoever answers first.
 Free-running, where nothing waits, it plans as soon as the reference's estimate or health
 of k − 1 comes, with what it knows then (liveliness, commands and health reports).
 """
