@@ -20,8 +20,10 @@ failover and sent again later), and a chaos campaign's two runs differed (issue 
 Whether its plan reaches the world in time must not depend on timing either: the plan of a
 step is dropped as soon as the clock of a later step is in (taken in between the asks of the
 reference, which block the loop), and a selector that (re)starts, whose bus or world comes
-back, or that has heard no clock for ``CATCH_UP_S``, reads the world's last two clocks (its
-``clock`` queryable) rather than wait for a clock that will not come before its selection.
+back, or that has heard no clock for ``CATCH_UP_S``, reads the world's last two clocks and
+the agents' health reports of those steps (its ``clock`` and ``health/*`` queryables) rather
+than wait for messages that went by while it was away (a clock will not come before its
+selection); so does it every ``CATCH_UP_S`` while it waits for the reports of k − 1.
 The reference of step k is always the lowest agent the clock of k lists live, asked again
 until it serves or the world goes on, never whoever answers first.
 Free-running, where nothing waits, it plans as soon as the reference's estimate or health
@@ -231,14 +233,18 @@ class SelectorProtocol:
         return self._catch_up or (bool(self.steps) and self.clock() - self._clock_at >= CATCH_UP_S)
 
     def catch_up(self):
-        """Read the world's last two clocks (its ``clock`` queryable) as if they had come:
-        a selector that (re)started, or whose bus or world came back, has the step the world
-        waits for it to plan without waiting for the next clock (which would never come:
-        the world waits for this step's selection)."""
+        """Read the world's last two clocks (its ``clock`` queryable) and the agents' health
+        reports of those steps (``health/*``, which the world keeps) as if they had come: a
+        selector that (re)started, or whose bus or world came back, has the step the world
+        waits for it to plan, and what it plans it from, without waiting for messages that
+        went by while it was away (the next clock would never come: the world waits for this
+        step's selection; nor would reports put while it failed over to another router)."""
         self._catch_up = False
         self._clock_at = self.clock()
         for m in (yield Query(self.keys.clock(), "clock", CATCH_UP_QUERY_S, every=True)) or []:
             self.handle(Event(self.keys.clock(), "clock", None, msg=m))
+        for h in (yield Query(self.keys.health(), "health", CATCH_UP_QUERY_S, every=True)) or []:
+            self.handle(Event(self.keys.health(int(h.sat)), "health", int(h.sat), msg=h))
 
     def run(self):
         return self.outbox.wrap(self._run())
@@ -272,7 +278,19 @@ class SelectorProtocol:
                 def reported(k: int = k, need: list[int] = need) -> bool:
                     return self.done or max(self.steps) > k or all(i in self.cams_at.get(k - 1, {}) for i in need)
 
-                got = yield Wait(reported, world_wait_s(self.sc.emulator))
+                # Waited for as the world waits (world_wait_s), in spans of CATCH_UP_S with the
+                # world's reports read in between: one missed (put while this selector failed
+                # over) is read from the world rather than waited for until the world falls back.
+                got, waited, total = False, 0.0, world_wait_s(self.sc.emulator)
+                while True:
+                    span = min(CATCH_UP_S, total - waited)
+                    got = yield Wait(reported, span)
+                    if got or self.done or max(self.steps) > k:
+                        break
+                    waited += span  # (a span that timed out: the node stretches it while the bus is down)
+                    if waited >= total:
+                        break
+                    yield from self.catch_up()
                 if self.done or max(self.steps) > k:
                     continue  # a newer step to plan
                 if not got:

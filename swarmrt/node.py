@@ -315,8 +315,9 @@ class Node:
                            key, size, limit, self.over_size_limit)
 
     def queryable(self, key: str, handler, notify: bool = False) -> None:
-        """``handler(query_key) -> message | None`` (or a list of messages: one reply each);
-        runs on a Zenoh thread, keep it quick.
+        """``handler(query_key) -> message | None`` (or a list of messages: one reply each,
+        on the query's key; or of :class:`Send`: each reply on its own key, for a wildcard
+        query); runs on a Zenoh thread, keep it quick.
         ``notify``: after answering, hand the main loop a ``query`` event (a machine waiting
         on what the handler changed looks again)."""
 
@@ -329,7 +330,10 @@ class Node:
                 reply = None
             with query:
                 for one in (reply if isinstance(reply, list) else [] if reply is None else [reply]):
-                    query.reply(qkey, encode(one))
+                    if isinstance(one, Send):
+                        query.reply(one.key, encode(one.msg))
+                    else:
+                        query.reply(qkey, encode(one))
             if notify:
                 self.inbox.put_event(Event(qkey, "query", None, msg=reply))
 

@@ -20,8 +20,9 @@ class Driver:
     """Runs ``machine.run()`` until it blocks on a :class:`Wait` that does not hold yet.
 
     ``answer(query) -> reply`` answers its queries (default: nothing); ``clocks(query) ->
-    [Clock]`` the queries of the world's ``clock`` queryable (default: none served; they are
-    listed in ``clock_queries``, not ``queries``). Events are handed in with :meth:`feed`, or
+    [Clock]`` the queries of the world's ``clock`` queryable, ``reports(query) -> [Health]``
+    those of its ``health/*`` (default: none served; they are listed in ``clock_queries`` and
+    ``report_queries``, not ``queries``). Events are handed in with :meth:`feed`, or
     with :meth:`arrive` while the machine is busy (they wait in an inbox until its next
     :class:`Wait`, as in :meth:`swarmrt.node.Node.wait_for`: a wait whose condition already
     holds takes nothing in); :meth:`elapse` moves the fake clock and times waits out.
@@ -30,12 +31,14 @@ class Driver:
     the test feeds ``recorded`` itself.
     """
 
-    def __init__(self, machine, clock: FakeClock, answer=None, recorder_keeps_up: bool = True, clocks=None):
+    def __init__(self, machine, clock: FakeClock, answer=None, recorder_keeps_up: bool = True, clocks=None, reports=None):
         self.m = machine
         self.clock = clock
         self.recorder_keeps_up = recorder_keeps_up
         self.answer = answer or (lambda q: None)
         self.clocks = clocks or (lambda q: [])
+        self.reports = reports or (lambda q: [])
+        self.report_queries: list[Query] = []
         self.sent: list[Send] = []
         self.queries: list[Query] = []
         self.clock_queries: list[Query] = []
@@ -100,6 +103,9 @@ class Driver:
                 if action.key.endswith("/clock"):
                     self.clock_queries.append(action)
                     value = self.clocks(action)
+                elif action.key.endswith("/health/*"):
+                    self.report_queries.append(action)
+                    value = self.reports(action)
                 else:
                     self.queries.append(action)
                     value = self.answer(action)

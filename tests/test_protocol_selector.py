@@ -329,3 +329,29 @@ def test_the_reference_of_a_step_is_the_clocks_lowest_live_agent_whoever_answers
     d.elapse(0.2)
     (sel,) = d.sent_on(K.select())
     assert (sel.k, sel.ref_agent) == (1, 0)
+
+
+def test_health_reports_missed_in_a_failover_are_read_from_the_world():
+    """Issue 35 (seed 10 of the repeat benchmark): a selector failing over to the other router
+    missed the clock of step 23 and the agents' reports of step 22 (put while it was away);
+    the clock it read from the world, the reports it waited for 20 s, as long as the world
+    waits for its selection, and the world fell back in one run and not the other. The world
+    has every report of k − 1 before it puts the clock of k and serves them (``health/*``):
+    the selector reads them with the clocks and plans, with the cameras they give."""
+    sc = _longer()
+    served = _served_at(sc, 1)
+    clk = FakeClock()
+    reports = [_health(i, 1, off=(0, 1, 2, 3, 4, 5) if i == 3 else ()).msg for i in range(4)]
+    world_at = []  # the step the world is at (it serves the reports of step 1 once at step 2)
+    s = SelectorProtocol(sc, RUN, clock=clk)
+    d = Driver(s, clk, answer=lambda q: full_estimate_msg(served[int(q.key[-1])], run=RUN, sender="x", own=int(q.key[-1])),
+               reports=lambda q: reports if world_at else [])
+    d.feed(alive(0), alive(1), alive(2), alive(3))
+    world_at.append(2)
+    d.feed(clock(1, [0, 1, 2, 3]), clock(2, [0, 1, 2, 3]))  # no report of step 1 comes
+    d.elapse(1.0)
+    assert not d.sent_on(K.select())
+    d.elapse(1.5)  # CATCH_UP_S: the reports are read from the world
+    (sel,) = d.sent_on(K.select())
+    assert (sel.k, sel.ref_agent) == (2, 0) and all(o != 3 for o in sel.observer), "satellite 3's cameras are all off"
+    assert [q.key for q in d.report_queries][-1] == K.health() and d.report_queries[-1].every

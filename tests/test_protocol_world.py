@@ -637,3 +637,15 @@ def test_the_same_ask_twice_in_a_step_gets_the_same_answer_and_no_second_transfe
     again = w.serve_rejoin(K.rejoin(2, 0, 5000))
     assert again == first and int(w.links.counters.sent.sum()) == sent
     assert sum(1 for m in w._rejoin_log if m.sat == 2) == 1
+
+
+def test_the_health_queryable_serves_the_last_two_steps_reports_each_on_its_agents_key():
+    """What the selector reads when it missed reports (a failover): every report of the current
+    step and the one before, as the agents sent them."""
+    sc = scenario()
+    d, w, _ = started_world(sc)
+    for k in range(3):
+        d.feed(*finish(k))
+    served = w.serve_health(K.health())
+    assert sorted((s.msg.k, s.msg.sat) for s in served) == [(1, 0), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
+    assert all(s.key == K.health(s.msg.sat) and s.msg.sender == f"agent-{s.msg.sat}" for s in served)

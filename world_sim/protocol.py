@@ -58,6 +58,7 @@ from swarmrt.bus.messages import (
     Delivered,
     Delivery,
     Fault,
+    Health,
     Keys,
     Latency,
     LinkStats,
@@ -172,6 +173,7 @@ class WorldProtocol:
         self._awaiting_round: int | None = None  # the restarted agent whose round of asks the world waits for now
         self._fates: dict[tuple[int, int, int], RejoinFate] = {}  # (agent, peer, step) → the answer given
         self._clocks: tuple[Clock, ...] = ()  # the last two clocks put (or the done one), served on clock (serve_clock)
+        self._reports: tuple[Health, ...] = ()  # the health reports of the last two steps, served on health/* (serve_health)
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -218,6 +220,15 @@ class WorldProtocol:
         back, in one run of a chaos campaign and not the other: issue 35)."""
         return list(self._clocks)
 
+    def serve_health(self, key: str):
+        """``health/*``: the agents' health reports of the current step and the one before,
+        each on its agent's key, as they came (the agent's own message). The selector plans
+        step k from the reports of k − 1, which the world has every one of before it puts the
+        clock of k: a selector whose bus came back reads the ones it missed (put while it
+        failed over to another router) rather than wait for them 20 s, as the world waits for
+        its selection (one run of a campaign fell back there, the other not: issue 35)."""
+        return [Send(self.keys.health(int(h.sat)), h) for h in self._reports]
+
     def serve_claim(self, key: str):
         """Give an agent started with ``--id auto`` a satellite: the lowest one with no
         live agent and no recent claim (so scaled or restarted containers need no ids),
@@ -241,6 +252,9 @@ class WorldProtocol:
 
     # -- events -------------------------------------------------------------------
     def handle(self, ev: Event) -> list[Send]:
+        if ev.kind == "health":  # (kept for serve_health: one assignment, it reads them on the bus's thread)
+            h = ev.msg
+            self._reports = (*(x for x in self._reports if x.k >= self.k - 1 and not (x.sat == h.sat and x.k == h.k)), h)
         if ev.kind == "held":
             self.limbo.add(ev.key)
             return []
