@@ -111,7 +111,12 @@ class AgentProtocol:
         self.started = False  # the estimator has a state (from a prior, a peer, or a cold start)
         self.cold = False  # restarted without a warm rejoin: the estimator starts at its next step
         self.bytes_sent = 0  # bytes put on the radio this step (batch and estimator message)
+        # Its cameras as of its latest camera delivery (all on before the first one), and the
+        # world's camera commands for this satellite, each with the step it applies from:
+        # what a health report of step k says is a function of k (_cameras), never of whether
+        # a command came before or after the report (issue 35).
         self.camera_ok = np.ones(6, dtype=bool)
+        self._camera_cmds: list[tuple[int, int, bool]] = []  # (step, camera, on), images only: see _cameras
         self.drop_rate = 0.0
         self.clocks: dict[int, Clock] = {}
         self.sensors: dict[int, Sensors] = {}
@@ -224,8 +229,11 @@ class AgentProtocol:
         if not first_time(self._commands_seen, f):
             return []  # the same command sent again (the world resends its last steps' commands): carried out once
         if f.action == "camera" and f.camera is not None:
-            self.camera_ok[f.camera] = f.state == "on"
-            self.log.info("camera %d %s", f.camera, f.state)
+            # In effect from the step the world carries it out at (its camera deliveries say so
+            # from then on), not from whenever it reaches this process: see _cameras.
+            if self.pose.needs_prediction:
+                self._camera_cmds.append((int(f.k), int(f.camera), f.state == "on"))
+            self.log.info("camera %d %s (step %d)", f.camera, f.state, f.k)
         elif f.action == "drop":
             self.drop_rate = float(f.rate or 0.0)
             first = self.sent_k + 1  # the first batch it applies to
@@ -390,7 +398,8 @@ class AgentProtocol:
         obs = None
         if msg is not None and msg.views:
             obs = observation_from_images(msg)
-            obs.views = [v for v in obs.views if v.camera >= 6 or self.camera_ok[v.camera]]
+            ok = self._cameras(k)
+            obs.views = [v for v in obs.views if v.camera >= 6 or ok[v.camera]]
         rel, cams = self.pose.measure(self.i, obs, e.prediction() if self.started else None, k)
         rep = getattr(self.pose, "last_reports", {}).get(self.i)
         if rep is not None and rep.missed:
@@ -511,8 +520,22 @@ class AgentProtocol:
         received.sort(key=lambda r: (r.step, r.sender))
         return received
 
+    def _cameras(self, k: int) -> np.ndarray:
+        """The cameras that work at step k, as this satellite knows them: the latest camera
+        delivery's (``cameras_off``: the world's state at that step, the hardware's) — all on
+        before the first one — and, for a vision pipeline (images carry no such list), the
+        world's commands for steps up to k, in step order. Never what arrived last: a command
+        for step k + 1 that reached the agent before its health report of step k was sent
+        (a stalled agent; a restarted one hearing the world's last steps' commands again)
+        made a campaign's two runs report different cameras at one step (issue 35)."""
+        if self._camera_cmds:
+            for _step, c, on in sorted((x for x in self._camera_cmds if x[0] <= k), key=lambda x: x[0]):
+                self.camera_ok[c] = on
+            self._camera_cmds = [x for x in self._camera_cmds if x[0] > k]
+        return self.camera_ok
+
     def _health(self, k: int, t: float, cameras=None) -> Health:
-        cameras = self.camera_ok if cameras is None else cameras
+        cameras = self._cameras(k) if cameras is None else cameras
         return Health(
             run=self.run_id, sender=self.name, k=k, t_s=t, sat=self.i, camera_ok=[bool(c) for c in cameras],
             malformed=self.malformed() + self.payloads_refused, batches_missing=self.batches_missing, batches_late=self.batches_late,

@@ -17,6 +17,15 @@ with whatever commands and liveliness had arrived, a selection of k was made bef
 the faults of step k had been heard (a camera switched off, the reference killed, the
 selector itself killed with its plan of k already sent or not; a command missed in a
 failover and sent again later), and a chaos campaign's two runs differed (issue 35).
+Whether its plan reaches the world in time must not depend on timing either: the plan of a
+step is dropped as soon as the clock of a later step is in (taken in between the asks of the
+reference, which block the loop), and a selector that (re)starts, whose bus or world comes
+back, or that has heard no clock for ``CATCH_UP_S``, reads the world's last two clocks and
+the agents' health reports of those steps (its ``clock`` and ``health/*`` queryables) rather
+than wait for messages that went by while it was away (a clock will not come before its
+selection); so does it every ``CATCH_UP_S`` while it waits for the reports of k − 1.
+The reference of step k is always the lowest agent the clock of k lists live, asked again
+until it serves or the world goes on, never whoever answers first.
 Free-running, where nothing waits, it plans as soon as the reference's estimate or health
 of k − 1 comes, with what it knows then (liveliness, commands and health reports).
 """
@@ -37,9 +46,14 @@ from swarmrt.bus.convert import estimate_from_full, select_msg
 from swarmrt.bus.messages import Fault, Keys
 from swarmrt.protocol import Event, Outbox, Query, Send, Wait, WorldLost, outbox_steps, world_wait_s
 
-__all__ = ["SelectorProtocol"]
+__all__ = ["SelectorProtocol", "CATCH_UP_S"]
 
 log = logging.getLogger("selector")
+
+#: Lockstep: with no new clock for this long (s), the selector reads the world's latest
+#: clocks (a clock lost on its way costs this, not the world's 20 s wait and a fallback).
+CATCH_UP_S = 2.0
+CATCH_UP_QUERY_S = 2.0
 
 
 class SelectorProtocol:
@@ -69,16 +83,23 @@ class SelectorProtocol:
         # Lockstep: each clock's live agents, and each step's health reports' cameras.
         self.steps: dict[int, list[int]] = {}
         self.cams_at: dict[int, dict[int, np.ndarray]] = {}
+        # Lockstep: read the world's latest clocks (serve_clock) at once: at start (a restart),
+        # when the bus or the world comes back, and when no clock has come for CATCH_UP_S.
+        self._catch_up = self.lockstep
+        self._clock_at = clock()  # when the latest new clock came
 
     def ref_agent(self) -> int | None:
         return min(self.alive) if self.alive else None
 
     def handle(self, ev: Event) -> list[Send]:
         if ev.kind in ("bus", "resync"):
+            if (ev.kind == "bus" and ev.alive) or (ev.kind == "resync" and ev.role == "world"):
+                self._catch_up = self.lockstep  # a clock may have gone by meanwhile
             return self.outbox.again(ev)
         if ev.kind == "alive" and ev.role == "world":
             if ev.alive:
                 self.world_seen = True
+                self._catch_up = self.lockstep
             elif self.world_seen and not self.done:
                 raise WorldLost("selector: the world is gone before the end of the run")
         elif ev.kind == "alive" and ev.role in (None, "agent") and ev.sat is not None:
@@ -106,6 +127,8 @@ class SelectorProtocol:
             k = int(ev.msg.k)
             if self.lockstep and not ev.msg.done:
                 # The step's own state: the selection of k is planned from it (the module's docstring).
+                if k not in self.steps and (not self.steps or k > max(self.steps)):
+                    self._clock_at = self.clock()
                 self.steps.setdefault(k, sorted(int(i) for i in ev.msg.live_agents))
                 for old in [s for s in self.steps if s < k - 2]:
                     del self.steps[old]
@@ -152,16 +175,30 @@ class SelectorProtocol:
             return
         deadline = self.clock() + em.step_timeout_s
         while msg is None:
+            # What arrived meanwhile is taken in between asks (a query blocks the loop): a
+            # clock of a later step means the world has left k, and the plan of k is dropped.
+            # (Seen: a restarted selector asked a reference that had been stopped for a step
+            # the world had left, again and again, the clocks of the next steps unread in its
+            # inbox; the world waited 20 s and fell back, in one run of a campaign: issue 35.)
+            if self._newer(k):
+                log.info("step %d: the world has gone on to step %d; not planned", k, max(self.steps, default=k))
+                return
             msg = yield Query(self.keys.cov(ref), "full_est", min(em.step_timeout_s, max(0.5, em.select_timeout_s / 2)))
             if msg is not None and behind and msg.k < k - 1:
                 # Planned on the clock alone, and the reference is still behind (a world that
                 # moved on without its estimate: stalled, say): not its estimate of k − 1 yet.
                 msg = None
-                yield Wait(lambda: self.done or not (k in self._clock_only or (self.lockstep and k in self.steps)), 0.2)
+                yield Wait(lambda: self._newer(k) or not (k in self._clock_only or (self.lockstep and k in self.steps)), 0.2)
+            elif msg is None:
+                # Not served (the reference stalled, or gone: a query with no queryable comes
+                # back at once): asked again shortly, the same agent (the step's reference is
+                # the world's choice, not whoever answers first).
+                yield Wait(lambda: self._newer(k), 0.2)
             if msg is None and (self.clock() >= deadline or self.done):
                 break
         if msg is None:
-            log.warning("step %d: agent %d did not serve its estimate", k, ref)
+            if not self._newer(k):
+                log.warning("step %d: agent %d did not serve its estimate", k, ref)
             return
         est = estimate_from_full(msg, self.n)
         obs, tgt = choose_pairs(sc, k, self.G, est, self.params[ref], mask_dead(cams, live))
@@ -186,6 +223,29 @@ class SelectorProtocol:
         if msg.k == 0 and not self.clock_seen:
             yield from self.plan(0, ref, msg)
 
+    def _newer(self, k: int) -> bool:
+        """Lockstep: whether the world has put the clock of a step after k (or the run is over)."""
+        return self.done or (self.lockstep and bool(self.steps) and max(self.steps) > k)
+
+    def _catch_up_due(self) -> bool:
+        if not self.lockstep or self.done:
+            return False
+        return self._catch_up or (bool(self.steps) and self.clock() - self._clock_at >= CATCH_UP_S)
+
+    def catch_up(self):
+        """Read the world's last two clocks (its ``clock`` queryable) and the agents' health
+        reports of those steps (``health/*``, which the world keeps) as if they had come: a
+        selector that (re)started, or whose bus or world came back, has the step the world
+        waits for it to plan, and what it plans it from, without waiting for messages that
+        went by while it was away (the next clock would never come: the world waits for this
+        step's selection; nor would reports put while it failed over to another router)."""
+        self._catch_up = False
+        self._clock_at = self.clock()
+        for m in (yield Query(self.keys.clock(), "clock", CATCH_UP_QUERY_S, every=True)) or []:
+            self.handle(Event(self.keys.clock(), "clock", None, msg=m))
+        for h in (yield Query(self.keys.health(), "health", CATCH_UP_QUERY_S, every=True)) or []:
+            self.handle(Event(self.keys.health(int(h.sat)), "health", int(h.sat), msg=h))
+
     def run(self):
         return self.outbox.wrap(self._run())
 
@@ -195,10 +255,12 @@ class SelectorProtocol:
             yield Wait(lambda: self.done, float("inf"))
             return
         while not self.done:
+            if self._catch_up_due():
+                yield from self.catch_up()
             # Wake for work, or for step 0 once a new reference agent appears (asking the same
-            # one again is paced by the timeout).
-            yield Wait(lambda: self.done or self._work() is not None or (self._first_pending() and self.ref_agent() != self._asked_first),
-                       0.5)
+            # one again is paced by the timeout), or to read the world's clock.
+            yield Wait(lambda: self.done or self._work() is not None or (self._first_pending() and self.ref_agent() != self._asked_first)
+                       or self._catch_up, 0.5)
             if self.lockstep and self.steps:
                 # The run is under way: plan the step of the latest clock, from its own state.
                 k = self._work()
@@ -216,7 +278,19 @@ class SelectorProtocol:
                 def reported(k: int = k, need: list[int] = need) -> bool:
                     return self.done or max(self.steps) > k or all(i in self.cams_at.get(k - 1, {}) for i in need)
 
-                got = yield Wait(reported, world_wait_s(self.sc.emulator))
+                # Waited for as the world waits (world_wait_s), in spans of CATCH_UP_S with the
+                # world's reports read in between: one missed (put while this selector failed
+                # over) is read from the world rather than waited for until the world falls back.
+                got, waited, total = False, 0.0, world_wait_s(self.sc.emulator)
+                while True:
+                    span = min(CATCH_UP_S, total - waited)
+                    got = yield Wait(reported, span)
+                    if got or self.done or max(self.steps) > k:
+                        break
+                    waited += span  # (a span that timed out: the node stretches it while the bus is down)
+                    if waited >= total:
+                        break
+                    yield from self.catch_up()
                 if self.done or max(self.steps) > k:
                     continue  # a newer step to plan
                 if not got:

@@ -311,7 +311,9 @@ class Node:
                            key, size, limit, self.over_size_limit)
 
     def queryable(self, key: str, handler, notify: bool = False) -> None:
-        """``handler(query_key) -> message | None``; runs on a Zenoh thread, keep it quick.
+        """``handler(query_key) -> message | None`` (or a list of messages: one reply each,
+        on the query's key; or of :class:`Send`: each reply on its own key, for a wildcard
+        query); runs on a Zenoh thread, keep it quick.
         ``notify``: after answering, hand the main loop a ``query`` event (a machine waiting
         on what the handler changed looks again)."""
 
@@ -323,27 +325,36 @@ class Node:
                 self.log.warning("query %s failed: %s", query.selector, exc)
                 reply = None
             with query:
-                if reply is not None:
-                    query.reply(qkey, encode(reply))
+                for one in (reply if isinstance(reply, list) else [] if reply is None else [reply]):
+                    if isinstance(one, Send):
+                        query.reply(one.key, encode(one.msg))
+                    else:
+                        query.reply(qkey, encode(one))
             if notify:
                 self.inbox.put_event(Event(qkey, "query", None, msg=reply))
 
         self._handles.append(self.session.declare_queryable(key, cb))
 
-    def query(self, key: str, kind: str, timeout: float):
-        """First valid reply to a query (decoded), or None after ``timeout`` seconds."""
+    def query(self, key: str, kind: str, timeout: float, every: bool = False):
+        """First valid reply to a query (decoded), or None after ``timeout`` seconds;
+        ``every``: the list of every valid reply (none consolidated with another)."""
+        got = []
         try:
-            replies = self.session.get(key, timeout=timeout)
+            replies = self.session.get(key, timeout=timeout, consolidation=zenoh.ConsolidationMode.NONE if every else None)
             for reply in replies:
                 if reply.ok is None:
                     continue
                 try:
-                    return receive(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), self.run, n_sats=self.n, expect=kind).msg
+                    msg = receive(str(reply.ok.key_expr), reply.ok.payload.to_bytes(), self.run, n_sats=self.n, expect=kind).msg
                 except MessageError as exc:
                     self.count_malformed(key, exc)
+                    continue
+                if not every:
+                    return msg
+                got.append(msg)
         except zenoh.ZError as exc:
             self.log.warning("query %s: %s", key, exc)
-        return None
+        return got if every else None
 
     def count_malformed(self, key: str, err: Exception) -> None:
         """Count and log a dropped message (from any thread: subscribers decode on theirs)."""
@@ -474,7 +485,7 @@ class Node:
             if isinstance(action, Send):
                 self.put(action.key, action.msg)
             elif isinstance(action, Query):
-                reply = self.query(action.key, action.kind, action.timeout_s)
+                reply = self.query(action.key, action.kind, action.timeout_s, every=action.every)
             elif isinstance(action, Wait):
                 reply = self.wait_for(action.until, action.timeout_s, on_event, action.wake)
             else:

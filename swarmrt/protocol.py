@@ -90,11 +90,13 @@ class Send:
 @dataclass(frozen=True)
 class Query:
     """Ask the queryable(s) on ``key`` for a message of ``kind``; the machine is sent the
-    first valid reply, or None after ``timeout_s``."""
+    first valid reply, or None after ``timeout_s`` (``every``: the list of every valid reply,
+    possibly empty, each as it was sent: none merged with another on the same key)."""
 
     key: str
     kind: str
     timeout_s: float
+    every: bool = False
 
 
 @dataclass(frozen=True)

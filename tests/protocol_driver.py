@@ -19,20 +19,30 @@ class FakeClock:
 class Driver:
     """Runs ``machine.run()`` until it blocks on a :class:`Wait` that does not hold yet.
 
-    ``answer(query) -> reply`` answers its queries (default: nothing). Events are handed in
-    with :meth:`feed`; :meth:`elapse` moves the fake clock and times waits out.
+    ``answer(query) -> reply`` answers its queries (default: nothing); ``clocks(query) ->
+    [Clock]`` the queries of the world's ``clock`` queryable, ``reports(query) -> [Health]``
+    those of its ``health/*`` (default: none served; they are listed in ``clock_queries`` and
+    ``report_queries``, not ``queries``). Events are handed in with :meth:`feed`, or
+    with :meth:`arrive` while the machine is busy (they wait in an inbox until its next
+    :class:`Wait`, as in :meth:`swarmrt.node.Node.wait_for`: a wait whose condition already
+    holds takes nothing in); :meth:`elapse` moves the fake clock and times waits out.
     ``recorder_keeps_up``: a world's every clock is answered at once by the recorder's
     ``recorded`` (a recorder that keeps up, so the bounded recorder lag never waits); False:
     the test feeds ``recorded`` itself.
     """
 
-    def __init__(self, machine, clock: FakeClock, answer=None, recorder_keeps_up: bool = True):
+    def __init__(self, machine, clock: FakeClock, answer=None, recorder_keeps_up: bool = True, clocks=None, reports=None):
         self.m = machine
         self.clock = clock
         self.recorder_keeps_up = recorder_keeps_up
         self.answer = answer or (lambda q: None)
+        self.clocks = clocks or (lambda q: [])
+        self.reports = reports or (lambda q: [])
+        self.report_queries: list[Query] = []
         self.sent: list[Send] = []
         self.queries: list[Query] = []
+        self.clock_queries: list[Query] = []
+        self.inbox: list[Event] = []
         self.gen = machine.run()
         self.wait: Wait | None = None
         self.deadline = None
@@ -55,6 +65,11 @@ class Driver:
             self.sent.extend(self.m.handle(ev))
         self._check()
 
+    def arrive(self, *events: Event) -> None:
+        """Events that arrive while the machine is busy (asking a query, say): handed to it
+        at its next wait."""
+        self.inbox.extend(events)
+
     def elapse(self, dt: float) -> None:
         """Let ``dt`` seconds pass with nothing arriving."""
         self.clock.t += dt
@@ -62,6 +77,8 @@ class Driver:
 
     def _check(self) -> None:
         while self.wait is not None and not self.finished:
+            while self.inbox and not self.wait.until():
+                self.sent.extend(self.m.handle(self.inbox.pop(0)))
             if self.wait.until():
                 self._resume(True)
             elif self.clock() >= self.deadline:
@@ -83,9 +100,21 @@ class Driver:
                     self.m.handle(Event(Keys(action.msg.run).recorded(), "recorded", None,
                                         msg=Recorded(run=action.msg.run, sender="recorder", k=action.msg.k, t_s=action.msg.t_s)))
             elif isinstance(action, Query):
-                self.queries.append(action)
-                value = self.answer(action)
+                if action.key.endswith("/clock"):
+                    self.clock_queries.append(action)
+                    value = self.clocks(action)
+                elif action.key.endswith("/health/*"):
+                    self.report_queries.append(action)
+                    value = self.reports(action)
+                else:
+                    self.queries.append(action)
+                    value = self.answer(action)
             elif isinstance(action, Wait):
+                if action.until():
+                    value = True
+                    continue
+                while self.inbox and not action.until():  # what arrived meanwhile, one event at a time
+                    self.sent.extend(self.m.handle(self.inbox.pop(0)))
                 if action.until():
                     value = True
                     continue

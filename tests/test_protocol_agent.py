@@ -45,7 +45,7 @@ class WorldScript:
         if k > 0:
             self.truth, self.gyro = step_truth(self.wp, self.truth)
 
-    def events_for(self, i: int, k: int, live=(0, 1, 2)) -> list[Event]:
+    def events_for(self, i: int, k: int, live=(0, 1, 2), off=()) -> list[Event]:
         t = self.truth.t
         absm = absolute_measurements(self.wp, self.truth)
         obs, tgt = np.nonzero(self.G & ~np.eye(self.sc.n_sats, dtype=bool))
@@ -53,7 +53,8 @@ class WorldScript:
         clock = Clock(run=RUN, sender="world", k=k, t_s=t, live_agents=list(live))
         sens = sensors_msg(run=RUN, k=k, t_s=t, sat=i, gyro=None if self.gyro is None else self.gyro[i], absm=absm[i],
                            sigma_star=self.wp.star_sigma, sigma_gps=self.wp.gps_sigma)
-        cam = CameraOutput(run=RUN, sender="world", k=k, t_s=t, sat=i, detections=detections(seen[i]))
+        dets = [d for d in detections(seen[i]) if d.camera not in off]
+        cam = CameraOutput(run=RUN, sender="world", k=k, t_s=t, sat=i, detections=dets, cameras_off=list(off))
         return [Event(K.clock(), "clock", None, msg=clock), Event(K.sensors(i), "sensors", i, msg=sens), Event(K.cam(i), "cam", i, msg=cam)]
 
     def batch(self, j: int, k: int):
@@ -224,21 +225,51 @@ def test_drop_and_camera_faults_addressed_to_this_agent():
     other = Fault(run=RUN, sender="cli", k=0, t_s=0.0, phase="command", action="drop", target=1, rate=1.0)
     drop = Fault(run=RUN, sender="cli", k=0, t_s=0.0, phase="command", action="drop", target=0, rate=1.0)
     d.feed(*(Event(K.fault(), "fault", None, msg=f) for f in (cam_off, other, drop)))
-    assert not a.camera_ok[2] and a.camera_ok[[0, 1, 3, 4, 5]].all()
     assert not d.sent_on(K.fault()), "an agent sends no fault commands"
     (done,) = d.sent_on(K.fault_report("agent-0"))
     assert (done.action, done.phase, done.target, done.sender, done.k) == ("drop", "done", 0, "agent-0", 0), "from step 0 on"
     world.advance(0)
-    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), *world.events_for(0, 0, live=(0, 1)))
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), *world.events_for(0, 0, live=(0, 1), off=(2,)))
     d.feed(radio_event(0, [world.batch(1, 0)]))
     assert not d.sent_on(K.meas(0)) and not d.sent_on(K.est(0)[:-1] + "0"), "rate 1: every outgoing batch and estimate lost"
     assert d.sent_on(K.health(0))[-1].drop_rate == 1.0
+    assert d.sent_on(K.health(0))[-1].camera_ok == [True, True, False, True, True, True], "camera 2 off, as its delivery says"
     # The recorder comes back (it was stalled, say, when the report went out): the drop's
     # report is sent again with the agent's last steps (issue 35: it was missing from a
     # recording), and the recorder writes it once.
     d.take()
     d.feed(Event(K.alive("recorder", 0), "resync", 0, role="recorder"))
     assert done in d.sent_on(K.fault_report("agent-0")), "the drop's report sent again"
+
+
+def test_a_health_report_says_the_cameras_of_its_step_whatever_commands_came_before_it_was_sent():
+    """Issue 35 (seeds 11 and 20 of the repeat benchmark): a camera command and the agent's
+    health report of a step crossed. The report of step k says the cameras of step k — its
+    camera delivery's ``cameras_off``, the world's state at that step — not whatever command
+    reached the process last: one of the next step (the world went on while this agent was
+    stalled) or an old one sent again (the world's last steps, after a failover; a restarted
+    agent has never seen it) changes nothing in it."""
+    sc = scenario()
+    world = WorldScript(sc)
+    clock = FakeClock()
+    a = AgentProtocol(sc, 0, RUN, SyntheticPoseEstimator(sc), builtin_estimator(sc, 0), clock=clock)
+    d = Driver(a, clock, answer=prior_answer(sc, world.truth))
+    d.feed(Event(K.alive("agent", 1), "alive", 1, alive=True), Event(K.alive("agent", 2), "alive", 2, alive=True))
+
+    def cam(k: int, c: int, state: str) -> Event:
+        return Event(K.fault(), "fault", None, msg=Fault(run=RUN, sender="world", k=k, t_s=float(k), phase="command",
+                                                         action="camera", target=0, camera=c, state=state))
+
+    reports = []
+    for k, off, meanwhile in [(0, (4,), [cam(1, 2, "off"), cam(0, 4, "on")]), (1, (2, 4), [cam(0, 2, "on")]), (2, (2, 4), [])]:
+        world.advance(k)
+        d.take()
+        d.feed(*world.events_for(0, k, off=off))  # its delivery of step k: the world's cameras at k
+        d.feed(*meanwhile)  # commands that reach it while it waits for the radio
+        d.feed(radio_event(k, [world.batch(1, k), world.batch(2, k)]))
+        (h,) = d.sent_on(K.health(0))
+        reports.append([c for c in range(6) if not h.camera_ok[c]])
+    assert reports == [[4], [2, 4], [2, 4]]
 
 
 def test_unknown_satellite_is_refused():

@@ -215,3 +215,143 @@ def test_a_reference_still_behind_is_waited_for():
     d.feed(_health(0, 1))
     (sel,) = [s for s in d.sent_on(K.select()) if s.k == 2]
     assert sel.ref_agent == 0 and d.queries[-1].key == K.cov(0)
+
+
+def _longer() -> Scenario:
+    return Scenario.model_validate({"name": "sel", "seed": 2, "n_sats": 4, "duration_s": 12, "emulator": {"time_mode": "lockstep"},
+                                    "selection": {"strategy": "greedy", "budget": 3}})
+
+
+def _served_at(sc: Scenario, step: int) -> dict:
+    import dataclasses
+
+    truth = initial_truth(sc)
+    return {i: dataclasses.replace(initial_estimate(sc, truth, i), step=step, t=float(step)) for i in range(sc.n_sats)}
+
+
+def test_a_plan_for_a_step_the_world_has_left_is_dropped_for_the_newer_clock():
+    """Issue 35 (seed 1 of the repeat benchmark): a selector planning step 1 asked its
+    reference, agent 0, which had just been stopped (its next step's fault), for a step the
+    world had left; the clock of step 2 came while it was asking (a query blocks the loop) and
+    sat unread in its inbox: the plan of step 1 was tried again and again, and the world,
+    waiting for the selection of step 2, fell back after 20 s in one run of the campaign and
+    not in the other. The plan of a step is dropped as soon as a clock of a later step is in;
+    step 2 is planned from its own reference (agent 1, the lowest the clock lists live)."""
+    sc = _longer()
+    served = _served_at(sc, 1)
+    clk = FakeClock()
+    asked_0 = []
+    stopped = []
+
+    def answer(q: Query):
+        i = int(q.key.rsplit("/", 1)[1])
+        clk.t += q.timeout_s  # (the query's wait)
+        if i != 0 or not stopped:
+            return full_estimate_msg(served[i], run=RUN, sender=f"agent-{i}", own=i)
+        asked_0.append(q)
+        assert len(asked_0) < 50, "still asking the stopped agent 0 for step 1, with the clock of step 2 in"
+        if len(asked_0) == 1:  # what came meanwhile: the world went on (agent 0 stopped at step 2)
+            d.arrive(clock(2, [1, 2, 3]), *(_health(i, 1) for i in (1, 2, 3)))
+        return None
+
+    s = SelectorProtocol(sc, RUN, clock=clk)
+    d = Driver(s, clk, answer=answer)
+    d.feed(alive(0), alive(1), alive(2), alive(3))
+    d.feed(clock(0, [0, 1, 2, 3]))
+    assert [s.k for s in d.sent_on(K.select())] == [0]
+    d.take()
+    stopped.append(0)
+    d.feed(*(_health(i, 0) for i in range(4)), clock(1, [0, 1, 2, 3]))
+    (sel,) = d.sent_on(K.select())
+    assert (sel.k, sel.ref_agent) == (2, 1) and all(o != 0 for o in sel.observer)
+    assert len(asked_0) == 1
+
+
+def test_a_restarted_selector_reads_the_current_clock_rather_than_wait_for_the_next():
+    """A selector that starts while the run is under way (a restart), whose subscriptions
+    missed the clocks of the steps so far, reads the world's last two clocks (its ``clock``
+    queryable) and plans the step the world waits for: no clock would come before it does."""
+    sc = _longer()
+    served = _served_at(sc, 4)
+    clk = FakeClock()
+    s = SelectorProtocol(sc, RUN, clock=clk)
+    d = Driver(s, clk, answer=lambda q: full_estimate_msg(served[int(q.key[-1])], run=RUN, sender="x", own=int(q.key[-1])),
+               clocks=lambda q: [clock(4, [0, 1, 2, 3]).msg, clock(5, [0, 1, 2, 3]).msg])
+    assert [q.key for q in d.clock_queries] == [K.clock()] and d.clock_queries[0].every
+    d.feed(alive(0), alive(1), alive(2), alive(3), *(_health(i, 4) for i in range(4)))
+    (sel,) = d.sent_on(K.select())
+    assert (sel.k, sel.ref_agent) == (5, 0)
+
+
+def test_the_clock_is_read_again_when_the_bus_or_the_world_comes_back_or_none_came_for_a_while():
+    """A clock lost on its way (put while a router was down) is read from the world: when this
+    selector's bus comes back, when the world's token comes back, and after CATCH_UP_S with no
+    new clock."""
+    from selector.protocol import CATCH_UP_S
+
+    d, _post = _running_selector()
+    n = len(d.clock_queries)
+    d.feed(Event("", "bus", None, alive=True))
+    d.elapse(0.5)
+    assert len(d.clock_queries) == n + 1
+    d.feed(Event(K.alive("world", 0), "resync", None, role="world"))
+    d.elapse(0.5)
+    assert len(d.clock_queries) == n + 2
+    d.elapse(CATCH_UP_S)
+    assert len(d.clock_queries) == n + 3
+
+
+def test_the_reference_of_a_step_is_the_clocks_lowest_live_agent_whoever_answers():
+    """Lockstep: the agent asked for step k's estimate is the lowest the clock of k lists
+    live, whatever tokens this selector has seen go or come (the order of arrival): a
+    reference that does not answer (stalled) is asked again, never replaced by another."""
+    sc = _longer()
+    served = _served_at(sc, 0)
+    clk = FakeClock()
+    stalled = {0}
+
+    def answer(q: Query):
+        i = int(q.key.rsplit("/", 1)[1])
+        clk.t += q.timeout_s
+        assert len(d.queries) < 50, "asked again and again without a pause"
+        return None if i in stalled else full_estimate_msg(served[i], run=RUN, sender=f"agent-{i}", own=i)
+
+    s = SelectorProtocol(sc, RUN, clock=clk)
+    d = Driver(s, clk, answer=answer)
+    d.feed(alive(0), alive(1), alive(2), alive(3))
+    d.feed(clock(0, [0, 1, 2, 3]))
+    d.take()
+    d.feed(alive(0, up=False), *(_health(i, 0) for i in range(4)), clock(1, [0, 1, 2, 3]))
+    for _ in range(5):
+        d.elapse(0.2)
+    assert not d.sent_on(K.select()) and {q.key for q in d.queries[-5:]} == {K.cov(0)}
+    stalled.clear()
+    d.elapse(0.2)
+    (sel,) = d.sent_on(K.select())
+    assert (sel.k, sel.ref_agent) == (1, 0)
+
+
+def test_health_reports_missed_in_a_failover_are_read_from_the_world():
+    """Issue 35 (seed 10 of the repeat benchmark): a selector failing over to the other router
+    missed the clock of step 23 and the agents' reports of step 22 (put while it was away);
+    the clock it read from the world, the reports it waited for 20 s, as long as the world
+    waits for its selection, and the world fell back in one run and not the other. The world
+    has every report of k − 1 before it puts the clock of k and serves them (``health/*``):
+    the selector reads them with the clocks and plans, with the cameras they give."""
+    sc = _longer()
+    served = _served_at(sc, 1)
+    clk = FakeClock()
+    reports = [_health(i, 1, off=(0, 1, 2, 3, 4, 5) if i == 3 else ()).msg for i in range(4)]
+    world_at = []  # the step the world is at (it serves the reports of step 1 once at step 2)
+    s = SelectorProtocol(sc, RUN, clock=clk)
+    d = Driver(s, clk, answer=lambda q: full_estimate_msg(served[int(q.key[-1])], run=RUN, sender="x", own=int(q.key[-1])),
+               reports=lambda q: reports if world_at else [])
+    d.feed(alive(0), alive(1), alive(2), alive(3))
+    world_at.append(2)
+    d.feed(clock(1, [0, 1, 2, 3]), clock(2, [0, 1, 2, 3]))  # no report of step 1 comes
+    d.elapse(1.0)
+    assert not d.sent_on(K.select())
+    d.elapse(1.5)  # CATCH_UP_S: the reports are read from the world
+    (sel,) = d.sent_on(K.select())
+    assert (sel.k, sel.ref_agent) == (2, 0) and all(o != 3 for o in sel.observer), "satellite 3's cameras are all off"
+    assert [q.key for q in d.report_queries][-1] == K.health() and d.report_queries[-1].every

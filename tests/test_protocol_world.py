@@ -46,9 +46,14 @@ def batch(i: int, k: int, targets=()) -> Event:
     return Event(K.meas(i), "meas", i, msg=msg)
 
 
+def health(i: int, k: int) -> Event:
+    return Event(K.health(i), "health", i, msg=Health(run=RUN, sender=f"agent-{i}", k=k, t_s=float(k), sat=i, camera_ok=[True] * 6))
+
+
 def finish(k: int, agents=(0, 1, 2)) -> list[Event]:
-    """Step k of ``agents`` as the world hears it: each one's batch, then each one's estimate."""
-    return [*(batch(i, k) for i in agents), *(est(i, k) for i in agents)]
+    """Step k of ``agents`` as the world hears it: each one's batch, then each one's estimate
+    and health report (the step's last message)."""
+    return [*(batch(i, k) for i in agents), *(e for i in agents for e in (est(i, k), health(i, k)))]
 
 
 def started_world(sc: Scenario, recorder_keeps_up: bool = True, **kw) -> tuple[Driver, WorldProtocol, FakeClock]:
@@ -75,11 +80,48 @@ def test_step_publishes_truth_clock_sensors_and_cameras_then_waits_for_every_est
     (radio,) = d.sent_on(K.batches())
     assert radio.k == 0 and list(radio.observers) == [0, 1, 2]
     d.take()
-    d.feed(est(0, 0), est(1, 0))
+    d.feed(est(0, 0), health(0, 0), est(1, 0), health(1, 0))
     assert not d.sent, "the world waits for agent 2's estimate of step 0"
     d.feed(est(2, 0))
+    assert not d.sent, "and for its health report, the last message of its step"
+    d.feed(health(2, 0))
     clocks = d.sent_on(K.clock())
     assert [c.k for c in clocks] == [1] and clocks[0].live_agents == [0, 1, 2]
+
+
+def test_a_kill_of_the_next_step_never_falls_between_an_agents_estimate_and_its_health_report():
+    """Issue 35, item 3: the world counted an agent's step over on its estimate or its health
+    report. With the next step's kill (or stop) sent once the estimates were in, whether the
+    agent's report of the step had been put before it died depended on timing, and so did the
+    recording. The world ends a step on the health reports (each after its agent's estimate,
+    never lost to a drop fault): the kill comes after both, in every run."""
+    sc = scenario(faults=[{"at_step": 1, "action": "kill-agent", "target": 2}])
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(*(batch(i, 0) for i in range(3)), *(est(i, 0) for i in range(3)), health(0, 0), health(1, 0))
+    assert not d.sent_on(K.fault()) and not d.sent_on(K.clock()), "agent 2's report of step 0 is not in yet"
+    d.feed(health(2, 0))
+    (kill,) = d.sent_on(K.fault())
+    assert (kill.action, kill.target, kill.k) == ("kill-agent", 2, 1)
+
+
+def test_the_clock_queryable_serves_the_last_two_clocks_then_the_done_one():
+    """A selector that (re)starts or whose bus comes back reads the step the world is at (and
+    the one before, which it plans the current step from) rather than wait for a clock."""
+    sc = scenario()
+    clock = FakeClock()
+    w = WorldProtocol(sc, RUN, synthetic_model(sc).cameras(), clock=clock)
+    assert w.serve_clock(K.clock()) == [], "nothing before the run starts"
+    d, w, _ = started_world(sc)
+    assert [c.k for c in w.serve_clock(K.clock())] == [0]
+    for k in range(2):
+        d.feed(*finish(k))
+    served = w.serve_clock(K.clock())
+    assert [c.k for c in served] == [1, 2] and served == d.sent_on(K.clock())[-2:]
+    for k in range(2, sc.steps):
+        d.feed(*finish(k))
+    (done,) = w.serve_clock(K.clock())
+    assert done.done and d.finished
 
 
 def recorded(k: int) -> Event:
@@ -424,7 +466,7 @@ def test_a_dropped_batch_is_not_waited_for():
         (radio,) = d.sent_on(K.batches())
         carried.append(2 in radio.observers)
         assert carried[-1] == (not lost), k
-        d.feed(est(0, k), est(1, k), est(2, k))
+        d.feed(*(e for i in range(3) for e in (est(i, k), health(i, k))))
     assert carried[0] and 0 < carried[1:].count(False) < len(carried) - 1, carried
 
 
@@ -595,3 +637,15 @@ def test_the_same_ask_twice_in_a_step_gets_the_same_answer_and_no_second_transfe
     again = w.serve_rejoin(K.rejoin(2, 0, 5000))
     assert again == first and int(w.links.counters.sent.sum()) == sent
     assert sum(1 for m in w._rejoin_log if m.sat == 2) == 1
+
+
+def test_the_health_queryable_serves_the_last_two_steps_reports_each_on_its_agents_key():
+    """What the selector reads when it missed reports (a failover): every report of the current
+    step and the one before, as the agents sent them."""
+    sc = scenario()
+    d, w, _ = started_world(sc)
+    for k in range(3):
+        d.feed(*finish(k))
+    served = w.serve_health(K.health())
+    assert sorted((s.msg.k, s.msg.sat) for s in served) == [(1, 0), (1, 1), (1, 2), (2, 0), (2, 1), (2, 2)]
+    assert all(s.key == K.health(s.msg.sat) and s.msg.sender == f"agent-{s.msg.sat}" for s in served)

@@ -41,6 +41,8 @@ class World(Node):
         self.set_bus_limits(sc.emulator)
         self.queryable(self.keys.init(), self.machine.serve_prior)
         self.queryable(self.keys.claim(), self.machine.serve_claim)
+        self.queryable(self.keys.clock(), self.machine.serve_clock)
+        self.queryable(self.keys.health(), self.machine.serve_health)
         if sc.links.enabled:
             self.queryable(self.keys.rejoin("*") + "/*/*", self.machine.serve_rejoin, notify=True)
         self.announce()

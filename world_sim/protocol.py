@@ -14,8 +14,8 @@ The world owns truth and time. Lockstep step k:
    receives does not grow with n; :func:`swarmcore.graphs.radio_peers`, which the
    in-process simulator delivers by too); the link model (``links.enabled``) gives each
    agent what reached it (``rx/<i>``);
-6. wait until every live agent has published its estimate for k (or the step timeout);
-   optionally pace against wall time.
+6. wait until every live agent has published its health report of k, the last message of
+   its step, after its estimate (or the step timeout); optionally pace against wall time.
 
 Free-running mode paces the clock at ``realtime_factor`` × wall time instead of step 6,
 and the radio passes each batch on as it comes.
@@ -58,6 +58,7 @@ from swarmrt.bus.messages import (
     Delivered,
     Delivery,
     Fault,
+    Health,
     Keys,
     Latency,
     LinkStats,
@@ -171,6 +172,8 @@ class WorldProtocol:
         self._selector_started_at = -1  # the step of a scheduled restart-selector (it plans from the one after next)
         self._awaiting_round: int | None = None  # the restarted agent whose round of asks the world waits for now
         self._fates: dict[tuple[int, int, int], RejoinFate] = {}  # (agent, peer, step) → the answer given
+        self._clocks: tuple[Clock, ...] = ()  # the last two clocks put (or the done one), served on clock (serve_clock)
+        self._reports: tuple[Health, ...] = ()  # the health reports of the last two steps, served on health/* (serve_health)
 
     # -- queries (answered on the bus's thread: read-only or self-contained) -------
     def serve_prior(self, key: str):
@@ -208,6 +211,24 @@ class WorldProtocol:
         log.info("rejoin of %d from %d (%d B): %s%s", i, peer, size, fate, "" if arrival is None else f" at t = {arrival:.2f} s")
         return msg
 
+    def serve_clock(self, key: str):
+        """``clock``: the clocks of the current step and the one before (the run's done clock
+        once it is over; nothing before it starts). A selector that (re)starts, or whose bus
+        comes back, reads them rather than wait for the next clock: the world waits for its
+        selection of the current step, and it plans that step from both steps' live sets
+        (a restarted selector that missed a clock left the world waiting 20 s, then falling
+        back, in one run of a chaos campaign and not the other: issue 35)."""
+        return list(self._clocks)
+
+    def serve_health(self, key: str):
+        """``health/*``: the agents' health reports of the current step and the one before,
+        each on its agent's key, as they came (the agent's own message). The selector plans
+        step k from the reports of k − 1, which the world has every one of before it puts the
+        clock of k: a selector whose bus came back reads the ones it missed (put while it
+        failed over to another router) rather than wait for them 20 s, as the world waits for
+        its selection (one run of a campaign fell back there, the other not: issue 35)."""
+        return [Send(self.keys.health(int(h.sat)), h) for h in self._reports]
+
     def serve_claim(self, key: str):
         """Give an agent started with ``--id auto`` a satellite: the lowest one with no
         live agent and no recent claim (so scaled or restarted containers need no ids),
@@ -231,6 +252,9 @@ class WorldProtocol:
 
     # -- events -------------------------------------------------------------------
     def handle(self, ev: Event) -> list[Send]:
+        if ev.kind == "health":  # (kept for serve_health: one assignment, it reads them on the bus's thread)
+            h = ev.msg
+            self._reports = (*(x for x in self._reports if x.k >= self.k - 1 and not (x.sat == h.sat and x.k == h.k)), h)
         if ev.kind == "held":
             self.limbo.add(ev.key)
             return []
@@ -261,15 +285,17 @@ class WorldProtocol:
                 # Restarted from a state that crossed the radio: live from the step it arrives
                 # in (no earlier than the step it was asked at; _round may put it later).
                 self._joins[m.own] = max(arrival_step(fate.arrival_t_s, self.sc.dt_s), int(fate.k))
-            if m.phase == "posterior":
-                self.est_seen.setdefault(m.k, set()).add(m.own)
         elif ev.kind == "health" and ev.msg.sat in self._searching:
             # A restarted agent whose round of asks brought no state through the radio.
             self._round_failed[ev.msg.sat] = max(int(ev.msg.k), self._round_failed.get(ev.msg.sat, -1))
         elif ev.kind == "health":
-            # An agent's health report follows its update: it has finished step k even
-            # when its estimate was lost (the drop fault). An agent restarted cold reports
-            # its health before it has any estimate: it is ready for its sensors.
+            # An agent's health report is the last message of its step k, after its estimate
+            # (lost or not: the drop fault never loses the report): the step is over for it
+            # when its report is in, and only then. Counted over on the estimate too, whether
+            # the report of the step was put depended on timing when the next step's fault
+            # killed or stopped the agent (its estimate in, its report not yet sent), and so
+            # did the recording. An agent restarted cold reports its health before it has any
+            # estimate: it is ready for its sensors.
             self.est_seen.setdefault(ev.msg.k, set()).add(ev.msg.sat)
             if ev.msg.sat in self.alive_agents:
                 self.ready.add(ev.msg.sat)
@@ -406,9 +432,11 @@ class WorldProtocol:
                 yield Send(self.keys.rejoin(m.sat), m)
             yield Wait(lambda: False, 0.0)  # take in what has arrived: the live set reflects deaths up to now
             live = self.live()
-            yield Send(self.keys.clock(), Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode,
-                                                malformed=self.malformed(), key_mismatch=self.key_mismatch(),
-                                                recorder_waited_steps=self.recorder_waits, recorder_waited_s=self.recorder_wait_s))
+            clock = Clock(run=self.run_id, sender="world", k=k, t_s=t, live_agents=live, mode=em.time_mode,
+                          malformed=self.malformed(), key_mismatch=self.key_mismatch(),
+                          recorder_waited_steps=self.recorder_waits, recorder_waited_s=self.recorder_wait_s)
+            self._clocks = (*self._clocks[-1:], clock)  # (one assignment: serve_clock reads it on the bus's thread)
+            yield Send(self.keys.clock(), clock)
             absm = absolute_measurements(self.wp, tr)
             for i in live:
                 yield Send(self.keys.sensors(i), sensors_msg(
@@ -426,11 +454,13 @@ class WorldProtocol:
                 self._ahead = step_truth(self.wp, self.truth)
             if em.time_mode == "lockstep":
                 # Not on while some role is only out of reach (the recorder would miss the step).
+                # (est_seen: the agents whose health report of k, their step's last message, is in.)
                 ok = yield Wait(lambda: all(i in self.est_seen.get(k, set()) or i not in self.alive_agents for i in live)
                                 and not self.limbo, em.step_timeout_s)
                 if not ok:
                     missing = [i for i in live if i not in self.est_seen.get(k, set())]
-                    log.warning("step %d: no estimate from %s within %.1f s", k, missing, em.step_timeout_s)
+                    log.warning("step %d: no health report (the step's last message) from %s within %.1f s", k, missing,
+                                em.step_timeout_s)
                 if em.lockstep_max_realtime_factor:
                     yield from self._pace(t_wall0 + (k + 1) * sc.dt_s / em.lockstep_max_realtime_factor)
             elif self.links is not None:
@@ -444,10 +474,12 @@ class WorldProtocol:
         yield Send(self.keys.clock(), self.done_clock())
 
     def done_clock(self) -> Clock:
-        """The clock that tells everyone the run is over."""
-        return Clock(run=self.run_id, sender="world", k=self.k, t_s=self.truth.t, live_agents=self.live(),
+        """The clock that tells everyone the run is over (from now on the one served on ``clock``)."""
+        done = Clock(run=self.run_id, sender="world", k=self.k, t_s=self.truth.t, live_agents=self.live(),
                      mode=self.sc.emulator.time_mode, done=True, malformed=self.malformed(), key_mismatch=self.key_mismatch(),
                      recorder_waited_steps=self.recorder_waits, recorder_waited_s=self.recorder_wait_s)
+        self._clocks = (done,)
+        return done
 
     def _wait_for_recorder(self, k: int):
         """Lockstep, with a recorder: begin step k only once the recorder has taken in the

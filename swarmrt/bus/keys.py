@@ -204,7 +204,7 @@ def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
             put=(k.clock(), k.sensors("*"), k.cam("*"), k.img("*"), k.truth(), k.links(), k.rx("*"), k.batches(),
                  k.batches("*"), k.rejoin("*"), k.select(), k.fault(), k.fault_report("world")),
             sub=(k.est(), k.health(), k.select(), k.faults(), k.meas(), k.recorded()),
-            serve=(k.init(), k.claim(), k.rejoin("*") + "/*/*"),
+            serve=(k.init(), k.claim(), k.rejoin("*") + "/*/*", k.clock(), k.health()),
             token=(k.alive("world"),), watch=(alive,))
     if m := re.fullmatch(r"agent-(\d+)", identity):
         i = int(m[1])
@@ -215,7 +215,7 @@ def grants(keys: Keys, identity: str, links: bool = False) -> Grants:
             serve=(k.cov(i),), token=(k.alive("agent", i),), watch=(alive,))
     if identity == "selector":
         return Grants(put=(k.select(), k.fault_report("selector")), sub=(k.est(), k.fault(), k.health(), k.clock()),
-                      query=(k.cov(),), token=(k.alive("selector"),), watch=(alive,))
+                      query=(k.cov(), k.clock(), k.health()), token=(k.alive("selector"),), watch=(alive,))
     if identity == "recorder":
         return Grants(put=(k.recorded(),), sub=(k.everything(),), token=(k.alive("recorder"),), watch=(alive,))
     if identity == "cli":  # swarm fault: commands; under compose it carries out process faults and reports them

@@ -38,7 +38,7 @@ reads as its zero value, ``msg.HasField(name)`` (or :func:`opt`) tells.
 
 Key space (one run id per swarm, so swarms can share a router)::
 
-    swarm/<run>/clock                world → all           Clock
+    swarm/<run>/clock                world → all           Clock (and queryable: the last two steps' clocks)
     swarm/<run>/recorded             recorder → world      Recorded (the last step whose clock it has taken in)
     swarm/<run>/sat/<i>/sensors      world → agent i       Sensors
     swarm/<run>/sat/<i>/cam          world → agent i       CameraOutput
@@ -56,7 +56,7 @@ Key space (one run id per swarm, so swarms can share a router)::
     swarm/<run>/select               selector → all        Select
     swarm/<run>/fault                CLI / world → all     Fault (commands: the CLI's, the world's schedule)
     swarm/<run>/fault/<reporter>     that role → all       Fault (what <reporter> carried out: done / failed)
-    swarm/<run>/health/<i>           agent i → all         Health
+    swarm/<run>/health/<i>           agent i → all         Health (and the world, queryable on health/*: the last two steps')
     swarm/<run>/truth                world → recorder      Truth   (agents never subscribe)
     swarm/<run>/rx/<i>               world → agent i       Delivery (links.enabled: what the radio delivered)
     swarm/<run>/links                world → recorder      LinkStats (links.enabled: per-link counters)

@@ -225,9 +225,13 @@ impl State {
         }
         match f.action.as_str() {
             "camera" => {
+                // In effect from the step the world carries it out at: its camera deliveries
+                // say so from then on (`cameras_off`), and they alone set `camera_ok`; a
+                // command that reaches this process before or after a health report is sent
+                // must not change what the report of that step says (sat_agent/protocol.py:
+                // `_cameras`; issue 35).
                 if let (Some(c), Some(state)) = (f.camera, &f.state) {
-                    self.camera_ok[c as usize] = state == "on";
-                    log::info(&format!("camera {c} {state}"));
+                    log::info(&format!("camera {c} {state} (step {})", f.k));
                 }
                 vec![]
             }
@@ -572,7 +576,16 @@ impl Agent {
         let ms_pred = t0.elapsed().as_secs_f64() * 1e3;
         let cpu_pred = bus::thread_cpu_ns().saturating_sub(c0);
         // Its own measurements: the detections of the cameras it believes work.
-        let dets: Vec<Detection> = match self.st.cams.remove(&k) {
+        let delivery = self.st.cams.remove(&k);
+        if let Some(c) = &delivery {
+            // The step's delivery says which cameras are off (the world's state at step k):
+            // what the satellite measures with and reports in its health of k.
+            self.st.camera_ok = [true; 6];
+            for &off in c.cameras_off.iter().filter(|&&off| off < 6) {
+                self.st.camera_ok[off as usize] = false;
+            }
+        }
+        let dets: Vec<Detection> = match delivery {
             Some(c) => c
                 .detections
                 .iter()
