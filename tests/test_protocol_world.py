@@ -314,6 +314,31 @@ def test_scheduled_kill_waits_until_the_agent_is_gone():
     assert d.sent_on(K.clock())[0].live_agents == [0, 1]
 
 
+def test_a_command_not_carried_out_is_said_again_until_it_is():
+    """A command lost on its way (a put while routes are rebuilt after a failover) is said
+    again every 2 s while its outcome does not show, and no more once it does: the world
+    does not wait its whole step timeout on a command nobody heard (seed 2 of the repeat
+    benchmark: a kill-selector the supervisor never heard, in one of the two runs)."""
+    sc = scenario(faults=[{"at_step": 1, "action": "kill-agent", "target": 2}])
+    d, _w, clock = started_world(sc)
+    d.take()
+    d.feed(*finish(0))
+    assert [f.action for f in d.sent_on(K.fault())] == ["kill-agent"]
+    d.take()
+    d.elapse(2.5)  # nobody heard it: said again, the same command
+    again = d.sent_on(K.fault())
+    assert [(f.action, f.target, f.k) for f in again] == [("kill-agent", 2, 1)]
+    d.take()
+    d.elapse(2.0)
+    assert len(d.sent_on(K.fault())) == 1
+    d.take()
+    d.feed(alive("agent", 2, up=False))  # carried out: the step goes on, nothing said again
+    assert d.sent_on(K.clock())[0].live_agents == [0, 1] and not d.sent_on(K.fault())
+    d.take()
+    d.elapse(5.0)
+    assert not d.sent_on(K.fault())
+
+
 #: Agent 2 killed at step 1 and restarted at step 2.
 RESTART = [{"at_step": 1, "action": "kill-agent", "target": 2}, {"at_step": 2, "action": "restart-agent", "target": 2}]
 

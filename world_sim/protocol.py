@@ -83,6 +83,7 @@ from swarmrt.protocol import (
 __all__ = ["WorldProtocol"]
 
 log = logging.getLogger("world")
+_COMMAND_AGAIN_S = 2.0  # a fault command not carried out yet is said again this often (_until_carried_out)
 
 LINK_COUNTERS = tuple(LinkCounters.__dataclass_fields__)
 
@@ -548,7 +549,7 @@ class WorldProtocol:
             if spec.action in ("camera", "link"):
                 yield from self._on_fault(cmd)
             elif spec.action in AGENT_PROCESS_FAULTS and spec.action != "restart-agent":
-                yield Wait(lambda: t not in self.alive_agents, em.step_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: t not in self.alive_agents, em.step_timeout_s)
             elif spec.action == "restart-agent" and t is not None:  # the scenario's validation names its satellite
                 def back(t: int = t) -> bool:
                     return t in self.alive_agents and (t in self.ready or t in self._reported_since_restart)
@@ -579,9 +580,9 @@ class WorldProtocol:
                     log.warning("step %d: restarted agent %d not back within %.0f s (startup_timeout_s); going on without it",
                                 k, t, em.startup_timeout_s)
             elif spec.action == "kill-selector":
-                yield Wait(lambda: "selector" not in self.alive_roles, em.step_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: "selector" not in self.alive_roles, em.step_timeout_s)
             elif spec.action == "restart-selector":
-                yield Wait(lambda: "selector" in self.alive_roles, em.startup_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: "selector" in self.alive_roles, em.startup_timeout_s)
                 self._selector_started_at = k
             elif spec.action in CLUSTER_FAULTS:
                 # A host of a cluster run killed (its agents started again on the others) or
@@ -589,7 +590,8 @@ class WorldProtocol:
                 # every agent that was alive is back (as a scheduled restart-agent waits).
                 before = set(self.alive_agents)
                 self._reported_since_restart.difference_update(before)
-                yield Wait(lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done), em.startup_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done),
+                                                   em.startup_timeout_s)
                 if spec.action == "kill-node":
                     def all_back() -> bool:
                         return all(t in self.alive_agents and (t in self.ready or t in self._reported_since_restart) for t in before)
@@ -601,10 +603,30 @@ class WorldProtocol:
             elif spec.action in ROUTER_FAULTS:
                 # The bus goes down under us (this wait, like every wait, pauses while it is
                 # down); a restart is over once its executor says so.
-                yield Wait(lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done), em.startup_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done),
+                                                   em.startup_timeout_s)
             elif spec.action == "drop":
-                yield Wait(lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done)
-                           or t not in self.alive_agents, em.step_timeout_s)
+                yield from self._until_carried_out(
+                    cmd, lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done) or t not in self.alive_agents,
+                    em.step_timeout_s)
+
+    def _until_carried_out(self, cmd: Fault, done, timeout_s: float):
+        """Wait (at most ``timeout_s``) until a command's outcome shows (``done()``), saying the
+        command again every ``_COMMAND_AGAIN_S`` meanwhile. A put can be lost on its way to a
+        process whose router routes are being rebuilt (seen: the supervisor never heard a
+        kill-selector sent just after a failover, and the world waited its 10 s in one run of
+        a campaign only); every executor carries a command out once (``first_time``), so
+        saying it again changes nothing else. Returns whether it was carried out."""
+        left = timeout_s
+        while True:
+            wait = min(_COMMAND_AGAIN_S, left)
+            if (yield Wait(done, wait)):
+                return True
+            left -= wait
+            if left <= 0:
+                return False
+            log.info("step %d: fault %s target=%s not carried out yet; said again", self.k, cmd.action, cmd.target)
+            yield Send(self.keys.fault(), cmd)
 
     def _selection(self, k: int):
         """The pairs of step k: the graph's, the selector's, or (selector dead or late) a
