@@ -320,7 +320,7 @@ def test_a_command_not_carried_out_is_said_again_until_it_is():
     does not wait its whole step timeout on a command nobody heard (seed 2 of the repeat
     benchmark: a kill-selector the supervisor never heard, in one of the two runs)."""
     sc = scenario(faults=[{"at_step": 1, "action": "kill-agent", "target": 2}])
-    d, _w, clock = started_world(sc)
+    d, _w, _ = started_world(sc)
     d.take()
     d.feed(*finish(0))
     assert [f.action for f in d.sent_on(K.fault())] == ["kill-agent"]

@@ -467,6 +467,12 @@ class LocalSwarm:
         elif ev.kind == "fault" and ev.msg.phase == "command":
             if first_time(self._commands_seen, ev.msg):  # (a command sent again is carried out once)
                 self.execute(ev.msg)
+            else:
+                # Said again: the world has not seen its outcome (our report may have been put
+                # while our router's routes were being rebuilt, and lost): report it again.
+                for report in self._reports:
+                    if report.action == ev.msg.action and report.target == ev.msg.target and report.k >= ev.msg.k:
+                        self._node().put(self.keys.fault_report("supervisor"), report)
         elif ev.kind == "fault":
             self.faults.append(as_dict(ev.msg, exclude=("schema_version", "run")))
 
