@@ -116,12 +116,15 @@ def _same_numbers(kit: Kit, ev: Evidence) -> tuple[list[int], list[int]]:
 
 
 def _world_timeouts(run: CaseRun, sat: int) -> list[int]:
-    """Steps whose estimate of ``sat`` the world gave up waiting for (its log)."""
+    """Steps whose estimate (or report) of ``sat`` the world gave up waiting for (its log)."""
     path = run.out / "logs" / "world.log"
     if not path.exists():
         return []
     out = []
-    for m in re.finditer(r"step (\d+): no estimate from \[([0-9, ]*)\]", path.read_text(errors="replace")):
+    # (The world waits for each agent's health report, the step's last message, since
+    # 2026-12-07; before, for its estimate: either line.)
+    pattern = r"step (\d+): no (?:estimate|health report \(the step's last message\)) from \[([0-9, ]*)\]"
+    for m in re.finditer(pattern, path.read_text(errors="replace")):
         if str(sat) in [x.strip() for x in m[2].split(",")]:
             out.append(int(m[1]))
     return out
