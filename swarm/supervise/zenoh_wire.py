@@ -70,40 +70,34 @@ def _bytes(b: bytes, i: int) -> int:
     return i + n
 
 
-def _exts(b: bytes, i: int, more: int) -> int:
-    """Skip extensions while the previous header said more follow."""
-    while more:
-        h = b[i]
-        i += 1
-        enc = h & 0x60
-        if enc == 0x20:
-            _, i = _vle(b, i)
-        elif enc == 0x40:
-            i = _bytes(b, i)
-        elif enc != 0x00:
-            raise Unparsed(f"extension encoding {enc:#x}")
-        more = h & _Z
+def _body(b: bytes, i: int, enc: int) -> int:
+    """Skip a body by its encoding (bits 5-6 of its header): nothing, an integer, or a
+    length-prefixed byte string (an extension's, a network OAM's)."""
+    if enc == 0x20:
+        _, i = _vle(b, i)
+    elif enc == 0x40:
+        i = _bytes(b, i)
+    elif enc != 0x00:
+        raise Unparsed(f"body encoding {enc:#x}")
     return i
 
 
 def _payload_exts(b: bytes, i: int, more: int) -> tuple[int, bool]:
-    """Skip a put's (or an error's) extensions; say whether one was shared memory (id 2):
-    its payload is then in slices, not one byte string."""
+    """Skip extensions while the previous header said more follow; say whether one was
+    shared memory (id 2, on a put or an error: its payload is then in slices, not one byte
+    string)."""
     shm = False
     while more:
         h = b[i]
-        i += 1
-        enc = h & 0x60
-        if enc == 0x20:
-            _, i = _vle(b, i)
-        elif enc == 0x40:
-            i = _bytes(b, i)
-        elif enc != 0x00:
-            raise Unparsed(f"extension encoding {enc:#x}")
-        elif h & 0x0F == _SHM_EXT:
-            shm = True
+        i = _body(b, i + 1, h & 0x60)
+        shm = shm or (h & 0x60 == 0x00 and h & 0x0F == _SHM_EXT)
         more = h & _Z
     return i, shm
+
+
+def _exts(b: bytes, i: int, more: int) -> int:
+    """Skip extensions (of any message but a put or an error)."""
+    return _payload_exts(b, i, more)[0]
 
 
 def _payload(b: bytes, i: int, shm: bool) -> int:
@@ -220,14 +214,7 @@ def _network(b: bytes, i: int, h: int) -> int:
     if mid == _N_OAM:
         _, i = _vle(b, i)
         i = _exts(b, i, h & _Z)
-        enc = h & 0x60
-        if enc == 0x20:
-            _, i = _vle(b, i)
-        elif enc == 0x40:
-            i = _bytes(b, i)
-        elif enc != 0x00:
-            raise Unparsed(f"oam encoding {enc:#x}")
-        return i
+        return _body(b, i, h & 0x60)
     raise Unparsed(f"network message id {mid:#x}")
 
 
