@@ -45,6 +45,7 @@ from swarm.supervise.zenoh_wire import WireCounter
 log = logging.getLogger(__name__)
 
 _READ_BYTES = 64 * 1024  # one read from a connection: the unit the bucket is charged
+_BOUNDED_KINDS = {"est", "health", "fault", "recorded"}  # kinds the scenario sizes (the rest of MAX_PAYLOAD_BYTES: the world's)
 OTHER = "other"  # the shared entry: identities without their own port (tools, the fault CLI)
 
 
@@ -133,13 +134,12 @@ def gate_limits(n_sats: int, recorder_max_lag_steps: int, links: bool, identitie
     from swarmrt.bus.messages import MAX_PAYLOAD_BYTES, Keys
     from swarmrt.security import put_kinds, size_limit_of
 
-    bounded = {"est", "health", "fault", "recorded"}
     keys = Keys("gate")
     out: dict[str, tuple[float, float]] = {}
     for name in identities:
         budget = 0.0
         for _key, kind in put_kinds(keys, name, links):
-            if kind in bounded:
+            if kind in _BOUNDED_KINDS:
                 budget += size_limit_of(kind, n_sats)
             elif kind in MAX_PAYLOAD_BYTES:
                 budget = float("inf")  # the world's radio and images: its job is to send them, unbounded
@@ -169,7 +169,7 @@ def gate_message_limits(n_sats: int, recorder_max_lag_steps: int, links: bool, i
     out: dict[str, tuple[float, float]] = {}
     for name in identities:
         kinds = [kind for _key, kind in put_kinds(keys, name, links)]
-        if any(k in MAX_PAYLOAD_BYTES and k not in {"est", "health", "fault", "recorded"} for k in kinds):
+        if any(k in MAX_PAYLOAD_BYTES and k not in _BOUNDED_KINDS for k in kinds):
             out[name] = (float("inf"), float("inf"))  # the world: its radio and images are its job
             continue
         step = 2 * len(kinds) + 4
