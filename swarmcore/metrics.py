@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import warnings
 from typing import TYPE_CHECKING
 
@@ -48,9 +49,21 @@ def relative_errors_of(q_hat, r_hat, own: int, q_true, r_true):
 
 
 def pose_nees(a, dr, P_pose):
-    """6-dof NEES ``eᵀ P⁻¹ e`` with ``e = [a, Δr]`` and ``P_pose`` (..., 6, 6)."""
+    """6-dof NEES ``eᵀ P⁻¹ e`` with ``e = [a, Δr]`` and ``P_pose`` (..., 6, 6). Numbers no
+    honest filter claims are scored, not raised or warned about: an overflowing error or
+    covariance gives inf or NaN, and a singular covariance (a filter claiming certainty, or a
+    damaged recording) inf."""
     e = np.concatenate([a, dr], axis=-1)
-    return np.einsum("...i,...i->...", e, np.linalg.solve(P_pose, e[..., None])[..., 0])
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        try:
+            x = np.linalg.solve(P_pose, e[..., None])[..., 0]
+        except np.linalg.LinAlgError:  # one of them singular: each solved alone, the singular ones inf
+            P = np.broadcast_to(P_pose, (*e.shape, 6))
+            x = np.where(e == 0, 0.0, np.inf * np.sign(e))  # any error against a claimed certainty: inf
+            for i in np.ndindex(e.shape[:-1]):
+                with contextlib.suppress(np.linalg.LinAlgError):
+                    x[i] = np.linalg.solve(P[i], e[i])
+        return np.einsum("...i,...i->...", e, x)
 
 
 def pose_cov_blocks(P: np.ndarray, n: int) -> np.ndarray:

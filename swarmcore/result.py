@@ -305,6 +305,12 @@ class RunBuilder:
         e.v_H_m_s[k, f, ids] = v_H_m_s
         e.bias_B_rad_s[k, f] = bias_B_rad_s
         e.P_diag[k, f, (12 * ids[:, None] + np.arange(12)).ravel()] = P_diag
+        # A diverged filter or a damaged recording (numbers near the float limit, NaN) is
+        # scored inf or NaN, never warned about (the mcap fuzz harness: an error of 1e200 m).
+        with np.errstate(over="ignore", invalid="ignore"):
+            self._score(k, f, ids, q_BI, r_H_m, P_pose, P_rel_pose)
+
+    def _score(self, k: int, f: int, ids: np.ndarray, q_BI, r_H_m, P_pose, P_rel_pose) -> None:
         q_true, r_true = self.truth.q_BI[k], self.truth.r_H_m[k]
         a, dr = pose_errors(q_BI, r_H_m, q_true[ids], r_true[ids])
         self.att_err_rad[k, f, ids] = np.linalg.norm(a, axis=-1)
