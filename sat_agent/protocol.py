@@ -145,6 +145,7 @@ class AgentProtocol:
         self.world_seen = False
         self.outbox = Outbox(skip_keys=("/fault",), keep=outbox_steps(sc.emulator))  # its last steps' messages, sent again when the bus comes back
         self._commands_seen: set[bytes] = set()
+        self._fault_reports: dict[bytes, list[Send]] = {}  # a command's bytes -> the reports it made
         self._served = None  # what cov/<i> serves: the estimate at the end of the last step (serve_cov)
 
     @property
@@ -227,7 +228,16 @@ class AgentProtocol:
         if f.phase != "command" or f.target != self.i:
             return []
         if not first_time(self._commands_seen, f):
-            return []  # the same command sent again (the world resends its last steps' commands): carried out once
+            # The same command sent again (the world resends its last steps' commands, and says
+            # a command again while its outcome does not show): carried out once, its report
+            # said again (it may have been lost on its way, while a failover rebuilt the routes:
+            # the world would wait its step timeout, then count the drop as never made).
+            return list(self._fault_reports.get(f.SerializeToString(deterministic=True), ()))
+        sends = self._carry_out(f)
+        self._fault_reports[f.SerializeToString(deterministic=True)] = sends
+        return sends
+
+    def _carry_out(self, f: Fault) -> list[Send]:
         if f.action == "camera" and f.camera is not None:
             # In effect from the step the world carries it out at (its camera deliveries say so
             # from then on), not from whenever it reaches this process: see _cameras.

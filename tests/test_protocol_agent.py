@@ -240,6 +240,13 @@ def test_drop_and_camera_faults_addressed_to_this_agent():
     d.take()
     d.feed(Event(K.alive("recorder", 0), "resync", 0, role="recorder"))
     assert done in d.sent_on(K.fault_report("agent-0")), "the drop's report sent again"
+    # The world says the command again (its report did not reach it: lost while a failover
+    # rebuilt the routes): carried out once, the same report said again, at the rate and
+    # first step of the first time.
+    d.take()
+    d.feed(Event(K.fault(), "fault", None, msg=drop))
+    assert d.sent_on(K.fault_report("agent-0")) == [done]
+    assert d.sent_on(K.health(0)) == [] and a.drop_rate == 1.0
 
 
 def test_a_health_report_says_the_cameras_of_its_step_whatever_commands_came_before_it_was_sent():

@@ -81,9 +81,11 @@ pub struct State {
     // `recorder_max_lag_steps + 1` (with `sends`, `recorder_max_lag_steps + 2` steps), for a
     // recorder that comes back up to that many steps behind (`swarmrt.protocol.Outbox`).
     earlier: VecDeque<Vec<Out>>,
-    // Fault commands carried out (their bytes): the world sends its last steps' commands
-    // again when the bus or the recorder comes back, and a command is carried out once.
-    commands_seen: BTreeSet<Vec<u8>>,
+    // Fault commands carried out (their bytes), each with the report it made: the world sends
+    // its last steps' commands again when the bus or the recorder comes back, and says a
+    // command again while its outcome does not show; a command is carried out once, and its
+    // report sent again (it may have been lost on its way: sat_agent/protocol.py `_on_fault`).
+    commands_seen: BTreeMap<Vec<u8>, Vec<Out>>,
 }
 
 impl State {
@@ -116,7 +118,7 @@ impl State {
             world_seen: false,
             sends: vec![],
             earlier: VecDeque::new(),
-            commands_seen: BTreeSet::new(),
+            commands_seen: BTreeMap::new(),
             sc,
         }
     }
@@ -220,9 +222,16 @@ impl State {
         if f.phase != "command" || f.target != Some(self.i as u32) {
             return vec![];
         }
-        if !self.commands_seen.insert(f.encode_to_vec()) {
-            return vec![]; // the same command sent again: carried out already
+        let key = f.encode_to_vec();
+        if let Some(report) = self.commands_seen.get(&key) {
+            return report.clone(); // the same command again: carried out already, its report said again
         }
+        let report = self.carry_out(f);
+        self.commands_seen.insert(key, report.clone());
+        report
+    }
+
+    fn carry_out(&mut self, f: Fault) -> Vec<Out> {
         match f.action.as_str() {
             "camera" => {
                 // In effect from the step the world carries it out at: its camera deliveries
