@@ -184,7 +184,7 @@ class AgentProtocol:
 
     def handle(self, ev: Event) -> list[Send]:
         k: int = getattr(ev.msg, "k", -1)
-        if ev.kind in ("bus", "resync"):
+        if ev.kind in ("bus", "resync", "again"):
             return self.outbox.again(ev)
         if ev.kind == "alive":
             if ev.role == "world":

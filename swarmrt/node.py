@@ -27,6 +27,12 @@ __all__ = ["Node", "Event", "role_arg_parser", "setup_logging", "load_role_scena
 _TICK_S = 0.25  # the stall ticker's period
 _STALL_S = 2.0  # a gap in its ticks this long: this process was stalled
 _TOKEN_QUERY_S = 5.0  # the longest wait for the routers' answer on a token held past its hold (a loaded machine)
+#: After a return (the bus back, a peer's token back), when a role sends its last steps again
+#: once more (an ``again`` event): a put made while a failover still rebuilt the routers'
+#: routes (the receiver's subscriptions not yet declared again where the put went) is lost
+#: without a trace, and the sending again at the return itself was such a put (seen: the
+#: repeat benchmark's seeds 2, 7 and 15, a command, a report and a camera delivery lost).
+_AGAIN_AFTER_S = (1.0, 3.0)
 _TOKEN_ANSWER_MARGIN_S = 2.0  # past the query's timeout, before a held token whose answer never came counts gone
 
 
@@ -68,6 +74,7 @@ class Node:
         # many times (an empty answer is asked once more, see _answered).
         self._asked: dict[str, int] = {}
         self._epoch = 0  # bumped whenever the bus came back: waits restart their timeout
+        self._agains: list[tuple[float, Event]] = []  # (when, event): the returns' sending again (_AGAIN_AFTER_S)
         # Peers whose vanished token is held longer than hold_s, by role (a stalled world:
         # agents and the selector set {"world": bus_lost_after_s}); while one is held,
         # every wait pauses, as while the bus is down.
@@ -151,6 +158,7 @@ class Node:
                 if self.bus_down_since is not None:
                     return None
                 self.bus_down_since = now
+                self._agains.clear()  # no use while no router is reachable: its return sends again
                 self._held = {k: (e, None) for k, (e, _t) in self._held.items()}
                 self._asked.clear()  # their answers, if any come, are of no use now: asked again once the bus is back
                 self.log.warning("bus lost: no Zenoh router reachable (%s); waiting for it to come back (at most %.0f s)",
@@ -255,8 +263,21 @@ class Node:
         self._epoch += 1
         return Event(ev.key, "resync", ev.sat, role=ev.role)
 
+    def _echo(self, ev: Event) -> Event:
+        """A return (the bus back, a peer's token back) is said again, as an ``again`` event
+        (its first kind in ``msg``), ``_AGAIN_AFTER_S`` later: roles send their last steps
+        again then too (:meth:`swarmrt.protocol.Outbox.again`). Receivers take a message
+        they already have as a no-op, so this loses nothing and changes nothing."""
+        if (ev.kind == "bus" and ev.alive) or ev.kind == "resync":
+            now = time.monotonic()
+            self._agains.extend((now + d, Event(ev.key, "again", ev.sat, msg=ev.kind, role=ev.role)) for d in _AGAIN_AFTER_S)
+            self._agains.sort(key=lambda a: a[0])
+        return ev
+
     def _next_wake(self) -> float | None:
         times = [at for _e, at in self._held.values() if at is not None]
+        if self._agains:
+            times.append(self._agains[0][0])
         if self.bus_down_since is not None:
             times.append(self.bus_down_since + self.bus_lost_after_s)
         return min(times) if times else None
@@ -399,6 +420,8 @@ class Node:
             now = time.monotonic()
             if (due := self._due(now)) is not None:
                 return due
+            if self._agains and self._agains[0][0] <= now:
+                return self._agains.pop(0)[1]
             if self.bus_down_since is not None and now - self.bus_down_since >= self.bus_lost_after_s:
                 # What is queued first: the bus may have come back while this thread was busy
                 # or starved of CPU (seen on a loaded machine: a fault CLI gave up on a router
@@ -418,7 +441,7 @@ class Node:
             if ev is not None:
                 ev = self._filter(ev)
                 if ev is not None:
-                    return ev
+                    return self._echo(ev)
             elif deadline is not None and time.monotonic() >= deadline:
                 return None
 

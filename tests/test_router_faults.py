@@ -298,6 +298,58 @@ def test_a_router_killed_while_an_agent_on_it_is_stalled_waits_for_the_stall_and
     assert "once the stall of pid" in kill["detail"], kill
 
 
+def test_a_return_is_said_again_twice_a_moment_later():
+    """A resync (a peer's token back before it counted gone) is handed on, then said again as
+    ``again`` events _AGAIN_AFTER_S later, on which roles send their last steps once more: a
+    put made while a failover still rebuilt the routes is lost without a trace (issue 35's
+    repeat benchmark). Not said again if the bus goes meanwhile."""
+    import json as _json
+
+    from swarm.supervise.launch import free_port
+    from swarmrt.node import _AGAIN_AFTER_S, Node
+    from swarmrt.protocol import Event
+
+    port = free_port()
+    rc = zenoh.Config()
+    rc.insert_json5("mode", '"router"')
+    rc.insert_json5("listen/endpoints", _json.dumps([f"tcp/127.0.0.1:{port}"]))
+    rc.insert_json5("scouting/multicast/enabled", "false")
+    router = zenoh.open(rc)
+    bus = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"])
+    n = Node("world", 0, "t", 4, bus, announce=False)
+    peer = zenoh.open(bus.zenoh_config())
+    key = Keys("t").alive("agent", 2)
+    try:
+        n.watch_liveliness()
+        token = peer.liveliness().declare_token(key)
+        seen: list = []
+        assert n.wait_for(lambda: any(e.kind == "alive" and e.alive for e in seen), 10.0, seen.append)
+        n.inbox.put_event(Event(key, "alive", 2, alive=False, role="agent"))  # its going, heard late
+        seen.clear()
+        assert n.wait_for(lambda: any(e.kind == "resync" for e in seen), 10.0, seen.append), seen
+        t0 = time.monotonic()
+        got: list = []
+        assert n.wait_for(lambda: len([e for e, _t in got if e.kind == "again"]) == len(_AGAIN_AFTER_S), 20.0,
+                          lambda e: got.append((e, time.monotonic()))), got
+        again = [(e, t) for e, t in got if e.kind == "again"]
+        assert [(e.key, e.msg, e.role) for e, _t in again] == [(key, "resync", "agent")] * len(_AGAIN_AFTER_S)
+        assert all(t - t0 >= d - 0.05 for (_e, t), d in zip(again, _AGAIN_AFTER_S, strict=True)), "not before its time"
+        # The bus goes before they are due: none comes (its return will send again).
+        n.inbox.put_event(Event(key, "resync", 2, role="agent"))
+        n.inbox.put_event(Event("", "bus", None, alive=False))
+        got.clear()
+        end = time.monotonic() + _AGAIN_AFTER_S[-1] + 0.5
+        while (left := end - time.monotonic()) > 0:  # (wait_for would wait for the bus to come back)
+            if (e := n.next_event(left)) is not None:
+                got.append(e)
+        assert [e.kind for e in got] == ["resync", "bus"], got
+        token.undeclare()
+    finally:
+        n.close()
+        peer.close()
+        router.close()
+
+
 def test_a_token_whose_going_arrives_after_its_return_is_not_counted_gone():
     """A client failing over between meshed routers re-declares its token on the second
     router; the removal of its old declaration (the first router's) can reach a watcher

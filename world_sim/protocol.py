@@ -261,7 +261,7 @@ class WorldProtocol:
             return []
         if ev.kind in ("resync", "alive"):
             self.limbo.discard(ev.key)
-        if ev.kind in ("bus", "resync"):
+        if ev.kind in ("bus", "resync", "again"):
             again = self.outbox.again(ev)
             if again:
                 log.info("step %d: the bus is back (%s); sending the step's %d messages again", self.k, ev.kind, len(again))

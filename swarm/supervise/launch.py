@@ -456,7 +456,7 @@ class LocalSwarm:
         return done
 
     def _handle(self, ev) -> None:
-        if ev.kind == "resync" or (ev.kind == "bus" and ev.alive) or (ev.kind == "alive" and ev.alive and ev.role == "recorder"):
+        if ev.kind in ("resync", "again") or (ev.kind == "bus" and ev.alive) or (ev.kind == "alive" and ev.alive and ev.role == "recorder"):
             for report in self._reports:  # (see _reports)
                 self._node().put(self.keys.fault_report("supervisor"), report)
         if ev.kind == "alive" and not ev.alive:
