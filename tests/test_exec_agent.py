@@ -11,7 +11,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 SHOW_ENV = ("import json, os; print(json.dumps({k: v for k, v in os.environ.items() if k.startswith('SWARM_')}));"
-            " print(os.getpid())")
+            " print(os.getpid()); print(open(os.environ['SWARM_SCENARIO_JSON']).read().replace(chr(10), ' '))")
 
 
 def _exec_agent(*args: str, env: dict | None = None) -> subprocess.CompletedProcess:
@@ -28,12 +28,14 @@ def test_the_contracts_environment_then_exec(tmp_path):
                          env={**os.environ, "SWARM_SET": "n_sats=4 estimator.kind=ci emulator.agent_commands.2=swarm-rust-agent"})
     out, err = p.communicate(timeout=120)
     assert p.returncode == 0, err
-    shown, pid = out.splitlines()
+    shown, pid, scenario_json = out.splitlines()
     assert int(pid) == p.pid, "the agent runs in exec_agent's place (its signals and exit status are its own)"
     env = json.loads(shown)
     assert (env["SWARM_SAT_ID"], env["SWARM_RUN"], env["SWARM_CONNECT"], env["SWARM_RESTART"]) == ("2", "r1", "tcp/127.0.0.1:7447", "0")
     assert env["SWARM_CREDENTIAL"] == str(cred)
-    sc = json.loads(Path(env["SWARM_SCENARIO_JSON"]).read_text())  # resolved: SWARM_SET applied, derived numbers added
+    # An in-memory file the agent inherited: nothing on disk to outlive it.
+    assert env["SWARM_SCENARIO_JSON"].startswith("/proc/self/fd/"), env["SWARM_SCENARIO_JSON"]
+    sc = json.loads(scenario_json)  # resolved: SWARM_SET applied, derived numbers added
     assert sc["n_sats"] == 4 and sc["estimator"]["kind"] == "ci" and sc["emulator"]["agent_commands"] == {"2": "swarm-rust-agent"}
     assert sc["derived"]["steps"] == 61 and sc["derived"]["gate_threshold"] > 0
 

@@ -7,16 +7,17 @@ What ``swarm run`` does for a satellite of ``emulator.agent_commands``
 (:func:`swarm.supervise.launch.foreign_agent_env`, docs/agent-contract.md clause 1), for a
 process that is not started by ``swarm run``: a compose service (compose.rust.yaml) or a
 satellite on another host. The scenario is resolved as every role resolves it (the file,
-then ``SWARM_SET`` and ``--set``), written as JSON to a private temporary folder, and the
-command is executed in this process's place (``exec``: its signals and exit status are the
-agent's own; under compose, tini is its parent).
+then ``SWARM_SET`` and ``--set``), written as JSON to an anonymous in-memory file the agent
+inherits (``SWARM_SCENARIO_JSON=/proc/self/fd/N``: nothing on disk, so nothing is left behind
+when the agent ends, whatever ends it; a temporary folder outlived every agent, since after
+``exec`` no one is left to remove it), and the command is executed in this process's place
+(``exec``: its signals and exit status are the agent's own; under compose, tini is its parent).
 """
 
 from __future__ import annotations
 
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 
@@ -41,10 +42,13 @@ def main(argv=None) -> int:
         # would fly this satellite too.
         p.error(f"--id {a.id}: not in the scenario's emulator.agent_commands ({dict(sc.emulator.agent_commands) or 'empty'}): "
                 f"add emulator.agent_commands.{a.id}=<name> to every role's SWARM_SET so the world keeps it for this agent")
-    from .launch import foreign_agent_env
+    from .launch import foreign_agent_env, write_scenario_json
 
-    folder = Path(tempfile.mkdtemp(prefix="swarm-agent-"))
-    env = dict(os.environ, **foreign_agent_env(sc, a.id, a.run, bus_config_from_args(a, sc), folder, a.restart))
+    fd = os.memfd_create("swarm-scenario.json", 0)  # (no MFD_CLOEXEC: the agent inherits it)
+    os.set_inheritable(fd, True)
+    path = Path(f"/proc/self/fd/{fd}")  # the same path in the agent: exec keeps the pid and the fd
+    write_scenario_json(sc, path)
+    env = dict(os.environ, **foreign_agent_env(sc, a.id, a.run, bus_config_from_args(a, sc), None, a.restart, scenario_json=path))
     sys.stdout.flush()
     sys.stderr.flush()
     try:

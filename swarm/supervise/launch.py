@@ -86,14 +86,20 @@ def client_bus(endpoints: list[str], keys_dir: Path | None, identity: str) -> Bu
     return BusConfig(mode="client", connect=list(endpoints), credential_file=cred)
 
 
-def foreign_agent_env(sc: Scenario, sat: int, run: str, bus: BusConfig, out: Path, restart: bool) -> dict[str, str]:
+def foreign_agent_env(sc: Scenario, sat: int, run: str, bus: BusConfig, out: Path | None, restart: bool,
+                      scenario_json: Path | None = None) -> dict[str, str]:
     """What an agent of another language is given (docs/agent-contract.md, clause 1): its
     satellite, the run, the routers, its credential and the scenario, resolved, as JSON
-    (``scenario.json`` in the run folder, with the values a scenario implies but does not
-    state: the gate's χ² threshold)."""
-    path = out / "scenario.json"
-    if not path.exists():
-        write_scenario_json(sc, path)
+    (``scenario.json`` in the run folder ``out``, or ``scenario_json`` as written already,
+    with the values a scenario implies but does not state: the gate's χ² threshold)."""
+    if scenario_json is not None:
+        path = scenario_json
+    elif out is not None:
+        path = out / "scenario.json"
+        if not path.exists():
+            write_scenario_json(sc, path)
+    else:
+        raise ValueError("foreign_agent_env: a run folder or a scenario_json")
     return {
         "SWARM_SAT_ID": str(sat),
         "SWARM_RUN": run,
