@@ -8,6 +8,7 @@ with a bound.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -298,21 +299,17 @@ def test_a_router_killed_while_an_agent_on_it_is_stalled_waits_for_the_stall_and
     assert "once the stall of pid" in kill["detail"], kill
 
 
-def test_a_return_is_said_again_twice_a_moment_later():
-    """A resync (a peer's token back before it counted gone) is handed on, then said again as
-    ``again`` events _AGAIN_AFTER_S later, on which roles send their last steps once more: a
-    put made while a failover still rebuilt the routes is lost without a trace (issue 35's
-    repeat benchmark). Not said again if the bus goes meanwhile."""
-    import json as _json
-
+@contextlib.contextmanager
+def _world_node_and_agent_token():
+    """A real router on loopback, the world's node watching liveliness and a peer session
+    holding agent 2's token, seen alive: (node, token, its key)."""
     from swarm.supervise.launch import free_port
-    from swarmrt.node import _AGAIN_AFTER_S, Node
-    from swarmrt.protocol import Event
+    from swarmrt.node import Node
 
     port = free_port()
     rc = zenoh.Config()
     rc.insert_json5("mode", '"router"')
-    rc.insert_json5("listen/endpoints", _json.dumps([f"tcp/127.0.0.1:{port}"]))
+    rc.insert_json5("listen/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
     rc.insert_json5("scouting/multicast/enabled", "false")
     router = zenoh.open(rc)
     bus = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"])
@@ -324,6 +321,23 @@ def test_a_return_is_said_again_twice_a_moment_later():
         token = peer.liveliness().declare_token(key)
         seen: list = []
         assert n.wait_for(lambda: any(e.kind == "alive" and e.alive for e in seen), 10.0, seen.append)
+        yield n, token, key
+    finally:
+        n.close()
+        peer.close()
+        router.close()
+
+
+def test_a_return_is_said_again_twice_a_moment_later():
+    """A resync (a peer's token back before it counted gone) is handed on, then said again as
+    ``again`` events _AGAIN_AFTER_S later, on which roles send their last steps once more: a
+    put made while a failover still rebuilt the routes is lost without a trace (issue 35's
+    repeat benchmark). Not said again if the bus goes meanwhile."""
+    from swarmrt.node import _AGAIN_AFTER_S
+    from swarmrt.protocol import Event
+
+    with _world_node_and_agent_token() as (n, _token, key):
+        seen: list = []
         n.inbox.put_event(Event(key, "alive", 2, alive=False, role="agent"))  # its going, heard late
         seen.clear()
         assert n.wait_for(lambda: any(e.kind == "resync" for e in seen), 10.0, seen.append), seen
@@ -343,11 +357,6 @@ def test_a_return_is_said_again_twice_a_moment_later():
             if (e := n.next_event(left)) is not None:
                 got.append(e)
         assert [e.kind for e in got] == ["resync", "bus"], got
-        token.undeclare()
-    finally:
-        n.close()
-        peer.close()
-        router.close()
 
 
 def test_a_token_whose_going_arrives_after_its_return_is_not_counted_gone():
@@ -356,27 +365,10 @@ def test_a_token_whose_going_arrives_after_its_return_is_not_counted_gone():
     after the new one, or be read late. The node then holds the token and, its hold over,
     asks the routers: declared, so not gone (a resync). A token really gone still counts
     gone after its hold. (Issue 35: a run declared broken over an agent back in 7 ms.)"""
-    import json as _json
-
-    from swarm.supervise.launch import free_port
-    from swarmrt.node import Node
     from swarmrt.protocol import Event
 
-    port = free_port()
-    rc = zenoh.Config()
-    rc.insert_json5("mode", '"router"')
-    rc.insert_json5("listen/endpoints", _json.dumps([f"tcp/127.0.0.1:{port}"]))
-    rc.insert_json5("scouting/multicast/enabled", "false")
-    router = zenoh.open(rc)
-    bus = BusConfig(mode="client", connect=[f"tcp/127.0.0.1:{port}"])
-    n = Node("world", 0, "t", 4, bus, announce=False)
-    peer = zenoh.open(bus.zenoh_config())
-    key = Keys("t").alive("agent", 2)
-    try:
-        n.watch_liveliness()
-        token = peer.liveliness().declare_token(key)
+    with _world_node_and_agent_token() as (n, token, key):
         seen: list = []
-        assert n.wait_for(lambda: any(e.kind == "alive" and e.alive for e in seen), 10.0, seen.append)
         # The crossed order: its going heard after its (still standing) declaration.
         n.inbox.put_event(Event(key, "alive", 2, alive=False, role="agent"))
         seen.clear()
@@ -387,7 +379,3 @@ def test_a_token_whose_going_arrives_after_its_return_is_not_counted_gone():
         seen.clear()
         assert n.wait_for(lambda: any(e.kind == "alive" for e in seen), 10.0, seen.append), seen
         assert [e.kind for e in seen] == ["held", "alive"] and seen[-1].alive is False, seen
-    finally:
-        n.close()
-        peer.close()
-        router.close()
