@@ -125,6 +125,22 @@ def gated_router(tmp_path):
             raise AssertionError(f"the router did not end within 30 s of SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
 
 
+HONEST = [f"honest {i}".encode() for i in range(20)]
+
+
+def _honest_puts(session, key: str) -> None:
+    """The honest agent's 20 puts, made while (or after) the thief floods."""
+    for payload in HONEST:
+        session.put(key, payload)
+
+
+def _all_honest_arrive(got: dict, arrived: threading.Condition) -> None:
+    """Wait (30 s at most) until the subscriber has every honest put (it notifies ``arrived``)."""
+    with arrived:
+        ok = arrived.wait_for(lambda: set(HONEST) <= got["honest"], 30.0)
+        assert ok, f"the honest agent's puts did not all arrive: {len(got['honest'])} of {len(HONEST)}"
+
+
 @pytest.mark.integration
 def test_a_flood_is_held_to_its_identitys_rate_and_an_honest_agent_still_gets_through(gated_router):
     ports, keys, counts, stop, limits, _ = gated_router
@@ -133,7 +149,7 @@ def test_a_flood_is_held_to_its_identitys_rate_and_an_honest_agent_still_gets_th
     payload = b"\xff" * 60_000  # under est's size limit: the router's size filter lets it through
     got = {"flood_bytes": 0, "honest": set()}
     first_flood = threading.Event()
-    lock = threading.Lock()
+    lock = threading.Condition()
 
     def on_sample(sample) -> None:
         with lock:
@@ -142,6 +158,7 @@ def test_a_flood_is_held_to_its_identitys_rate_and_an_honest_agent_still_gets_th
                 first_flood.set()
             else:
                 got["honest"].add(sample.payload.to_bytes())
+                lock.notify_all()
 
     with _open(ports["recorder"], str(keys / "recorder.json")) as rec, \
             _open(ports["agent-1"], str(keys / "agent-1.json")) as thief, \
@@ -165,20 +182,11 @@ def test_a_flood_is_held_to_its_identitys_rate_and_an_honest_agent_still_gets_th
 
         th = threading.Thread(target=flood, daemon=True)
         th.start()
-        for i in range(20):
-            honest.put(k.est(2), f"honest {i}".encode())
+        _honest_puts(honest, k.est(2))
         th.join(60)
         stop_flood.set()
         elapsed = time.monotonic() - t0
-        want = {f"honest {i}".encode() for i in range(20)}
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            with lock:
-                if want <= got["honest"]:
-                    break
-            time.sleep(0.05)  # polling a counter another thread fills (not synchronisation of an event)
-        with lock:
-            assert want <= got["honest"], f"the honest agent's puts did not all arrive: {len(got['honest'])} of 20"
+        _all_honest_arrive(got, lock)
         sub.undeclare()
     stop()
     c = json.loads(counts.read_text())
@@ -205,7 +213,7 @@ def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
     rate, burst = msg_limits["agent-1"]
     got = {"flood": 0, "honest": set()}
     first_flood = threading.Event()
-    lock = threading.Lock()
+    lock = threading.Condition()
 
     def on_sample(sample) -> None:
         with lock:
@@ -214,6 +222,7 @@ def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
                 first_flood.set()
             else:
                 got["honest"].add(sample.payload.to_bytes())
+                lock.notify_all()
 
     t0 = time.monotonic()
     with _open(ports["recorder"], str(keys / "recorder.json")) as rec, \
@@ -232,17 +241,8 @@ def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
             for _ in range(1000):
                 pub.put(b"\x02")
             offered += 1000
-        for i in range(20):
-            honest.put(k.est(2), f"honest {i}".encode())
-        want = {f"honest {i}".encode() for i in range(20)}
-        deadline = time.monotonic() + 30
-        while time.monotonic() < deadline:
-            with lock:
-                if want <= got["honest"]:
-                    break
-            time.sleep(0.05)  # polling a counter another thread fills (not synchronisation of an event)
-        with lock:
-            assert want <= got["honest"], f"the honest agent's puts did not all arrive: {len(got['honest'])} of 20"
+        _honest_puts(honest, k.est(2))
+        _all_honest_arrive(got, lock)
         sub.undeclare()
     elapsed = time.monotonic() - t0
     stop()
