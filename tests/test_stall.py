@@ -144,10 +144,14 @@ def test_scheduled_short_stalls_of_every_role_change_no_number(tmp_path):
     ``down_s`` wall seconds later), each role in turn, every one shorter than the lease:
     the lockstep run finishes with the numbers of the unstalled in-process run, bit for bit.
     The router's and the selector's stalls outlast the world's old 2 s wait for a selection
-    (a chaos campaign found a router stall changing the greedy schedule that way)."""
+    (a chaos campaign found a router stall changing the greedy schedule that way). The
+    recorder is stalled again at the next step, while the world runs on within its lag and
+    the first stall still holds: the first ends there, the second starts, both are done (it
+    was "already stopped", or done, as the wall clock fell: the repeat benchmark's seed 16)."""
     faults = [{"at_step": 4, "action": "stall-agent", "target": 1, "down_s": 2.0},
               {"at_step": 8, "action": "stall-world", "down_s": 3.0},
               {"at_step": 12, "action": "stall-recorder", "down_s": 2.0},
+              {"at_step": 13, "action": "stall-recorder", "down_s": 2.0},
               {"at_step": 16, "action": "stall-router", "down_s": 2.5},
               {"at_step": 20, "action": "stall-selector", "down_s": 2.5}]
     sc = scenario(duration_s=26, selection={"strategy": "greedy", "budget": 4}, faults=faults)

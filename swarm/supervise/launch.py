@@ -562,8 +562,12 @@ class LocalSwarm:
             self._report(f, "failed", f"{name} is not running")
             return
         if any(q is p for _t, q, _f, _n, _s in self._stalled):
-            self._report(f, "failed", f"{name} is already stopped")
-            return
+            # Stopped still by an earlier stall: that one ends now (reported done, cut short),
+            # this one starts. Whether the earlier stall was over when this command came is
+            # wall time (the world steps on while a router or the recorder is stopped), and
+            # "already stopped" made the same campaign's records differ (repeat benchmark,
+            # seed 16: two stall-router 2 steps apart).
+            self.continue_stalled(process=p)
         down_s = float(opt(f, "down_s") or 0.0)
         net = self._stall_net(p, down_s)
         _kill_group(p, signal.SIGSTOP)
