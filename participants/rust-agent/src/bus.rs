@@ -113,7 +113,14 @@ pub struct Node {
     pub bus_down_since: Option<Instant>,
     held: HashMap<String, (Ev, Option<Instant>)>,
     pub epoch: u64,
+    // A return (the bus back, a held token back) said again AGAIN_AFTER_S later, when-ordered:
+    // the agent sends its last steps once more (`Node._echo` in swarmrt/node.py).
+    agains: Vec<(Instant, Ev)>,
 }
+
+/// After a return, when it is said again: a put made while a failover still rebuilds the
+/// routers' routes is lost without a trace, and the sending again at the return is one.
+const AGAIN_AFTER_S: [f64; 2] = [1.0, 3.0];
 
 /// How long a client may take to reach one of its routers at start.
 pub const CONNECT_TIMEOUT_MS: u64 = 10_000;
@@ -222,6 +229,7 @@ impl Node {
             bus_down_since: None,
             held: HashMap::new(),
             epoch: 0,
+            agains: vec![],
         })
     }
 
@@ -345,6 +353,7 @@ impl Node {
                     return None;
                 }
                 self.bus_down_since = Some(now);
+                self.agains.clear(); // no use while no router is reachable: its return sends again
                 for v in self.held.values_mut() {
                     v.1 = None;
                 }
@@ -390,8 +399,26 @@ impl Node {
         self.held.remove(&key).map(|(ev, _)| ev)
     }
 
+    /// A return handed on, and said again `AGAIN_AFTER_S` later (the same event).
+    fn echo(&mut self, ev: Ev) -> Ev {
+        let now = Instant::now();
+        for d in AGAIN_AFTER_S {
+            let copy = match &ev {
+                Ev::Bus { alive: true } => Ev::Bus { alive: true },
+                Ev::Resync { key } => Ev::Resync { key: key.clone() },
+                _ => return ev,
+            };
+            self.agains.push((now + Duration::from_secs_f64(d), copy));
+        }
+        self.agains.sort_by_key(|(at, _)| *at);
+        ev
+    }
+
     fn next_wake(&self) -> Option<Instant> {
         let mut t = self.held.values().filter_map(|(_, at)| *at).min();
+        if let Some((at, _)) = self.agains.first() {
+            t = Some(t.map_or(*at, |x| x.min(*at)));
+        }
         if let Some(d) = self.bus_down_since {
             let lost = d + Duration::from_secs_f64(self.limits.bus_lost_after_s);
             t = Some(t.map_or(lost, |x| x.min(lost)));
@@ -407,6 +434,9 @@ impl Node {
             let now = Instant::now();
             if let Some(ev) = self.due(now) {
                 return Ok(Some(ev));
+            }
+            if self.agains.first().is_some_and(|(at, _)| *at <= now) {
+                return Ok(Some(self.agains.remove(0).1));
             }
             if let Some(d) = self.bus_down_since {
                 let gone = now.duration_since(d).as_secs_f64();
@@ -431,7 +461,7 @@ impl Node {
             match self.rx.recv_timeout(until.saturating_duration_since(now)) {
                 Ok(ev) => {
                     if let Some(ev) = self.filter(ev) {
-                        return Ok(Some(ev));
+                        return Ok(Some(self.echo(ev)));
                     }
                 }
                 Err(RecvTimeoutError::Timeout) => {
