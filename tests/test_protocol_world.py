@@ -375,6 +375,31 @@ def test_a_restarted_agent_is_in_the_next_clock_whichever_of_its_token_and_healt
     assert clocks[-1].live_agents == [0, 1, 2]
 
 
+def test_a_restart_command_not_carried_out_is_said_again_until_its_executor_reports():
+    """Repeat benchmark seed 3: a restart-agent command put just after a failover never
+    reached the supervisor, and the world waited its startup_timeout_s (120 s): it is said
+    again every 2 s until the supervisor reports it (or the agent is on the bus), then no
+    more while the agent starts."""
+    sc = scenario(faults=RESTART)
+    d, _w, _ = started_world(sc)
+    d.take()
+    d.feed(*finish(0))
+    d.feed(alive("agent", 2, up=False))
+    d.feed(*finish(1, (0, 1)))
+    assert [f.action for f in d.sent_on(K.fault())][-1] == "restart-agent"
+    d.take()
+    d.elapse(2.5)
+    assert [(f.action, f.target, f.k) for f in d.sent_on(K.fault())] == [("restart-agent", 2, 2)], "said again"
+    d.take()
+    done = Fault(run=RUN, sender="supervisor", k=2, t_s=2.0, phase="done", action="restart-agent", target=2, detail="started")
+    d.feed(Event(K.fault_report("supervisor"), "fault", None, msg=done))
+    d.elapse(5.0)
+    assert not d.sent_on(K.fault()), "carried out: not said again while the agent starts"
+    assert [c.k for c in d.sent_on(K.clock())] == [], "step 2 still waits for the restarted agent"
+    d.feed(alive("agent", 2), _health(2))
+    assert [c.k for c in d.sent_on(K.clock())] == [2] and d.sent_on(K.clock())[0].live_agents == [0, 1, 2]
+
+
 def test_a_health_report_of_a_killed_agent_before_its_restart_command_does_not_count():
     """What the killed process said before the restart command is not the new process
     being ready: the world still waits for the restarted agent's own report."""

@@ -554,6 +554,13 @@ class WorldProtocol:
                 def back(t: int = t) -> bool:
                     return t in self.alive_agents and (t in self.ready or t in self._reported_since_restart)
 
+                def started(t: int = t) -> bool:  # its executor says so, or it is on the bus
+                    return t in self.alive_agents or any(f.action == "restart-agent" and f.target == t and f.k >= k
+                                                         for f in self.fault_done)
+
+                # Said again until carried out (seen: a restart-agent command put just after a
+                # failover never reached the supervisor, and the world waited its 120 s).
+                yield from self._until_carried_out(cmd, started, em.startup_timeout_s)
                 if self._searches(t):
                     self._searching[t] = k
                     self._awaiting_round = t  # (its asks are answered from now: it may ask before its token is in)
