@@ -598,6 +598,12 @@ class LocalSwarm:
         """kill-router / restart-router (target: the router's index, default 0). While no
         router is up nothing can be reported on the bus: the report goes out once this
         node is connected again (and is kept here for the summary in any case)."""
+        deferred: list = []  # commands that came meanwhile: carried out after this one, however it ended
+        self._carry_out_router_fault(f, deferred)  # (its early returns dropped them: a lost command)
+        for ev in deferred:
+            self._handle(ev)
+
+    def _carry_out_router_fault(self, f: Fault, deferred: list) -> None:
         i = int(opt(f, "target") or 0)
         if not 0 <= i < self.n_routers:
             self._report(f, "failed", f"no router {i} (this run has {self.n_routers})")
@@ -606,8 +612,7 @@ class LocalSwarm:
         p = self.procs.get(name)
         # Every event meanwhile is handled as in the run's loop (a recorder whose token comes
         # back gets every report again: the stall reported done while it was failing over
-        # would otherwise be lost), but a command is carried out after this one.
-        deferred: list = []
+        # would otherwise be lost), but a command is carried out after this one (deferred).
 
         def on_event(ev) -> None:
             if ev.kind == "fault" and ev.msg.phase == "command":
@@ -684,8 +689,6 @@ class LocalSwarm:
         if not over():
             n.wait_for(lambda: not n._held or over(), self.sc.emulator.bus_grace_s, on_event, wake=tick)
         self._report(f, "done", detail)
-        for ev in deferred:
-            self._handle(ev)
 
     # -- signals -------------------------------------------------------------------------
     @contextlib.contextmanager
