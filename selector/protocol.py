@@ -93,8 +93,7 @@ class SelectorProtocol:
 
     def handle(self, ev: Event) -> list[Send]:
         if ev.kind in ("bus", "resync", "again"):
-            kind = ev.msg if ev.kind == "again" else ev.kind  # (again: a return said again, Node._echo)
-            if (kind == "bus" and (ev.alive or ev.kind == "again")) or (kind == "resync" and ev.role == "world"):
+            if ev.kind == "again" or (ev.kind == "bus" and ev.alive) or (ev.kind == "resync" and ev.role == "world"):
                 self._catch_up = self.lockstep  # a clock may have gone by meanwhile
             return self.outbox.again(ev)
         if ev.kind == "alive" and ev.role == "world":

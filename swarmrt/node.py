@@ -264,14 +264,16 @@ class Node:
         return Event(ev.key, "resync", ev.sat, role=ev.role)
 
     def _echo(self, ev: Event) -> Event:
-        """A return (the bus back, a peer's token back) is said again, as an ``again`` event
-        (its first kind in ``msg``), ``_AGAIN_AFTER_S`` later: roles send their last steps
-        again then too (:meth:`swarmrt.protocol.Outbox.again`). Receivers take a message
-        they already have as a no-op, so this loses nothing and changes nothing."""
+        """After a return (the bus back, a peer's token back), an ``again`` event comes
+        ``_AGAIN_AFTER_S`` later, on which roles send every step they keep once more
+        (:meth:`swarmrt.protocol.Outbox.again`, as for their own bus's return). One series
+        for a burst of returns (a failover brings every token back within milliseconds): a
+        later return moves it, so that what is sent again does not grow with the number of
+        peers (the routers' gates count every message). Receivers take a message they
+        already have as a no-op, so this loses nothing and changes nothing."""
         if (ev.kind == "bus" and ev.alive) or ev.kind == "resync":
             now = time.monotonic()
-            self._agains.extend((now + d, Event(ev.key, "again", ev.sat, msg=ev.kind, role=ev.role)) for d in _AGAIN_AFTER_S)
-            self._agains.sort(key=lambda a: a[0])
+            self._agains = [(now + d, Event("", "again", None, msg="bus")) for d in _AGAIN_AFTER_S]
         return ev
 
     def _next_wake(self) -> float | None:

@@ -171,11 +171,9 @@ class Outbox:
         kept when this role's own bus or the recorder came back (the recorder may be up to
         ``recorder_max_lag_steps`` behind); the current and previous step when another
         peer's token did (no step ends while a peer's token is held, so that is all it can
-        lack), which keeps a failover's resends small. ``again``: the same once more, a moment
-        after such a return (``msg``: its kind; :meth:`swarmrt.node.Node._echo`)."""
-        if ev.kind == "again":
-            ev = Event(ev.key, ev.msg, ev.sat, alive=True, role=ev.role)
-        if (ev.kind == "bus" and ev.alive) or (ev.kind == "resync" and ev.role == "recorder"):
+        lack), which keeps a failover's resends small. ``again``: every step kept, once more,
+        a moment after a burst of returns (:meth:`swarmrt.node.Node._echo`)."""
+        if ev.kind == "again" or (ev.kind == "bus" and ev.alive) or (ev.kind == "resync" and ev.role == "recorder"):
             return [*(s for step in self._earlier for s in step), *self.sends]
         if ev.kind == "resync":
             return [*self.previous, *self.sends]

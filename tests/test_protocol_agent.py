@@ -242,7 +242,7 @@ def test_drop_and_camera_faults_addressed_to_this_agent():
     assert done in d.sent_on(K.fault_report("agent-0")), "the drop's report sent again"
     # ... and once more a moment later (the node says the return again: swarmrt.node._AGAIN_AFTER_S).
     d.take()
-    d.feed(Event(K.alive("recorder", 0), "again", 0, msg="resync", role="recorder"))
+    d.feed(Event("", "again", None, msg="bus"))
     assert done in d.sent_on(K.fault_report("agent-0")) and d.sent_on(K.meas(0)) == [], "the last steps' sends, as kept"
     # The world says the command again (its report did not reach it: lost while a failover
     # rebuilt the routes): carried out once, the same report said again, at the rate and

@@ -113,8 +113,8 @@ pub struct Node {
     pub bus_down_since: Option<Instant>,
     held: HashMap<String, (Ev, Option<Instant>)>,
     pub epoch: u64,
-    // A return (the bus back, a held token back) said again AGAIN_AFTER_S later, when-ordered:
-    // the agent sends its last steps once more (`Node._echo` in swarmrt/node.py).
+    // After a return (the bus back, a held token back), the bus's return said again
+    // AGAIN_AFTER_S later, when-ordered: the agent sends its last steps once more (`Node._echo`).
     agains: Vec<(Instant, Ev)>,
 }
 
@@ -399,18 +399,14 @@ impl Node {
         self.held.remove(&key).map(|(ev, _)| ev)
     }
 
-    /// A return handed on, and said again `AGAIN_AFTER_S` later (the same event).
+    /// A return handed on; `AGAIN_AFTER_S` later the bus's return is said again (the agent
+    /// then sends every step it keeps once more). One series for a burst of returns (a
+    /// failover brings every token back at once): a later return moves it (`Node._echo`).
     fn echo(&mut self, ev: Ev) -> Ev {
-        let now = Instant::now();
-        for d in AGAIN_AFTER_S {
-            let copy = match &ev {
-                Ev::Bus { alive: true } => Ev::Bus { alive: true },
-                Ev::Resync { key } => Ev::Resync { key: key.clone() },
-                _ => return ev,
-            };
-            self.agains.push((now + Duration::from_secs_f64(d), copy));
+        if matches!(ev, Ev::Bus { alive: true } | Ev::Resync { .. }) {
+            let now = Instant::now();
+            self.agains = AGAIN_AFTER_S.iter().map(|d| (now + Duration::from_secs_f64(*d), Ev::Bus { alive: true })).collect();
         }
-        self.agains.sort_by_key(|(at, _)| *at);
         ev
     }
 
