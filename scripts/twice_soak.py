@@ -37,9 +37,15 @@ def _seeds(spec: str) -> list[int]:
     return out
 
 
+# The read end of a pipe whose write end only this process holds: each campaign runs under
+# swarm.supervise.lifeline on it, so it stops (cleanly: SIGTERM) when this script ends,
+# however it ends (seen: a `swarm chaos` orphaned by a SIGTERMed benchmark ran on).
+_LIFELINE_R, _LIFELINE_W = os.pipe()
+
+
 def _campaign(seed: int, a) -> dict:
     out = a.out / f"seed-{seed}"
-    cmd = [sys.executable, "-m", "swarm.cli", "chaos", str(a.scenario), "--faults", str(a.faults), "--seed", str(seed),
+    cmd = [sys.executable, "-m", "swarm.supervise.lifeline", "--fd", str(_LIFELINE_R), "--grace-s", "60", "swarm.cli", "chaos", str(a.scenario), "--faults", str(a.faults), "--seed", str(seed),
            "--duration", str(a.duration), "--routers", str(a.routers), "--twice", "--out", str(out)]
     for s in a.sets:
         cmd += ["--set", s]
@@ -50,7 +56,8 @@ def _campaign(seed: int, a) -> dict:
     else:
         t0 = time.monotonic()
         with open(out / "chaos.log", "w") as log:
-            code = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=dict(os.environ, COLUMNS="200")).returncode
+            code = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, env=dict(os.environ, COLUMNS="200"),
+                                  pass_fds=(_LIFELINE_R,)).returncode
         wall = time.monotonic() - t0
         (out / "row.json").write_text(json.dumps({"exit": code, "wall_s": round(wall, 1)}) + "\n")
     row: dict = {"seed": seed, "exit": code, "wall_s": round(wall, 1)}
