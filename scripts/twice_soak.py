@@ -75,6 +75,7 @@ def _campaign(seed: int, a) -> dict:
     row["evidence"] = {inv["name"]: inv["evidence"] for inv in report["invariants"] if not inv["ok"]}
     row["second_run"] = _check_second(out, report, a.routers)
     row["numbers_equal"] = next((inv["ok"] for inv in report["invariants"] if "run twice" in inv["name"]), None)
+    row["gate"] = _gate(out)
     first, second = out / "run" / "run.mcap", out / "run-2" / "run.mcap"
     if first.exists() and second.exists():
         diff = subprocess.run([sys.executable, str(ROOT / "scripts" / "twice_diff.py"), str(first), str(second)],
@@ -83,6 +84,27 @@ def _campaign(seed: int, a) -> dict:
         if diff.returncode != 0:
             row["first_difference"] = diff.stdout.strip().splitlines()[:12]
     return row
+
+
+def _gate(out: Path) -> dict:
+    """What the routers' ingress gates did to honest roles over both runs (``router_gate`` of
+    each summary.json): connections held back, cut and refused, summed over identities; the
+    identities it cut. Any of it means a role sent more than its bucket under faults (the
+    supervisor's resends did: a command sent it was lost while it was cut)."""
+    tot = {"held": 0, "cut": 0, "refused": 0, "cut_identities": []}
+    for run in ("run", "run-2"):
+        try:
+            gate = json.loads((out / run / "summary.json").read_text()).get("router_gate") or {}
+        except (OSError, ValueError):
+            continue
+        for name, c in gate.items():
+            if not isinstance(c, dict):
+                continue
+            for k in ("held", "cut", "refused"):
+                tot[k] += int(c.get(k) or 0)
+            if c.get("cut") and name not in tot["cut_identities"]:
+                tot["cut_identities"].append(name)
+    return tot
 
 
 def _check_second(out: Path, report: dict, routers: int) -> dict:
@@ -106,7 +128,8 @@ def _check_second(out: Path, report: dict, routers: int) -> dict:
 
 def _table(rows: list[dict]) -> str:
     kinds = sorted({k for r in rows for k in r.get("faults", {})})
-    head = ["seed", "faults (by kind)", "run 1: a b c d e", "run 2: a b c d", "numbers (e, twice)", "recordings", "wall"]
+    head = ["seed", "faults (by kind)", "run 1: a b c d e", "run 2: a b c d", "numbers (e, twice)", "recordings",
+            "gate: held / cut / refused", "wall"]
     lines = ["| " + " | ".join(head) + " |", "| " + " | ".join("---" for _ in head) + " |"]
     for r in rows:
         if "error" in r:
@@ -119,7 +142,10 @@ def _table(rows: list[dict]) -> str:
         two_s = "error" if "error" in two else " ".join(("pass" if two.get(x) else "FAIL") for x in ("a", "b", "c", "d"))
         eq = "equal" if r.get("numbers_equal") else "DIFFERENT"
         rec = "equal" if r.get("recordings_equal") else ("DIFFER from " + (r.get("first_difference") or ["?"])[0])
-        lines.append(f"| {r['seed']} | {sum(r['faults'].values())} ({f}) | {one} | {two_s} | {eq} | {rec} | {r['wall_s']:.0f} s |")
+        g = r.get("gate") or {}
+        gate = f"{g.get('held', '?')} / {g.get('cut', '?')} / {g.get('refused', '?')}" + (
+            f" ({', '.join(g['cut_identities'])})" if g.get("cut_identities") else "")
+        lines.append(f"| {r['seed']} | {sum(r['faults'].values())} ({f}) | {one} | {two_s} | {eq} | {rec} | {gate} | {r['wall_s']:.0f} s |")
     return "\n".join(lines)
 
 
