@@ -202,11 +202,12 @@ _TRI_ROW = _TRI[0]  # the row of each packed entry
 #: starts (``fusion: joint``): only the pair's own factors pin it.
 _DIFFUSE = 10.0
 #: ``fusion: joint``: how long (s) a neighbour's broadcast rate error is taken to hold (its
-#: row's attitude random walk, σ_b √τ). Measured on scenarios/estimators.yaml (10 seeds):
-#: τ = 1, 4, 25 s gave own position 1.20×, 1.20×, 1.21× central, relative 1.38×, 1.33×,
-#: 1.28×, NEES/dof 0.72, 0.61, 0.49 (relative 1.00, 0.84, 0.65); 0 s (the gyro's ARW
-#: alone) 1.21×, 1.42×, 0.80 (relative 1.11, seeds up to 1.6).
-_RATE_HOLD_S = 4.0
+#: row's attitude random walk, σ_b √τ). Measured on scenarios/estimators.yaml (10 seeds,
+#: ideal radio): τ = 1, 4, 15, 25 s gave own position 1.20×, 1.20×, 1.20×, 1.21× central,
+#: relative 1.38×, 1.33×, 1.28×, 1.28×, attitude 1.43× at 4 s and 1.35× at 15 s, NEES/dof
+#: 0.72, 0.61, 0.51, 0.49 (relative 1.00, 0.84, 0.69, 0.65); 0 s (the gyro's ARW alone)
+#: 1.21×, 1.42×, 0.80 (relative 1.11, seeds up to 1.6).
+_RATE_HOLD_S = 15.0
 
 
 @dataclass(frozen=True)
@@ -382,7 +383,7 @@ class GbpEstimator(ReplayingEstimator):
         # fusion: joint. A neighbour's row: its rate measured by the rate it broadcasts (its
         # bias-corrected gyro) with the gyro bias prior's σ_b; that rate's error is the
         # neighbour's bias error, held for a while, which white measurements cannot say: the
-        # row's attitude random-walks at σ_b·√τ, τ = 4 s (measured: module docstring).
+        # row's attitude random-walks at σ_b·√τ, τ = 15 s (measured: :data:`_RATE_HOLD_S`).
         s0 = sc.filter.initial_sigma
         self._jfp = dataclasses.replace(self.fp, n=1 + len(self.neighbours), own=0, max_iterations=1,
                                         att_rw_other=s0.bias_rad_s * math.sqrt(_RATE_HOLD_S))
