@@ -170,3 +170,28 @@ def test_sigkill_of_swarm_run_leaves_no_process_behind(tmp_path):
         reader = make_reader(f)
         assert reader.get_summary() is not None
         assert sum(1 for _ in reader.iter_messages()) > 0
+
+
+def test_sigterm_ends_a_twice_chaos_campaign_without_its_second_run(tmp_path):
+    """`swarm chaos --twice` stopped by SIGTERM during its first run (the user, or a parent
+    that ended: scripts/twice_soak.py runs campaigns under a lifeline) ends there with the
+    run's status: no second run is started (it was, and ran on orphaned, issue 35)."""
+    scn = tmp_path / "signals.yaml"
+    scn.write_text(yaml.safe_dump(SCENARIO))
+    out = tmp_path / "chaos"
+    log = open(tmp_path / "chaos.log", "wb")  # noqa: SIM115 - the child writes to it; closed in the finally below
+    cmd = [sys.executable, "-m", "swarm.cli", "chaos", str(scn), "--faults", "2", "--seed", "3", "--twice", "--out", str(out)]
+    sup = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        info = wait_until(lambda: _read_json(out / "run" / "run.json"), 180, "the first run's run.json written")
+        _wait_for_step(info["endpoint"], info["run"], K_SIGNAL, 180, info.get("keys"))
+        sup.send_signal(signal.SIGTERM)
+        code = sup.wait(timeout=120)
+    finally:
+        if sup.poll() is None:
+            sup.kill()
+            sup.wait(timeout=30)
+        log.close()
+    assert code == 143, (tmp_path / "chaos.log").read_text()[-3000:]
+    assert not (out / "run-2").exists(), "a second run was started after the signal"
+    assert "SIGTERM: the campaign stops" in (tmp_path / "chaos.log").read_text()

@@ -139,6 +139,11 @@ def chaos(
     result = fly(out / "run", f"chaos {sc.name} n={sc.n_sats}{on}")
     wall_s = time.monotonic() - t0
     assert result.outcome is not None
+    if result.outcome.signal is not None:
+        # Stopped by a signal (the user, or a parent that ended): the campaign ends here, with
+        # the run's status, neither checked nor flown again (--twice started a second run).
+        console.print(f"[yellow]{result.outcome.signal.name}: the campaign stops (run in {out / 'run'})[/yellow]", highlight=False)
+        raise typer.Exit(result.outcome.exit_code)
     report = check_run(out / "run", sc_chaos, episodes, seed, result.outcome.exit_code, n_faults=faults, settle=settle,
                        kinds=tuple(kinds) if kinds else None, routers=nodes or routers, nodes=nodes, partitions=partitions)
     report.extra["wall_s"] = round(wall_s, 1)
@@ -147,6 +152,10 @@ def chaos(
                                    "node_faults": _node_faults(result.summary)}
     if twice:
         second = fly(out / "run-2", f"chaos {sc.name} n={sc.n_sats}{on}, again")
+        assert second.outcome is not None
+        if second.outcome.signal is not None:
+            console.print(f"[yellow]{second.outcome.signal.name}: the campaign stops (run in {out / 'run-2'})[/yellow]", highlight=False)
+            raise typer.Exit(second.outcome.exit_code)
         report.invariants.append(same_numbers(result.summary, second.summary))
     if cluster is not None:
         _print_node_faults(report.extra["cluster"]["node_faults"])
