@@ -347,9 +347,9 @@ def _health(i: int, k: int = 0) -> Event:
     return Event(K.health(i), "health", i, msg=Health(run=RUN, sender=f"agent-{i}", k=k, t_s=float(k), sat=i, camera_ok=[True] * 6))
 
 
-def _restarted_world(order: str):
-    """Agent 2 killed at step 1 and restarted at step 2; the restarted (cold) agent's health
-    report and its liveliness token reach the world in ``order``."""
+def _restart_commanded():
+    """Agent 2 killed at step 1 (gone) and the restart-agent command of step 2 sent: the
+    driver, step 2 waiting for the restarted agent."""
     sc = scenario(faults=RESTART)
     d, _w, _ = started_world(sc)
     d.take()
@@ -358,6 +358,13 @@ def _restarted_world(order: str):
     d.feed(*finish(1, (0, 1)))
     assert [f.action for f in d.sent_on(K.fault())][-1] == "restart-agent"
     assert [c.k for c in d.sent_on(K.clock())] == [1], "step 2 waits for the restarted agent"
+    return d
+
+
+def _restarted_world(order: str):
+    """Agent 2 killed at step 1 and restarted at step 2; the restarted (cold) agent's health
+    report and its liveliness token reach the world in ``order``."""
+    d = _restart_commanded()
     h = _health(2)
     d.feed(*([alive("agent", 2), h] if order == "token first" else [h, alive("agent", 2)]))
     return d
@@ -380,13 +387,7 @@ def test_a_restart_command_not_carried_out_is_said_again_until_its_executor_repo
     reached the supervisor, and the world waited its startup_timeout_s (120 s): it is said
     again every 2 s until the supervisor reports it (or the agent is on the bus), then no
     more while the agent starts."""
-    sc = scenario(faults=RESTART)
-    d, _w, _ = started_world(sc)
-    d.take()
-    d.feed(*finish(0))
-    d.feed(alive("agent", 2, up=False))
-    d.feed(*finish(1, (0, 1)))
-    assert [f.action for f in d.sent_on(K.fault())][-1] == "restart-agent"
+    d = _restart_commanded()
     d.take()
     d.elapse(2.5)
     assert [(f.action, f.target, f.k) for f in d.sent_on(K.fault())] == [("restart-agent", 2, 2)], "said again"
