@@ -205,7 +205,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenario", default="scenarios/demo.yaml")
     ap.add_argument("--duration", type=float, default=10.0)
-    ap.add_argument("--out", default="runs/bench/flood.json")
+    ap.add_argument("--out", default="runs/bench/flood.json", help="the JSON file the results go to")
     ap.add_argument("--repeat", type=int, default=1, help="run the whole list of cells this many times, interleaved "
                     "(a busy machine's drift falls on every cell alike); the table gives each cell's median")
     ap.add_argument("--nice", type=int, default=19, help="the flooder's nice value (19: it stands for a machine elsewhere, "
@@ -217,6 +217,8 @@ def main() -> None:
                          "downsampling) of this many puts per second on every agent key (swarmrt.security.rate_limits)")
     ap.add_argument("--flooder", default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
+    if Path(a.out).is_dir():  # checked before the minutes of runs, not after them
+        ap.error(f"--out {a.out}: a directory; give the JSON file's path (e.g. {Path(a.out) / 'flood.json'})")
     if a.flooder:
         _flooder(json.loads(a.flooder))
         return
