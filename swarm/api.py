@@ -556,11 +556,11 @@ def compare(scenario: Scenario | str | Path | Mapping[str, Any] | None, *, strat
     of each variant) or ``variants`` (name → dotted overrides, e.g. ``{"gate off":
     {"filter.gate.enabled": False}}``). Runs on ``workers`` local processes (1: this one) or
     the Dask scheduler at ``cluster``; ``out`` defaults to a temporary folder."""
+    given = [x is not None for x in (strategies, estimators, variants)]
+    if sum(given) != 1:  # (before any folder is made: a refused call leaves nothing behind)
+        raise ValueError("compare(): give exactly one of strategies=, estimators=, variants=")
     sc = _scenario(scenario, None, overrides)
     folder = _out(out, "compare")
-    given = [x is not None for x in (strategies, estimators, variants)]
-    if sum(given) != 1:
-        raise ValueError("compare(): give exactly one of strategies=, estimators=, variants=")
     if strategies is not None:
         from swarm.studies.compare import METRICS, run_compare
 

@@ -95,7 +95,7 @@ def test_compare_and_monte_carlo(tmp_path):
     full5 = per[(per["variant"] == "full") & (per["seed"] == 5)].iloc[0]
     assert full5["rms.others.pos_m"] == swarm.simulate(sc).summary["rms"]["others"]["pos_m"]
     with pytest.raises(ValueError, match="exactly one"):
-        swarm.compare(sc, estimators=["full"], strategies=["random"])
+        swarm.compare(sc, estimators=["full"], strategies=["random"])  # refused before it makes a folder
     mc = swarm.monte_carlo(sc, 2, workers=1, out=tmp_path / "mc")
     assert list(mc.per_run["seed"]) == [5, 6] and "rms.others.pos_m" in mc.stats.index
     assert (tmp_path / "mc" / "mc.json").exists()

@@ -42,6 +42,10 @@ def test_notebook_runs_from_a_fresh_copy(tmp_path, monkeypatch, notebook):
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(repo), os.environ.get("PYTHONPATH", "")]))
     monkeypatch.setenv("JUPYTER_PATH", str(tmp_path / "jupyter"))  # no user kernel spec named python3 in the way
     monkeypatch.setenv("MPLBACKEND", "Agg")
+    # The API keeps results it was given no folder for in a temporary one (the user's to read):
+    # under the test's own, so that the notebook leaves nothing in /tmp.
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "tmp"))
     monkeypatch.delenv("SWARM_NOTEBOOK_DISTRIBUTED", raising=False)
     figures = tmp_path / "figures"
     figures.mkdir()
