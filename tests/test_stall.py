@@ -196,3 +196,27 @@ def test_an_agent_that_exits_while_the_world_runs_breaks_the_run(tmp_path):
     assert killed, "the agent was never killed"
     assert outcome.exit_code != 0 and not outcome.finished
     assert "agent-2" in outcome.summary["interrupted"]["reason"], outcome.summary["interrupted"]
+
+
+def test_the_stall_safety_net_continues_a_stopped_group_by_itself():
+    """Should the supervisor die during a stall, the net (a shell in a session of its own)
+    continues the stopped group: with Debian's sh (dash) its `kill -CONT -- -PGID` was
+    refused ("Illegal number"), and a campaign killed during a world stall left the world
+    stopped for good."""
+    import subprocess
+    import sys
+
+    from swarm.supervise.launch import stall_safety_net
+
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"], start_new_session=True)
+    try:
+        os.killpg(p.pid, signal.SIGSTOP)
+        _pid, status = os.waitpid(p.pid, os.WUNTRACED)  # (the child's stop, as an event)
+        assert os.WIFSTOPPED(status)
+        net = stall_safety_net(p.pid, 0.2)
+        assert net.wait(timeout=30) == 0, "the net's shell failed"
+        _pid, status = os.waitpid(p.pid, os.WCONTINUED | os.WNOHANG)  # continued by now, or never
+        assert os.WIFCONTINUED(status), "the net did not continue the group"
+    finally:
+        p.kill()
+        p.wait(timeout=30)

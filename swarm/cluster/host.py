@@ -322,9 +322,9 @@ class NodeHost:
     def stall_net(self, pid: int, down_s: float) -> int:
         """The safety net of a stall (see LocalSwarm._stall): a shell of its own continues
         the group ``down_s`` later should nobody else. Returns its pid."""
-        net = subprocess.Popen(["sh", "-c", f"sleep {down_s:.3f}; kill -CONT -- -{pid} 2>/dev/null"], start_new_session=True,
-                               stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        return self._track(f"stall-net-{pid}", net)
+        from swarm.supervise.launch import stall_safety_net
+
+        return self._track(f"stall-net-{pid}", stall_safety_net(pid, down_s))
 
     def _reap(self) -> None:
         """Notice every exit (the driver's :meth:`events` hands them out), and the driver's

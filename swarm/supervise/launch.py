@@ -110,6 +110,18 @@ def foreign_agent_env(sc: Scenario, sat: int, run: str, bus: BusConfig, out: Pat
     }
 
 
+def stall_safety_net(pgid: int, down_s: float) -> subprocess.Popen:
+    """The safety net of a stall: should the supervisor die meanwhile, nothing would ever
+    continue the stopped process group ``pgid`` (its lifeline cannot act while it is stopped,
+    and it leads its own session, so no orphaned-group SIGCONT comes from the kernel): a
+    shell of its own, in a session of its own, continues the group ``down_s`` later.
+    ``kill -s CONT -- -PGID``, the POSIX form: Debian's sh (dash) refuses ``kill -CONT --``
+    ("Illegal number"), and the net did nothing (seen: a world left stopped by a campaign
+    that was killed during its stall)."""
+    return subprocess.Popen(["sh", "-c", f"sleep {down_s:.3f}; kill -s CONT -- -{pgid} 2>/dev/null"], start_new_session=True,
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
 def write_scenario_json(sc: Scenario, path: Path) -> Path:
     """The resolved scenario as JSON, with ``derived``: numbers the scenario implies
     (``gate_threshold``: the χ²(6) quantile of filter.gate, null when the gate is off;
@@ -548,12 +560,8 @@ class LocalSwarm:
         self._report(f, "failed", f"{f.action} needs a cluster run (swarm run --cluster ...): this run's processes are all local")
 
     def _stall_net(self, p, down_s: float):
-        """The safety net of a stall: should this supervisor be SIGKILLed meanwhile, nothing
-        here would ever continue the process (its lifeline cannot act while it is stopped,
-        and it leads its own session, so no orphaned-group SIGCONT comes from the kernel): a
-        shell of its own, in a session of its own, continues its group ``down_s`` later."""
-        return subprocess.Popen(["sh", "-c", f"sleep {down_s:.3f}; kill -CONT -- -{p.pid} 2>/dev/null"], start_new_session=True,
-                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        """The safety net of a stall (:func:`stall_safety_net` on the process's group)."""
+        return stall_safety_net(p.pid, down_s)
 
     def _stall(self, f: Fault) -> None:
         """stall-*: SIGSTOP the role's process group now and SIGCONT it ``down_s`` wall
