@@ -44,11 +44,11 @@ def _joint(rng, n=3, t=321.0) -> SwarmEstimate:
                          rng.uniform(-0.01, 0.01, (n, 3)), rng.uniform(-1e-4, 1e-4, 3), np.eye(12 * n))
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_factor_jacobians_match_numerical_derivatives(seed):
-    """The stacked relative factors of one belief (own satellite row 0 of the joint, two
-    neighbours, both directions and two measurements of one pair): ``∂y/∂δ`` is ``Ho`` on
-    the own 12 error states and ``Hp`` on the neighbours' [a, Δr], zero elsewhere."""
+def _factor_case(seed: int):
+    """Own satellite row 0 of a 3-satellite joint, both directions and two measurements of
+    one pair (observer → target 0→2, 2→0, 1→0, 0→1), exact (zero residuals): the
+    measurements, the residual Jacobians, and ``∂y/∂δ`` by numerical differences over all
+    36 error states."""
     rng = np.random.default_rng(seed)
     est = _joint(rng)
     p = FilterParams(n=3, own=0, dt=1.0, mean_motion=N_E, J=J, arw=3e-7, rrw=3e-10, torque=5e-6, accel=1e-8)
@@ -61,6 +61,17 @@ def test_factor_jacobians_match_numerical_derivatives(seed):
     m0 = meas(est)
     y0, Hi, Hj = relative_residuals(est, p, m0)
     np.testing.assert_allclose(y0, 0.0, atol=1e-12)
+    num = numerical_jacobian(lambda x: relative_residuals(est, p, dataclasses.replace(meas(x), R_Bi=m0.R_Bi))[0].ravel(),
+                             est, swarm_state(0), EUCLIDEAN, eps=1e-5)
+    return m0, Hi, Hj, num
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_factor_jacobians_match_numerical_derivatives(seed):
+    """The stacked relative factors of one belief (own satellite row 0 of the joint, two
+    neighbours, both directions and two measurements of one pair): ``∂y/∂δ`` is ``Ho`` on
+    the own 12 error states and ``Hp`` on the neighbours' [a, Δr], zero elsewhere."""
+    m0, Hi, Hj, num = _factor_case(seed)
     Ho, Hp, R = stack_factors(m0, Hi, Hj, 2)
     assert Ho.shape == (24, 12) and Hp.shape == (24, 12) and R.shape == (24, 24)
     H = np.zeros((24, 36))
@@ -68,8 +79,6 @@ def test_factor_jacobians_match_numerical_derivatives(seed):
     pose = np.r_[0:3, 6:9]
     for r in range(2):
         H[:, 12 * (r + 1) + pose] = Hp[:, 6 * r : 6 * r + 6]
-    num = numerical_jacobian(lambda x: relative_residuals(est, p, dataclasses.replace(meas(x), R_Bi=m0.R_Bi))[0].ravel(),
-                             est, swarm_state(0), EUCLIDEAN, eps=1e-5)
     np.testing.assert_allclose(num, H, rtol=0, atol=5e-9)
     np.testing.assert_array_equal(R[6:12, 6:12], m0.R_Bi[1])
 
@@ -80,22 +89,9 @@ def test_joint_factor_jacobians_match_numerical_derivatives(seed):
     neighbours, both directions and two measurements of one pair): ``∂y/∂δ`` over all 36
     error states is ``H`` of :func:`joint_factors` (the observer's and target's [a, Δr]
     blocks, zero elsewhere), its noise the measurements' R."""
-    rng = np.random.default_rng(seed)
-    est = _joint(rng)
-    p = FilterParams(n=3, own=0, dt=1.0, mean_motion=N_E, J=J, arw=3e-7, rrw=3e-10, torque=5e-6, accel=1e-8)
-    obs, tgt = np.array([0, 2, 1, 0]), np.array([2, 0, 0, 1])
-
-    def meas(x: SwarmEstimate) -> RelativeMeasurements:
-        q, r = relative_pose(N_E, x.t, x.q_BI, x.r_H, obs, tgt)
-        return RelativeMeasurements(obs, tgt, q, r, np.tile(np.diag(rng.uniform(1e-6, 1e-2, 6)), (4, 1, 1)))
-
-    m0 = meas(est)
-    y0, Hi, Hj = relative_residuals(est, p, m0)
-    np.testing.assert_allclose(y0, 0.0, atol=1e-12)
+    m0, Hi, Hj, num = _factor_case(seed)
     H, R = joint_factors(m0, Hi, Hj, 3)
     assert H.shape == (24, 36) and R.shape == (24, 24)
-    num = numerical_jacobian(lambda x: relative_residuals(est, p, dataclasses.replace(meas(x), R_Bi=m0.R_Bi))[0].ravel(),
-                             est, swarm_state(0), EUCLIDEAN, eps=1e-5)
     np.testing.assert_allclose(num, H, rtol=0, atol=5e-9)
     np.testing.assert_array_equal(R[18:24, 18:24], m0.R_Bi[3])
 

@@ -148,6 +148,15 @@ def _push_body(b: bytes, i: int) -> int:
     raise Unparsed(f"push body id {mid:#x}")
 
 
+def _routed_head(b: bytes, i: int, h: int) -> tuple[int, int]:
+    """A request's or a response's request id, key and extensions (header ``h`` at
+    ``i - 1``): where its body begins after the body's header byte, and that byte."""
+    _, i = _vle(b, i)
+    i = _key(b, i, h & 0x20)
+    i = _exts(b, i, h & _Z)
+    return i + 1, b[i]
+
+
 def _network(b: bytes, i: int, h: int) -> int:
     """Skip one network message whose header ``h`` was at ``i - 1``."""
     mid = h & _MID
@@ -156,11 +165,7 @@ def _network(b: bytes, i: int, h: int) -> int:
         i = _exts(b, i, h & _Z)
         return _push_body(b, i)
     if mid == _N_REQUEST:
-        _, i = _vle(b, i)
-        i = _key(b, i, h & 0x20)
-        i = _exts(b, i, h & _Z)
-        q = b[i]
-        i += 1
+        i, q = _routed_head(b, i, h)
         if q & _MID != _Z_QUERY:
             raise Unparsed(f"request body id {q & _MID:#x}")
         if q & 0x20:
@@ -169,11 +174,7 @@ def _network(b: bytes, i: int, h: int) -> int:
             i = _bytes(b, i)  # parameters
         return _exts(b, i, q & _Z)
     if mid == _N_RESPONSE:
-        _, i = _vle(b, i)
-        i = _key(b, i, h & 0x20)
-        i = _exts(b, i, h & _Z)
-        r = b[i]
-        i += 1
+        i, r = _routed_head(b, i, h)
         if r & _MID == _Z_REPLY:
             if r & 0x20:
                 _, i = _vle(b, i)  # consolidation
