@@ -75,7 +75,7 @@ from swarmrt.protocol import (
     Wait,
     WorldLost,
     arrival_step,
-    first_time,
+    command_key,
     message_dropped,
     outbox_steps,
     world_wait_s,
@@ -144,8 +144,9 @@ class AgentProtocol:
         self.done = False
         self.world_seen = False
         self.outbox = Outbox(skip_keys=("/fault",), keep=outbox_steps(sc.emulator))  # its last steps' messages, sent again when the bus comes back
-        self._commands_seen: set[bytes] = set()
-        self._fault_reports: dict[bytes, list[Send]] = {}  # a command's bytes -> the reports it made
+        # The fault commands carried out (command_key, as first_time keys them) → the reports
+        # each made: a command is carried out once, its reports said again when it comes again.
+        self._fault_reports: dict[bytes, list[Send]] = {}
         self._served = None  # what cov/<i> serves: the estimate at the end of the last step (serve_cov)
 
     @property
@@ -227,15 +228,15 @@ class AgentProtocol:
     def _on_fault(self, f: Fault) -> list[Send]:
         if f.phase != "command" or f.target != self.i:
             return []
-        if not first_time(self._commands_seen, f):
+        key = command_key(f)
+        if key in self._fault_reports:
             # The same command sent again (the world resends its last steps' commands, and says
             # a command again while its outcome does not show): carried out once, its report
-            # said again (it may have been lost on its way, while a failover rebuilt the routes:
-            # the world would wait its step timeout, then count the drop as never made).
-            return list(self._fault_reports.get(f.SerializeToString(deterministic=True), ()))
-        sends = self._carry_out(f)
-        self._fault_reports[f.SerializeToString(deterministic=True)] = sends
-        return sends
+            # said again (it may have been lost on its way: the world would wait its step
+            # timeout, then count the drop as never made).
+            return list(self._fault_reports[key])
+        self._fault_reports[key] = self._carry_out(f)
+        return self._fault_reports[key]
 
     def _carry_out(self, f: Fault) -> list[Send]:
         if f.action == "camera" and f.camera is not None:

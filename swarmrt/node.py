@@ -28,10 +28,11 @@ _TICK_S = 0.25  # the stall ticker's period
 _STALL_S = 2.0  # a gap in its ticks this long: this process was stalled
 _TOKEN_QUERY_S = 5.0  # the longest wait for the routers' answer on a token held past its hold (a loaded machine)
 #: After a return (the bus back, a peer's token back), when a role sends its last steps again
-#: once more (an ``again`` event): a put made while a failover still rebuilt the routers'
+#: once more (an ``again`` event): a put made while a failover still rebuilds the routers'
 #: routes (the receiver's subscriptions not yet declared again where the put went) is lost
-#: without a trace, and the sending again at the return itself was such a put (seen: the
-#: repeat benchmark's seeds 2, 7 and 15, a command, a report and a camera delivery lost).
+#: without a trace, and the sending again at the return itself can be such a put. (A guard:
+#: of the losses the repeat benchmark saw, those traced to their cause were the supervisor's
+#: connection cut by its gate, issue 35; seed 15's camera deliveries were never traced.)
 _AGAIN_AFTER_S = (1.0, 3.0)
 _TOKEN_ANSWER_MARGIN_S = 2.0  # past the query's timeout, before a held token whose answer never came counts gone
 

@@ -187,13 +187,18 @@ def arrival_step(t_s: float, dt_s: float) -> int:
     return max(0, math.ceil(t_s / dt_s - 1e-9))
 
 
+def command_key(command) -> bytes:
+    """What makes two fault commands one (:func:`first_time`): their bytes."""
+    return command.SerializeToString(deterministic=True)
+
+
 def first_time(seen: set[bytes], command) -> bool:
     """Whether fault ``command`` (a message) is new to ``seen`` (then noted there). The world
     sends its last steps' messages again when the bus or the recorder comes back, its fault
     commands among them, so that the recording has them: every executor carries out a
     command once, and the same command twice (the same bytes: the same step, action, target
     and parameters, from the same sender) is one command."""
-    key = command.SerializeToString(deterministic=True)
+    key = command_key(command)
     if key in seen:
         return False
     seen.add(key)

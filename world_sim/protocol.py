@@ -561,8 +561,7 @@ class WorldProtocol:
                     return t in self.alive_agents and (t in self.ready or t in self._reported_since_restart)
 
                 def started(t: int = t) -> bool:  # its executor says so, or it is on the bus
-                    return t in self.alive_agents or any(f.action == "restart-agent" and f.target == t and f.k >= k
-                                                         for f in self.fault_done)
+                    return t in self.alive_agents or self._reported("restart-agent", k, t)
 
                 # Said again until carried out (seen: a restart-agent command put just after a
                 # failover never reached the supervisor, and the world waited its 120 s).
@@ -603,8 +602,7 @@ class WorldProtocol:
                 # every agent that was alive is back (as a scheduled restart-agent waits).
                 before = set(self.alive_agents)
                 self._reported_since_restart.difference_update(before)
-                yield from self._until_carried_out(cmd, lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done),
-                                                   em.startup_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: self._reported(spec.action, k), em.startup_timeout_s)
                 if spec.action == "kill-node":
                     def all_back() -> bool:
                         return all(t in self.alive_agents and (t in self.ready or t in self._reported_since_restart) for t in before)
@@ -616,12 +614,15 @@ class WorldProtocol:
             elif spec.action in ROUTER_FAULTS:
                 # The bus goes down under us (this wait, like every wait, pauses while it is
                 # down); a restart is over once its executor says so.
-                yield from self._until_carried_out(cmd, lambda: any(f.action == spec.action and f.k >= k for f in self.fault_done),
-                                                   em.startup_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: self._reported(spec.action, k), em.startup_timeout_s)
             elif spec.action == "drop":
-                yield from self._until_carried_out(
-                    cmd, lambda: any(f.action == "drop" and f.target == t and f.k >= k for f in self.fault_done) or t not in self.alive_agents,
-                    em.step_timeout_s)
+                yield from self._until_carried_out(cmd, lambda: self._reported("drop", k, t) or t not in self.alive_agents,
+                                                   em.step_timeout_s)
+
+    def _reported(self, action: str, k: int, target: int | None = None) -> bool:
+        """Whether a fault ``action`` of step ``k`` or later (on ``target``, if given) has been
+        reported carried out (or failed) by its executor."""
+        return any(f.action == action and f.k >= k and (target is None or f.target == target) for f in self.fault_done)
 
     def _until_carried_out(self, cmd: Fault, done, timeout_s: float):
         """Wait (at most ``timeout_s``) until a command's outcome shows (``done()``), saying the

@@ -139,11 +139,7 @@ def chaos(
     result = fly(out / "run", f"chaos {sc.name} n={sc.n_sats}{on}")
     wall_s = time.monotonic() - t0
     assert result.outcome is not None
-    if result.outcome.signal is not None:
-        # Stopped by a signal (the user, or a parent that ended): the campaign ends here, with
-        # the run's status, neither checked nor flown again (--twice started a second run).
-        console.print(f"[yellow]{result.outcome.signal.name}: the campaign stops (run in {out / 'run'})[/yellow]", highlight=False)
-        raise typer.Exit(result.outcome.exit_code)
+    _stop_if_signalled(result, out / "run")
     report = check_run(out / "run", sc_chaos, episodes, seed, result.outcome.exit_code, n_faults=faults, settle=settle,
                        kinds=tuple(kinds) if kinds else None, routers=nodes or routers, nodes=nodes, partitions=partitions)
     report.extra["wall_s"] = round(wall_s, 1)
@@ -152,14 +148,20 @@ def chaos(
                                    "node_faults": _node_faults(result.summary)}
     if twice:
         second = fly(out / "run-2", f"chaos {sc.name} n={sc.n_sats}{on}, again")
-        assert second.outcome is not None
-        if second.outcome.signal is not None:
-            console.print(f"[yellow]{second.outcome.signal.name}: the campaign stops (run in {out / 'run-2'})[/yellow]", highlight=False)
-            raise typer.Exit(second.outcome.exit_code)
+        _stop_if_signalled(second, out / "run-2")
         report.invariants.append(same_numbers(result.summary, second.summary))
     if cluster is not None:
         _print_node_faults(report.extra["cluster"]["node_faults"])
     _finish(report, out, wall_s)
+
+
+def _stop_if_signalled(result, folder: Path) -> None:
+    """A run stopped by a signal (the user, or a parent that ended) ends the campaign here,
+    with the run's status, neither checked nor flown again (--twice started a second run)."""
+    assert result.outcome is not None
+    if result.outcome.signal is not None:
+        console.print(f"[yellow]{result.outcome.signal.name}: the campaign stops (run in {folder})[/yellow]", highlight=False)
+        raise typer.Exit(result.outcome.exit_code)
 
 
 def _start_errors(cluster: str | None) -> tuple[type[BaseException], ...]:

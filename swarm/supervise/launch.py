@@ -481,9 +481,12 @@ class LocalSwarm:
         gate lets through in a burst: its connection was cut, and a command it was sent
         then was lost (the repeat benchmark, issue 35: 19 cuts in 40 runs)."""
         recent = self.k - outbox_steps(self.sc.emulator)
-        for report in self._reports:
-            if report.k >= recent:
-                self._node().put(self.keys.fault_report("supervisor"), report)
+        self._put_again(r for r in self._reports if r.k >= recent)
+
+    def _put_again(self, reports) -> None:
+        """Put ``reports`` (made before, kept in ``_reports``) again, the same bytes."""
+        for report in reports:
+            self._node().put(self.keys.fault_report("supervisor"), report)
 
     def _handle(self, ev) -> None:
         if (ev.kind == "again" or (ev.kind == "bus" and ev.alive) or (ev.kind == "resync" and ev.role in ("world", "recorder"))
@@ -500,9 +503,8 @@ class LocalSwarm:
             else:
                 # Said again: the world has not seen its outcome (our report may have been put
                 # while our router's routes were being rebuilt, and lost): report it again.
-                for report in self._reports:
-                    if report.action == ev.msg.action and report.target == ev.msg.target and report.k >= ev.msg.k:
-                        self._node().put(self.keys.fault_report("supervisor"), report)
+                cmd = ev.msg
+                self._put_again(r for r in self._reports if r.action == cmd.action and r.target == cmd.target and r.k >= cmd.k)
         elif ev.kind == "fault":
             self.faults.append(as_dict(ev.msg, exclude=("schema_version", "run")))
 
