@@ -113,13 +113,13 @@ pub struct Node {
     pub bus_down_since: Option<Instant>,
     held: HashMap<String, (Ev, Option<Instant>)>,
     pub epoch: u64,
-    // After a return (the bus back, a held token back), the bus's return said again
-    // AGAIN_AFTER_S later, when-ordered: the agent sends its last steps once more (`Node._echo`).
-    agains: Vec<(Instant, Ev)>,
+    // After a return (the bus back, a held token back), when the bus's return is said again
+    // (AGAIN_AFTER_S later, in order): the agent sends its last steps once more (`Node._echo`).
+    agains: Vec<Instant>,
 }
 
 /// After a return, when it is said again: a put made while a failover still rebuilds the
-/// routers' routes is lost without a trace, and the sending again at the return is one.
+/// routers' routes is lost without a trace, and the sending again at the return can be one.
 const AGAIN_AFTER_S: [f64; 2] = [1.0, 3.0];
 
 /// How long a client may take to reach one of its routers at start.
@@ -405,15 +405,15 @@ impl Node {
     fn echo(&mut self, ev: Ev) -> Ev {
         if matches!(ev, Ev::Bus { alive: true } | Ev::Resync { .. }) {
             let now = Instant::now();
-            self.agains = AGAIN_AFTER_S.iter().map(|d| (now + Duration::from_secs_f64(*d), Ev::Bus { alive: true })).collect();
+            self.agains = AGAIN_AFTER_S.iter().map(|d| now + Duration::from_secs_f64(*d)).collect();
         }
         ev
     }
 
     fn next_wake(&self) -> Option<Instant> {
         let mut t = self.held.values().filter_map(|(_, at)| *at).min();
-        if let Some((at, _)) = self.agains.first() {
-            t = Some(t.map_or(*at, |x| x.min(*at)));
+        if let Some(&at) = self.agains.first() {
+            t = Some(t.map_or(at, |x| x.min(at)));
         }
         if let Some(d) = self.bus_down_since {
             let lost = d + Duration::from_secs_f64(self.limits.bus_lost_after_s);
@@ -431,8 +431,9 @@ impl Node {
             if let Some(ev) = self.due(now) {
                 return Ok(Some(ev));
             }
-            if self.agains.first().is_some_and(|(at, _)| *at <= now) {
-                return Ok(Some(self.agains.remove(0).1));
+            if self.agains.first().is_some_and(|&at| at <= now) {
+                self.agains.remove(0);
+                return Ok(Some(Ev::Bus { alive: true }));
             }
             if let Some(d) = self.bus_down_since {
                 let gone = now.duration_since(d).as_secs_f64();
