@@ -75,7 +75,7 @@ class Node:
         # many times (an empty answer is asked once more, see _answered).
         self._asked: dict[str, int] = {}
         self._epoch = 0  # bumped whenever the bus came back: waits restart their timeout
-        self._agains: list[tuple[float, Event]] = []  # (when, event): the returns' sending again (_AGAIN_AFTER_S)
+        self._agains: list[float] = []  # when (monotonic, in order) an ``again`` event is due (_echo)
         # Peers whose vanished token is held longer than hold_s, by role (a stalled world:
         # agents and the selector set {"world": bus_lost_after_s}); while one is held,
         # every wait pauses, as while the bus is down.
@@ -274,13 +274,13 @@ class Node:
         already have as a no-op, so this loses nothing and changes nothing."""
         if (ev.kind == "bus" and ev.alive) or ev.kind == "resync":
             now = time.monotonic()
-            self._agains = [(now + d, Event("", "again", None, msg="bus")) for d in _AGAIN_AFTER_S]
+            self._agains = [now + d for d in _AGAIN_AFTER_S]
         return ev
 
     def _next_wake(self) -> float | None:
         times = [at for _e, at in self._held.values() if at is not None]
         if self._agains:
-            times.append(self._agains[0][0])
+            times.append(self._agains[0])
         if self.bus_down_since is not None:
             times.append(self.bus_down_since + self.bus_lost_after_s)
         return min(times) if times else None
@@ -423,8 +423,9 @@ class Node:
             now = time.monotonic()
             if (due := self._due(now)) is not None:
                 return due
-            if self._agains and self._agains[0][0] <= now:
-                return self._agains.pop(0)[1]
+            if self._agains and self._agains[0] <= now:
+                self._agains.pop(0)
+                return Event("", "again", None, msg="bus")
             if self.bus_down_since is not None and now - self.bus_down_since >= self.bus_lost_after_s:
                 # What is queued first: the bus may have come back while this thread was busy
                 # or starved of CPU (seen on a loaded machine: a fault CLI gave up on a router
