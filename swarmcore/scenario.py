@@ -584,7 +584,8 @@ class Emulator(_Model):
         "when the recorder comes back after a gap, so a router failover loses nothing from the recording"
     )
     gate: bool = Field(
-        True, description="local runs (swarm run): every process reaches the router through an ingress gate that rate-limits "
+        True, description="local runs (swarm run) and each node of a cluster run: every process reaches its router through an "
+        "ingress gate that rate-limits "
         "what each identity sends in (a token bucket with a burst allowance; the sender is held back, nothing is dropped), "
         "so a stolen credential's flood cannot slow the swarm; counted per identity in summary.json (router_gate)"
     )

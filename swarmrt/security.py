@@ -33,6 +33,10 @@ one for compose or several hosts, in ``./keys``, git-ignored; never in the repos
                        to the --id auto agent it gives satellite i (see below)
     ca.pem, router.pem, router.key   with TLS (swarm keys --tls): the CA (ca.key is not
                        kept), the router's certificate and key
+    driver.pem, driver.key           a cluster run's (mutual TLS between hosts): the
+                       client certificate of the driver's identities (DRIVER_IDENTITIES);
+                       router.json says "mtls": true, every router certificate serves
+                       both ends of a link
 
 ``--id auto`` (compose replicas, a remote agent): the replica holds only the ``claimant``
 credential, which may do nothing but ask the world for a satellite (``claim/<token>``).
@@ -58,7 +62,7 @@ from pathlib import Path
 
 from swarmrt.bus.messages import IDENTITIES, MAX_PAYLOAD_BYTES, MAX_PAYLOAD_DEFAULT, MAX_SAT_ID, Keys, MessageError, grants, parse_key
 
-__all__ = ["DEFAULT_TLS_HOSTS", "make_keys", "acl_config", "size_limits", "size_limit_of", "apply_router_security", "load_router_keys", "Credential",
+__all__ = ["DEFAULT_TLS_HOSTS", "DRIVER_IDENTITIES", "make_keys", "acl_config", "size_limits", "size_limit_of", "apply_router_security", "load_router_keys", "Credential",
            "load_credential", "load_agent_passwords", "agent_identities"]
 
 #: The names the router's certificate is valid for unless told otherwise: what compose's
@@ -66,6 +70,12 @@ __all__ = ["DEFAULT_TLS_HOSTS", "make_keys", "acl_config", "size_limits", "size_
 DEFAULT_TLS_HOSTS: tuple[str, ...] = ("router", "localhost", "127.0.0.1")
 
 _IDENT_RE = re.compile("|".join([*IDENTITIES, r"agent-\d+"]))
+
+#: The identities a cluster run's driver holds (``swarm run --cluster``, ``swarm fault``, read-only
+#: tools): they reach the head's router over the mesh's mutual TLS, so their credentials carry the
+#: driver's client certificate (every other process reaches its own node's router on that host's
+#: loopback, through the node's ingress gate).
+DRIVER_IDENTITIES: tuple[str, ...] = ("supervisor", "cli", "observer")
 
 
 def agent_identities(n_sats: int) -> list[str]:
@@ -92,22 +102,28 @@ def make_keys(out: str | Path, n_sats: int, tls_hosts: list[str] | None = None,
     pw = {name: secrets.token_urlsafe(24) for name in names}
     _write_private(out / "passwords", "".join(f"{n}:{p}\n" for n, p in pw.items()))
     tls = bool(tls_hosts) or bool(router_hosts)
+    mtls = bool(router_hosts)
     if tls_hosts or router_hosts:
         certs = ([("router", tls_hosts)] if tls_hosts else []) + [(f"router-{i}", h) for i, h in enumerate(router_hosts or [])]
-        _make_tls(out, certs)
+        _make_tls(out, certs, clients=["driver"] if mtls else [])
     for name in names:
-        cred = {"user": name, "password": pw[name], **({"ca": "ca.pem"} if tls else {})}
+        cred = {"user": name, "password": pw[name], **({"ca": "ca.pem"} if tls else {}),
+                **({"certificate": "driver.pem", "private_key": "driver.key"} if mtls and name in DRIVER_IDENTITIES else {})}
         _write_private(out / f"{name}.json", json.dumps(cred) + "\n")
     _write_private(out / "agents.json", json.dumps({str(i): pw[f"agent-{i}"] for i in range(n_sats)}) + "\n")
-    router = {"passwords": "passwords", "n_sats": n_sats, **({"certificate": "router.pem", "private_key": "router.key"} if tls else {})}
+    router = {"passwords": "passwords", "n_sats": n_sats, **({"certificate": "router.pem", "private_key": "router.key"} if tls else {}),
+              **({"mtls": True} if mtls else {})}
     _write_private(out / "router.json", json.dumps(router) + "\n")
     return out
 
 
-def _make_tls(out: Path, certs: list[tuple[str, list[str]]]) -> None:
+def _make_tls(out: Path, certs: list[tuple[str, list[str]]], clients: list[str] | None = None) -> None:
     """A CA and, for each (name, hosts) of ``certs``, a router certificate ``<name>.pem``
     (key ``<name>.key``) valid for ``hosts``, signed by it (openssl, as any operator would;
-    the CA's key is deleted once it has signed them all: new hosts mean new keys)."""
+    the CA's key is deleted once it has signed them all: new hosts mean new keys). A router's
+    certificate serves for both ends of a TLS link (it dials its peers with it when the mesh
+    is mutual TLS); each name of ``clients`` gets a client certificate only (``<name>.pem``,
+    no host names: what a TLS listener with ``enable_mtls`` asks of who connects)."""
     openssl = shutil.which("openssl")
     if openssl is None:
         raise RuntimeError("TLS keys need the openssl command (Debian: apt-get install openssl)")
@@ -127,17 +143,26 @@ def _make_tls(out: Path, certs: list[tuple[str, list[str]]]) -> None:
             run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", f"/CN={hosts[0]}",
                 "-keyout", str(out / f"{name}.key"), "-out", str(out / f"{name}.csr"))
             ext = out / f"{name}.ext"
-            ext.write_text(f"subjectAltName={san}\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature\nextendedKeyUsage=serverAuth\n")
+            ext.write_text(f"subjectAltName={san}\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature\n"
+                           "extendedKeyUsage=serverAuth,clientAuth\n")
+            run("x509", "-req", "-in", str(out / f"{name}.csr"), "-CA", str(out / "ca.pem"), "-CAkey", str(out / "ca.key"),
+                "-CAcreateserial", "-days", "825", "-extfile", str(ext), "-out", str(out / f"{name}.pem"))
+        for name in clients or []:
+            run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", f"/CN=swarm-coloc {name}",
+                "-keyout", str(out / f"{name}.key"), "-out", str(out / f"{name}.csr"))
+            ext = out / f"{name}.ext"
+            ext.write_text("basicConstraints=CA:FALSE\nkeyUsage=digitalSignature\nextendedKeyUsage=clientAuth\n")
             run("x509", "-req", "-in", str(out / f"{name}.csr"), "-CA", str(out / "ca.pem"), "-CAkey", str(out / "ca.key"),
                 "-CAcreateserial", "-days", "825", "-extfile", str(ext), "-out", str(out / f"{name}.pem"))
     finally:
         os.umask(old)
         (out / "ca.key").unlink(missing_ok=True)  # whatever happened: the CA signs nothing more
-    for f in ("ca.srl", *(f"{name}.{x}" for name, _h in certs for x in ("csr", "ext"))):
+    every = [*(name for name, _h in certs), *(clients or [])]
+    for f in ("ca.srl", *(f"{name}.{x}" for name in every for x in ("csr", "ext"))):
         (out / f).unlink(missing_ok=True)
-    for f in ("ca.pem", *(f"{name}.pem" for name, _h in certs)):
+    for f in ("ca.pem", *(f"{name}.pem" for name in every)):
         os.chmod(out / f, 0o644)  # public
-    for name, _h in certs:
+    for name in every:
         os.chmod(out / f"{name}.key", 0o600)
 
 
@@ -301,6 +326,8 @@ def _read_router_keys(keys_dir: str | Path) -> tuple[dict, Path, str]:
     tls = [f for f in ("certificate", "private_key") if f in meta]
     if tls and (len(tls) != 2 or not all(isinstance(meta[f], str) and meta[f] for f in tls)):
         raise SystemExit(f"router keys {meta_path}: \"certificate\" and \"private_key\" go together, each a file name")
+    if "mtls" in meta and (meta["mtls"] not in (True, False) or (meta["mtls"] and not tls)):
+        raise SystemExit(f"router keys {meta_path}: \"mtls\" is true or false, and true only with a \"certificate\"")
     dictionary = keys_dir / meta["passwords"]
     try:
         if not dictionary.is_file():
@@ -337,9 +364,19 @@ def apply_router_security(cfg, keys_dir: str | Path, run: str, n_sats: int, link
         load_credential(keys_dir / "mesh.json").apply(cfg)
     applied = []
     if "certificate" in meta:
-        cfg.insert_json5("transport/link/tls/listen_certificate", json.dumps(str((keys_dir / meta["certificate"]).resolve())))
-        cfg.insert_json5("transport/link/tls/listen_private_key", json.dumps(str((keys_dir / meta["private_key"]).resolve())))
+        cert, key = (json.dumps(str((keys_dir / meta[f]).resolve())) for f in ("certificate", "private_key"))
+        cfg.insert_json5("transport/link/tls/listen_certificate", cert)
+        cfg.insert_json5("transport/link/tls/listen_private_key", key)
         applied.append("tls")
+        if meta.get("mtls") is True:
+            # Mutual TLS (a cluster's mesh): a TLS peer must show a certificate of the run's
+            # CA (another node's router, or the driver's), so a stolen agent's password alone
+            # cannot reach the router from another host, around the node's ingress gate; the
+            # router dials its peers with its own certificate.
+            cfg.insert_json5("transport/link/tls/enable_mtls", "true")
+            cfg.insert_json5("transport/link/tls/connect_certificate", cert)
+            cfg.insert_json5("transport/link/tls/connect_private_key", key)
+            applied.append("mtls")
     return applied
 
 
@@ -347,25 +384,34 @@ def apply_router_security(cfg, keys_dir: str | Path, run: str, n_sats: int, link
 class Credential:
     """One identity's credential (a ``<identity>.json`` of a keys directory)."""
 
-    def __init__(self, user: str, password: str, ca: str | None = None):
+    def __init__(self, user: str, password: str, ca: str | None = None, certificate: str | None = None,
+                 private_key: str | None = None):
         if not _IDENT_RE.fullmatch(user):
             raise ValueError(f"credential: {user!r} is not a swarm identity")
+        if (certificate is None) != (private_key is None):
+            raise ValueError("credential: a client certificate and its private key go together")
         self.user = user
         self.password = password
         self.ca = ca
+        self.certificate = certificate  # a client certificate (mutual TLS: a cluster's driver)
+        self.private_key = private_key
 
     def with_identity(self, user: str, password: str) -> Credential:
-        """The same trust (CA), another identity (an --id auto agent once it has its satellite)."""
-        return Credential(user, password, self.ca)
+        """The same trust (CA, client certificate), another identity (an --id auto agent once it has its satellite)."""
+        return Credential(user, password, self.ca, self.certificate, self.private_key)
 
     def apply(self, cfg) -> None:
         cfg.insert_json5("transport/auth/usrpwd/user", json.dumps(self.user))
         cfg.insert_json5("transport/auth/usrpwd/password", json.dumps(self.password))
         if self.ca:
             cfg.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(self.ca))
+        if self.certificate and self.private_key:
+            cfg.insert_json5("transport/link/tls/enable_mtls", "true")
+            cfg.insert_json5("transport/link/tls/connect_certificate", json.dumps(self.certificate))
+            cfg.insert_json5("transport/link/tls/connect_private_key", json.dumps(self.private_key))
 
     def __repr__(self) -> str:  # never the password
-        return f"Credential({self.user!r}{', TLS' if self.ca else ''})"
+        return f"Credential({self.user!r}{', TLS' if self.ca else ''}{', client certificate' if self.certificate else ''})"
 
 
 #: The largest keys file read (a credential is ~100 bytes; agents.json of 10,000 satellites ~450 KB).
@@ -399,19 +445,22 @@ def load_credential(path: str | Path) -> Credential:
     d = _read_json(path, "credential")
     if not isinstance(d, dict) or not isinstance(d.get("user"), str) or not isinstance(d.get("password"), str):
         raise SystemExit(f"credential {path}: expected a JSON object with \"user\" and \"password\"")
-    ca = d.get("ca")
-    if ca is not None:
-        if not isinstance(ca, str) or not ca or "\0" in ca:
-            raise SystemExit(f"credential {path}: \"ca\" must be the CA certificate's file name, not {str(ca)[:80]!r}")
-        try:
-            ca = str((path.parent / ca).resolve())
-            found = Path(ca).is_file()
-        except (OSError, ValueError):
-            found = False
-        if not found:
-            raise SystemExit(f"credential {path}: its CA certificate {str(ca)[:300]} is missing")
+    files: dict[str, str | None] = {}
+    for field, what in (("ca", "CA certificate"), ("certificate", "client certificate"), ("private_key", "client private key")):
+        name = d.get(field)
+        if name is not None:
+            if not isinstance(name, str) or not name or "\0" in name:
+                raise SystemExit(f"credential {path}: \"{field}\" must be the {what}'s file name, not {str(name)[:80]!r}")
+            try:
+                name = str((path.parent / name).resolve())
+                found = Path(name).is_file()
+            except (OSError, ValueError):
+                found = False
+            if not found:
+                raise SystemExit(f"credential {path}: its {what} {str(name)[:300]} is missing")
+        files[field] = name
     try:
-        return Credential(d["user"], d["password"], ca)
+        return Credential(d["user"], d["password"], files["ca"], files["certificate"], files["private_key"])
     except ValueError as exc:
         raise SystemExit(f"credential {path}: {exc}") from None
 

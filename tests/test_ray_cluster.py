@@ -102,35 +102,42 @@ def _faults(summary: dict, action: str) -> list[dict]:
 
 
 def _tls_only(sw) -> dict:
-    """While the run flies (on_start): every router of the cluster speaks TLS only. A session
-    with a valid credential but plain TCP to a router's port is refused; the same credential
-    over TLS with the run's CA is let in (the control: the refusal is not some other fault)."""
+    """While the run flies (on_start): every router of the cluster speaks mutual TLS only on
+    its host's address. A session with a valid credential but plain TCP to a router's port is
+    refused; so is one over TLS with an agent's credential (a valid password, the run's CA,
+    no client certificate: a stolen agent credential used from another host, around the node's
+    ingress gate); the driver's credential (its client certificate) over TLS is let in on the
+    head's (the control: the refusals are not some other fault)."""
     from forgery import _open
 
     info = json.loads((sw.out / "run.json").read_text())
-    seen = {"tls": info["tls"], "routers": list(info["routers"]), "refused": [], "admitted": []}
+    seen = {"tls": info["tls"], "routers": list(info["routers"]), "refused": [], "refused_tls": [], "admitted": []}
     for j, ep in enumerate(info["routers"]):
-        # A credential that router knows: the driver's observer on the head's; on a worker's
-        # (whose dictionary has its agents and the mesh only), one of its agents', read from
-        # that node's private folder (a test on one machine can; nothing else does).
-        cred = (Path(info["keys"]) / "observer.json" if j == 0 else
-                next(Path("/tmp").glob(f"swarm-node-{info['run']}-{j}-*/keys/agent-{j}.json")))
+        # A credential that router knows: one of its node's agents', read from that node's
+        # private folder (a test on one machine can; nothing else does).
+        agent = next(Path("/tmp").glob(f"swarm-node-{info['run']}-{j}-*/keys/agent-{j}.json"))
         scheme, _, addr = ep.partition("/")
         try:
-            _open(f"tcp/{addr}", str(cred), timeout_ms=2000).close()
+            _open(f"tcp/{addr}", str(agent), timeout_ms=2000).close()
         except zenoh.ZError:
             seen["refused"].append(f"tcp/{addr}")
         if scheme == "tls":
-            with contextlib.suppress(zenoh.ZError):
-                _open(ep, str(cred), timeout_ms=20_000).close()
-                seen["admitted"].append(ep)
+            try:
+                _open(ep, str(agent), timeout_ms=2000).close()
+            except zenoh.ZError:
+                seen["refused_tls"].append(ep)
+            if j == 0:
+                with contextlib.suppress(zenoh.ZError):
+                    _open(ep, str(Path(info["keys"]) / "observer.json"), timeout_ms=20_000).close()
+                    seen["admitted"].append(ep)
     sw.tls_check = seen
     return seen
 
 
 def test_twelve_satellites_over_three_nodes_equal_swarm_sim_through_a_partition(cluster, tmp_path):
-    """Bit for bit `swarm sim` through a 10 s partition of nodes 1 and 2; the routers' mesh and
-    every process's link to its router are TLS (a plain-TCP peer is refused by every router)."""
+    """Bit for bit `swarm sim` through a 10 s partition of nodes 1 and 2; the routers' mesh is
+    mutual TLS (a plain-TCP peer and an agent's credential over TLS are refused by every
+    router), every process reaches its node's router through the node's ingress gate."""
     sc = twelve(faults=[{"at_step": 4, "action": "partition-nodes", "target": 1, "peer": 2, "down_s": 10.0}])
     t0 = time.monotonic()
     checked: dict = {}
@@ -141,7 +148,14 @@ def test_twelve_satellites_over_three_nodes_equal_swarm_sim_through_a_partition(
     print(f"TLS: {checked}")
     assert checked["tls"] and all(ep.startswith("tls/") for ep in info["routers"]), checked
     assert checked["refused"] == [f"tcp/{ep.split('/', 1)[1]}" for ep in info["routers"]], checked
-    assert checked["admitted"] == info["routers"], checked
+    assert checked["refused_tls"] == info["routers"] and checked["admitted"] == info["routers"][:1], checked
+    # Every process of a node reached its router through the node's ingress gate (each identity
+    # at its own loopback port), and the gates held, cut and refused nothing of an honest run.
+    gate = res.summary["router_gate"]
+    print(f"gate: { {k: (c['connections'], c['messages_in']) for k, c in gate.items()} }")
+    for name in ("world", "recorder", *(f"agent-{i}" for i in range(12))):  # (no selector: the graph is complete)
+        assert gate[name]["connections"] >= 1, (name, gate.get(name))
+    assert not [k for k, c in gate.items() if c["held"] or c["cut"] or c["refused"]], gate
     logs = tmp_path / "run" / "logs"
     for name in ("router", "router-1", "router-2"):  # each router loaded its own node's certificate
         assert "TLS certificate loaded" in (logs / f"{name}.log").read_text(errors="replace"), name
@@ -192,11 +206,11 @@ def test_a_node_killed_mid_run_its_agents_restart_elsewhere_and_the_run_complete
 
 def test_an_agent_without_tls_connects_on_its_hosts_loopback(cluster, tmp_path):
     """`--agent I=COMMAND` on a TLS cluster: a program of another language may have no Zenoh
-    TLS transport (the Rust agent has none), so each router also listens on its host's
-    loopback and such an agent connects there (no other host reaches it). Flown here by the
-    contract's Python agent (`python -m sat_agent.from_env`, the program-of-another-language
-    path: the host actor runs the command under the lifeline); it flies every step and the
-    run equals `swarm sim` bit for bit."""
+    TLS transport (the Rust agent has none); every agent reaches its node's router on its
+    host's loopback, through the node's ingress gate (no other host reaches it), a program of
+    another language as a native one. Flown here by the contract's Python agent (`python -m
+    sat_agent.from_env`, the program-of-another-language path: the host actor runs the command
+    under the lifeline); it flies every step and the run equals `swarm sim` bit for bit."""
     sc = twelve(n_sats=4, duration_s=12)
     res = run(sc, out=tmp_path / "run", cluster=cluster, agents={1: f"{sys.executable} -m sat_agent.from_env"}, log=print)
     assert res.outcome.exit_code == 0, res.outcome
@@ -206,7 +220,9 @@ def test_an_agent_without_tls_connects_on_its_hosts_loopback(cluster, tmp_path):
     log = (tmp_path / "run" / "logs" / "agent-1.log").read_text(errors="replace")
     assert "tcp/127.0.0.1:" in log and "tls/" not in log, log[-2000:]
     native = (tmp_path / "run" / "logs" / "agent-2.log").read_text(errors="replace")
-    assert f"tls/{cluster.node_ips[2]}:" in native, native[-2000:]
+    assert "tcp/127.0.0.1:" in native and "tls/" not in native, native[-2000:]
+    gate = res.summary["router_gate"]
+    assert gate["agent-1"]["connections"] >= 1 and gate["agent-2"]["connections"] >= 1, gate
     ref = simulate(sc).summary
     for key in NUMBERS:
         assert res.summary[key] == ref[key], key

@@ -258,6 +258,99 @@ def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
     assert others["agent-2"]["held"] == 0 and others["agent-2"]["cut"] == 0 and others["recorder"]["held"] == 0
 
 
+@pytest.fixture
+def handshake_router(tmp_path):
+    """A real router as compose runs it: ``--gate-listen`` on one TCP and one TLS port, every
+    identity at both, each known by its handshake; sized from a 4-satellite scenario."""
+    from swarm.supervise.launch import free_port
+    from swarmrt.scenario_files import load_scenario
+
+    keys = make_keys(tmp_path / "keys", 4, tls_hosts=["localhost", "127.0.0.1"])
+    scenario = tmp_path / "sc.yaml"
+    scenario.write_text("name: gate-compose\nn_sats: 4\nduration_s: 10\n")
+    eps = {"tcp": f"tcp/127.0.0.1:{free_port()}", "tls": f"tls/127.0.0.1:{free_port()}"}
+    counts = tmp_path / "gate-router.json"
+    log = tmp_path / "router.log"
+    with log.open("wb") as err:
+        p = subprocess.Popen([sys.executable, "-m", "swarm.supervise.router", "--gate-listen", eps["tcp"], "--gate-listen", eps["tls"],
+                              "--gate-counts", str(counts), "--keys", str(keys), "--run", RUN, "--scenario", str(scenario)],
+                             stdout=subprocess.PIPE, stderr=err)
+    try:
+        assert b"READY" in p.stdout.readline(), log.read_text()
+        from swarm.supervise.gate import handshake_plan
+
+        plan = handshake_plan(load_scenario(scenario), list(eps.values()), "c", "k")
+        assert plan is not None
+        yield eps, keys, counts, p, {e.identity: e for e in plan}
+    finally:
+        p.terminate()
+        try:
+            p.wait(30)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+            raise AssertionError(f"the router did not end within 30 s of SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
+    assert not list(tmp_path.glob("swarm-router-gate-*"))
+
+
+@pytest.mark.integration
+def test_one_port_knows_each_identity_by_its_handshake_over_tcp_and_tls(handshake_router):
+    """Compose's router: one TCP and one TLS port for everyone. The gate reads each
+    connection's identity from its Zenoh handshake and holds it to that identity's buckets:
+    agent 1's flood of tiny puts (over TCP) is cut while agent 2 (over TLS, the gate speaking
+    TLS with the router's certificate) gets every put through; each identity counted apart,
+    a stranger without a credential as ``unidentified``."""
+    eps, keys, counts, router, _limits = handshake_router
+    k = M.Keys(RUN)
+    got = {"flood": 0, "honest": set()}
+    first_flood = threading.Event()
+    lock = threading.Condition()
+
+    def on_sample(sample) -> None:
+        with lock:
+            if str(sample.key_expr) == k.est(1):
+                got["flood"] += 1
+                first_flood.set()
+            else:
+                got["honest"].add(sample.payload.to_bytes())
+                lock.notify_all()
+
+    with pytest.raises(zenoh.ZError):
+        _open(eps["tcp"], timeout_ms=2000)  # a stranger: refused by the router, counted by the gate
+    with _open(eps["tcp"], str(keys / "recorder.json")) as rec, \
+            _open(eps["tcp"], str(keys / "agent-1.json")) as thief, \
+            _open(eps["tls"], str(keys / "agent-2.json")) as honest:
+        sub = rec.declare_subscriber(k.est(), on_sample)
+        pub = thief.declare_publisher(k.est(1))
+        deadline = time.monotonic() + 30
+        while not first_flood.is_set() and time.monotonic() < deadline:
+            pub.put(b"\x01")
+            first_flood.wait(0.05)
+        assert first_flood.is_set(), "nothing of agent 1's reached the recorder"
+        offered = 0
+        t_flood = time.monotonic()
+        while time.monotonic() - t_flood < 2.0:
+            for _ in range(1000):
+                pub.put(b"\x02")
+            offered += 1000
+        _honest_puts(honest, k.est(2))
+        _all_honest_arrive(got, lock)
+        sub.undeclare()
+    router.terminate()
+    router.wait(30)
+    # A file of the router process's own beside the path given (compose's folder outlives runs).
+    (own,) = counts.parent.glob("gate-router.*.json")
+    c = json.loads(own.read_text())
+    assert merged_counts([own])["agent-2"]["connections"] >= 1
+    print({name: (x["connections"], x["messages_in"], x["cut"], x["held"]) for name, x in c.items()})
+    assert c["agent-1"]["cut"] > 0 and c["agent-1"]["unparsed"] == 0, c["agent-1"]
+    assert c["agent-1"]["messages_in"] < offered / 10, (c["agent-1"], offered)
+    for name in ("agent-2", "recorder"):  # each its own bucket: the thief's cut held nobody else
+        assert c[name]["connections"] >= 1 and c[name]["held"] == 0 and c[name]["cut"] == 0, (name, c[name])
+    assert c["unidentified"]["connections"] >= 1, c
+    assert "*" not in c and c["other"]["connections"] == 0, c  # nobody honest left unidentified
+
+
 @pytest.mark.integration
 def test_a_local_run_goes_through_the_gate_with_the_numbers_of_swarm_sim(tmp_path):
     from swarm.api import run, simulate

@@ -18,7 +18,7 @@ import pytest
 import zenoh
 
 from swarm.supervise.gate import Entry, Gate
-from swarm.supervise.zenoh_wire import MIN_MESSAGE_BYTES, WireCounter, _vle
+from swarm.supervise.zenoh_wire import MIN_MESSAGE_BYTES, WireCounter, _vle, open_syn_user
 
 
 def _enc_vle(v: int) -> bytes:
@@ -49,6 +49,38 @@ def _batch(body: bytes) -> bytes:
 
 def _frame(*msgs: bytes, sn: int = 7) -> bytes:
     return _batch(bytes([0x25]) + _enc_vle(sn) + b"".join(msgs))
+
+
+def _zbytes(b: bytes) -> bytes:
+    return _enc_vle(len(b)) + b
+
+
+def _open_syn(user: bytes | None, before: bytes = b"", ack: bool = False) -> bytes:
+    """An OPEN (T and Z flags; A for an OpenAck): lease 10 s, sn, a cookie, then ``before``
+    (other extensions, each marked "more follows") and the auth extension (id 3, bytes)
+    holding user/password's (id 2, bytes: the user name and the HMAC)."""
+    auth = b""
+    if user is not None:
+        usrpwd = _zbytes(user) + _zbytes(b"\xaa" * 32)
+        auth = bytes([0x43]) + _zbytes(bytes([0x42]) + _zbytes(usrpwd))
+    head = 0x02 | 0x40 | (0x20 if ack else 0) | (0x80 if before or auth else 0)
+    return bytes([head]) + _enc_vle(10) + _enc_vle(12345) + _zbytes(b"\x07" * 40) + before + auth
+
+
+def test_the_handshake_says_who_connects():
+    assert open_syn_user(_open_syn(b"agent-12")) == "agent-12"
+    # Other extensions before it (a unit, an integer, bytes that look like a user): skipped.
+    others = bytes([0x81]) + bytes([0xA2]) + _enc_vle(99) + bytes([0xC4]) + _zbytes(bytes([0x42]) + _zbytes(_zbytes(b"world")))
+    assert open_syn_user(_open_syn(b"agent-3", before=others)) == "agent-3"
+    # No user/password authentication, the router's OpenAck, another message, a truncated one: nobody.
+    assert open_syn_user(_open_syn(None)) is None
+    assert open_syn_user(_open_syn(b"world", ack=True)) is None
+    assert open_syn_user(bytes([0x25]) + _enc_vle(1)) is None
+    assert open_syn_user(_open_syn(b"agent-1")[:-40]) is None
+    # Fed as a stream, the counter keeps the first OPEN's user (a later one changes nothing).
+    w = WireCounter()
+    w.feed(_batch(_open_syn(b"agent-1")) + _batch(_open_syn(b"world")))
+    assert w.user == "agent-1" and w.unparsed == 0
 
 
 def test_a_frame_of_puts_split_over_reads_counts_each_put_once():

@@ -98,6 +98,7 @@ class NodeHost:
         self.shared_out = False
         self.endpoints: list[str] = []  # how this node's processes reach its router
         self.local_endpoints: list[str] = []  # its loopback TCP endpoint for agents without TLS (set_endpoints)
+        self.gate_endpoints: dict[str, str] = {}  # with the ingress gate: each identity's port on this host's loopback
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
         self.procs: dict[str, Any] = {}  # name → Popen | ForkedAgent (the current one)
@@ -154,7 +155,8 @@ class NodeHost:
         TLS between the nodes (a cluster over several hosts): a CA and a certificate per
         node's router, valid for that node's names (:func:`swarmrt.security.make_keys`); the
         CA's key is gone once they are signed, and the routers' keys once handed out (node i's
-        share has its own router's only), so nothing here can sign or serve as another node."""
+        share has its own router's only), so nothing here can sign or serve as another node;
+        the driver's client certificate's key (mutual TLS) goes the same way."""
         from swarmrt.security import make_keys
 
         d = Path(tempfile.mkdtemp(prefix=f"swarm-keys-{self.run}-", dir=self.dir))
@@ -164,7 +166,7 @@ class NodeHost:
         finally:
             shutil.rmtree(d, ignore_errors=True)
         out = tuple(self.key_share(names) for names in shares)
-        for name in [n for n in self._all_keys if n.startswith("router-") and n.endswith(".key")]:
+        for name in [n for n in self._all_keys if n.endswith(".key")]:  # the routers' and the driver's: handed out once
             del self._all_keys[name]
         return out if len(out) > 1 else out[0]
 
@@ -214,20 +216,41 @@ class NodeHost:
             self._cond.notify_all()
         return p.pid
 
+    def connect_to(self, identity: str) -> list[str]:
+        """Where a process of this node connecting as ``identity`` reaches the node's router:
+        its own port of the node's ingress gate (the host's loopback) when there is one."""
+        if self.gate_endpoints:
+            from swarm.supervise.gate import OTHER
+
+            return [self.gate_endpoints.get(identity, self.gate_endpoints[OTHER])]
+        return list(self.endpoints)
+
     def bus_args(self, identity: str) -> list[str]:
         cred = ["--credential", str(self.keys_dir / f"{identity}.json")] if self.keys_dir is not None else []
-        return ["--mode", "client", *[a for e in self.endpoints for a in ("--connect", e)], *cred]
+        return ["--mode", "client", *[a for e in self.connect_to(identity) for a in ("--connect", e)], *cred]
 
     def role_args(self, identity: str) -> list[str]:
         return ["--scenario", str(self.scenario_file), "--run", self.run, *self.bus_args(identity)]
 
-    def start_router(self, name: str, listen: list[str], connect: list[str], index: int, timeout: float = 60.0) -> int:
-        """This node's Zenoh router, listening on ``listen`` and dialling ``connect`` (the
-        other nodes' routers); returns its pid once it says READY."""
+    def start_router(self, name: str, listen: list[str], connect: list[str], index: int, timeout: float = 60.0,
+                     gate: list[dict[str, Any]] | None = None) -> int:
+        """This node's Zenoh router, listening on ``listen`` (the mesh's and the driver's way
+        in) and dialling ``connect`` (the other nodes' routers); returns its pid once it says
+        READY. ``gate``: the entries of its ingress gate (:func:`swarm.supervise.gate.plan_entries`,
+        as dicts): the node's own processes then reach it through the gate, each identity at its
+        own port of this host's loopback (:meth:`connect_to`); a restarted router binds the
+        same ports (its plan, written back once it listens)."""
         secure = (["--keys", str(self.keys_dir), "--run", self.run, "--scenario", str(self.scenario_file)]
                   if self.keys_dir is not None else [])
         mesh = [a for e in connect for a in ("--connect", e)]
         listens = [a for e in listen for a in ("--listen", e)]
+        plan = self.dir / f"gate-{name}.json"
+        if gate is not None:
+            from swarm.supervise.gate import Entry, write_plan
+
+            if not plan.exists():
+                write_plan(plan, [Entry(**e) for e in gate], str(self.dir / f"{name}.sock"))
+            listens += ["--gate", str(plan), "--gate-counts", str(self.dir / "logs" / f"gate-{name}.json")]
         with open(self._log(name), "ab") as logf:
             p = self._popen(name, ["swarm.supervise.router", *listens, "--index", str(index), *mesh, *secure],
                             stdout=subprocess.PIPE, stderr=logf)
@@ -242,7 +265,10 @@ class NodeHost:
                 os.killpg(p.pid, signal.SIGKILL)
             raise RuntimeError(f"node {self.index}: the Zenoh router {name} did not start within {timeout:.0f} s "
                                f"(its log: {self._log(name)}: {self._tail(name)})")
-        # Local clients reach the router on the first endpoint (this node's own).
+        if gate is not None:
+            from swarm.supervise.gate import loopback_endpoints, read_plan
+
+            self.gate_endpoints = loopback_endpoints(read_plan(plan)[0])
         return self._track(name, p)
 
     def set_endpoints(self, endpoints: list[str], local: list[str] | None = None) -> None:
@@ -273,7 +299,7 @@ class NodeHost:
             from swarmrt.node import load_role_scenario
 
             sc = load_role_scenario(str(self.scenario_file))
-            bus = BusConfig(mode="client", connect=list(self.local_endpoints or self.endpoints),
+            bus = BusConfig(mode="client", connect=self.connect_to(name) if self.gate_endpoints else list(self.local_endpoints or self.endpoints),
                             credential_file=str(self.keys_dir / f"{name}.json") if self.keys_dir is not None else None)
             env = foreign_agent_env(sc, i, self.run, bus, self.dir, restart)
             with open(self._log(name), "ab" if name in self.procs else "wb") as logf:
@@ -382,9 +408,9 @@ class NodeHost:
         return ""
 
     def logs(self, limit: int = 4 << 20) -> dict[str, bytes]:
-        """Every log here (the last ``limit`` bytes of each)."""
+        """Every log here (the last ``limit`` bytes of each), and its router's gate counts."""
         out = {}
-        for p in sorted((self.dir / "logs").glob("*.log")):
+        for p in sorted([*(self.dir / "logs").glob("*.log"), *(self.dir / "logs").glob("gate-*.json")]):
             with contextlib.suppress(OSError):
                 data = p.read_bytes()
                 out[p.name] = data[-limit:]

@@ -16,10 +16,13 @@ actor starts and signals the processes there. What it adds:
   whole; a worker's, the agents' and the mesh's only), the credentials of the roles and
   agents it runs, nothing else; the driver gets the supervisor's, the CLI's and the
   observer's (``swarm fault --run-dir`` works as for a local run). When the cluster spans
-  hosts (two nodes or more, :func:`cluster_tls`) every Zenoh link is TLS: the head makes a CA
-  and one certificate per node's router (its address), node i gets its own router's key
-  only, and the routers listen on ``tls/`` endpoints alone (plus a loopback TCP one for
-  ``--agent`` programs without TLS).
+  hosts (two nodes or more, :func:`cluster_tls`) every Zenoh link between hosts is mutual
+  TLS: the head makes a CA, one certificate per node's router (its address) and the driver's
+  client certificate; node i gets its own router's key only, and the routers listen on
+  ``tls/`` endpoints for the mesh and the driver only.
+* **an ingress gate per node** (:mod:`swarm.supervise.gate`, as a local run has): the node's
+  own processes reach its router through it, each identity at its own port of the host's
+  loopback, rate-limited; its counts go into ``summary.json`` (``router_gate``).
 * **hosts that fail**: ``kill-node N`` takes node N down (on a local cluster every process of
   its namespace SIGKILLed, the raylet included; on real hosts its actor SIGKILLs the run's
   processes there and its raylet); its agents are started again on the surviving nodes (the
@@ -252,7 +255,8 @@ class RaySwarm(LocalSwarm):
         self.startup_s: dict[str, float] = {}
         self.on_routers: Any = None  # called with the routers' endpoints once they are up (benchmarks: byte counters)
         self.tls = False  # the routers' links (the mesh, every process's) over TLS: security on, two nodes or more
-        self.listens: list[list[str]] = []  # each router's endpoints (its TLS or TCP one; a loopback TCP one for --agent programs)
+        self.listens: list[list[str]] = []  # each router's endpoints (its TLS or TCP one; without the gate, a loopback TCP one for --agent programs)
+        self.gate_plan: list[dict[str, Any]] | None = None  # each node's ingress gate (its entries; None: off)
         self.local_endpoints: list[str] = []
         self._tokens: set[int] = set()  # the agents whose liveliness token the supervisor holds live (its hold applied)
         self._moved: dict[int, tuple[int, int, int]] = {}  # satellite → (step, dead node, new node) of a move not yet seen flying
@@ -345,7 +349,8 @@ class RaySwarm(LocalSwarm):
         """Which credential files each node gets (the driver's first): see the module docstring."""
         roles = {i: [r for r in ("world", "selector", "recorder") if self.place.get(r) == i] for i in range(n_nodes)}
         tls = ["ca.pem"] if self.tls else []
-        shares: list[list[str]] = [["supervisor.json", "cli.json", "observer.json", *tls]]
+        driver_cert = ["driver.pem", "driver.key"] if self.tls else []  # mutual TLS: the driver's client certificate
+        shares: list[list[str]] = [["supervisor.json", "cli.json", "observer.json", *tls, *driver_cert]]
         for i in range(n_nodes):
             files = ["router.json", "mesh.json", "passwords" if i == 0 else "passwords:agents", *tls,
                      *([f"router-tls:{i}"] if self.tls else [])]
@@ -409,7 +414,16 @@ class RaySwarm(LocalSwarm):
         self.endpoints = [f"{scheme}/{h.ip}:{p}" for h, p in zip(self.hosts, ports, strict=True)]
         self.endpoint = self.endpoints[0]
         self.listens = [[e] for e in self.endpoints]
-        if self.tls and self.sc.emulator.agent_commands:
+        # Each node's ingress gate (issue 35): the node's processes reach its router through
+        # it, each identity at its own port of the host's loopback, rate-limited; the router's
+        # host address is for the mesh and the driver (mutual TLS across hosts).
+        from dataclasses import asdict
+
+        from swarm.supervise.gate import plan_entries
+
+        entries = plan_entries(self.sc)
+        self.gate_plan = [asdict(e) for e in entries] if entries is not None else None
+        if self.tls and self.sc.emulator.agent_commands and self.gate_plan is None:
             # Programs of other languages may have no Zenoh TLS transport (the Rust agent has
             # none): each router also listens on its host's loopback, which no other host reaches.
             lports = ray.get([h.actor.free_port.remote("127.0.0.1") for h in self.hosts], timeout=_CALL_TIMEOUT_S)
@@ -419,7 +433,7 @@ class RaySwarm(LocalSwarm):
         # Every router at once, each dialling all the others (a router retries until its peer
         # listens): one after the other cost N router start-ups (~14 s each at load 30).
         starts = [h.actor.start_router.remote(self.router_names[i], self.listens[i],
-                                              [e for j, e in enumerate(self.endpoints) if j != i], i, 120.0)
+                                              [e for j, e in enumerate(self.endpoints) if j != i], i, 120.0, self.gate_plan)
                   for i, h in enumerate(self.hosts)]
         for h, pid in zip(self.hosts, ray.get(starts, timeout=300.0), strict=True):
             h.call("set_endpoints", [self.endpoints[h.index]], self.local_endpoints[h.index:h.index + 1])
@@ -502,7 +516,7 @@ class RaySwarm(LocalSwarm):
         running = [e for j, e in enumerate(self.endpoints) if j != i and (q := self.procs.get(self.router_names[j])) is not None
                    and q.poll() is None]
         h = self.hosts[i]
-        pid = h.call("start_router", name, self.listens[i], running, i, timeout)
+        pid = h.call("start_router", name, self.listens[i], running, i, timeout, self.gate_plan)
         h.call("set_endpoints", [self.endpoints[i]], self.local_endpoints[i:i + 1])
         p = h.track(name, pid)
         self._track(name, p)
@@ -799,7 +813,7 @@ class RaySwarm(LocalSwarm):
         d = h.info.get("dir")
         if h.dead is None or not d or h.info.get("hostname") != socket.gethostname() or not Path(d).is_dir():
             return
-        for p in (Path(d) / "logs").glob("*.log"):
+        for p in [*(Path(d) / "logs").glob("*.log"), *(Path(d) / "logs").glob("gate-*.json")]:
             with contextlib.suppress(OSError):  # agent-2.log of the lost node 2: agent-2.node2.log
-                shutil.copyfile(p, self.out / "logs" / f"{p.stem}.node{h.index}.log")
+                shutil.copyfile(p, self.out / "logs" / f"{p.stem}.node{h.index}{p.suffix}")
         shutil.rmtree(d, ignore_errors=True)

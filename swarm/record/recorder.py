@@ -394,10 +394,14 @@ def main(argv=None) -> int:
     p.add_argument("--scenario", default=None, help="scenario YAML (needed to derive Foxglove 3-D channels and the summary)")
     p.add_argument("--set", dest="sets", action="append", default=[], help="scenario override dotted.key=value")
     p.add_argument("--summary", default=None, help="when the run is done, write summary.json here (needs --scenario)")
+    p.add_argument("--router-gate", metavar="GLOB", default=None,
+                   help="the routers' ingress gate counts (JSON files, e.g. /out/gate-*.json; those written since the recorder "
+                        "started) to add to the summary as router_gate, summed per identity (compose)")
     p.add_argument("-v", "--verbose", action="store_true")
     add_bus_args(p)
     a = p.parse_args(argv)
     setup_logging("recorder", a.verbose)
+    started = time.time() - 1.0  # (a file's time stamp is of its file system's clock; a second's slack)
     sc = None
     if a.scenario:
         from swarmrt.node import load_role_scenario
@@ -424,6 +428,13 @@ def main(argv=None) -> int:
         else:
             summary = load_recording(a.out, sc.n_sats, sc.steps, scenario=sc).summary(sc)
         summary["run"] = a.run
+        if a.router_gate:
+            from swarm.supervise.gate import fresh_counts
+
+            # The files written since this recorder started (a folder's earlier runs left theirs),
+            # as of the run's end (the routers write them once a second while they change).
+            if counts := fresh_counts(a.router_gate, started):
+                summary["router_gate"] = counts
         write_json(a.summary, summary)
         logging.getLogger("recorder").info("wrote %s", a.summary)
     if r.broken:

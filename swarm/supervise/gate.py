@@ -33,7 +33,9 @@ import contextlib
 import functools
 import json
 import logging
+import os
 import socket
+import ssl
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -47,11 +49,14 @@ log = logging.getLogger(__name__)
 _READ_BYTES = 64 * 1024  # one read from a connection: the unit the bucket is charged
 _BOUNDED_KINDS = {"est", "health", "fault", "recorded"}  # kinds the scenario sizes (the rest of MAX_PAYLOAD_BYTES: the world's)
 OTHER = "other"  # the shared entry: identities without their own port (tools, the fault CLI)
+ANY = "*"  # an entry that serves every identity at one port, each known by its handshake (compose's router)
+UNIDENTIFIED = "unidentified"  # counts of connections to an ANY entry that never said who they are
 
 
 @dataclass
 class Entry:
-    """One identity's port and its bucket's size."""
+    """One identity's port and its bucket's size (port 0: the kernel's choice; -1: not
+    listened, the identity's limits for an :data:`ANY` entry)."""
 
     identity: str
     port: int
@@ -59,6 +64,9 @@ class Entry:
     burst_bytes: float
     rate_msgs_per_s: float = float("inf")  # Zenoh messages (swarm.supervise.zenoh_wire); inf: not counted
     burst_msgs: float = float("inf")
+    host: str = ""  # the address it listens on ("": the gate's, loopback)
+    tls_certificate: str = ""  # a certificate and key: it speaks TLS to its clients (compose's remote agents)
+    tls_private_key: str = ""
 
 
 @dataclass
@@ -177,14 +185,76 @@ def gate_message_limits(n_sats: int, recorder_max_lag_steps: int, links: bool, i
     return out
 
 
+def plan_entries(sc: Any) -> list[Entry] | None:
+    """A run's gate entries (every identity but the mesh, at port 0: the gate binds the
+    kernel's choice), sized from scenario ``sc``; None when the gate is off
+    (``emulator.gate: false``, or ``SWARM_ROUTER_GATE=off`` to measure without it). The
+    shared ``other`` entry (tools, the fault CLI, a kit) gets an agent's buckets."""
+    from swarmrt.bus.messages import IDENTITIES
+    from swarmrt.security import agent_identities
+
+    em = sc.emulator
+    if not em.gate or os.environ.get("SWARM_ROUTER_GATE", "on") == "off":
+        return None
+    names = [*(i for i in IDENTITIES if i != "mesh"), *agent_identities(sc.n_sats)]
+    limits = gate_limits(sc.n_sats, em.recorder_max_lag_steps, sc.links.enabled, names, em.gate_steps_per_s)
+    limits[OTHER] = limits["agent-0"]
+    msg_limits = gate_message_limits(sc.n_sats, em.recorder_max_lag_steps, sc.links.enabled, names, em.gate_steps_per_s)
+    msg_limits[OTHER] = msg_limits["agent-0"]
+    return [Entry(name, 0, rate, burst, *msg_limits[name]) for name, (rate, burst) in limits.items()]
+
+
+def handshake_plan(sc: Any, endpoints: list[str], certificate: str = "", private_key: str = "") -> list[Entry] | None:
+    """A gate plan that serves every identity at each of ``endpoints`` (``tcp/HOST:PORT`` or
+    ``tls/HOST:PORT``, the latter with the router's ``certificate`` and ``private_key``),
+    each connection held to the buckets of the identity its handshake names (:data:`ANY`);
+    the limits as :func:`plan_entries` sizes them, the mesh (another router, everyone's
+    traffic) unlimited. None when the gate is off. Compose's router: its containers and
+    remote agents know one endpoint, not a port per identity."""
+    entries = plan_entries(sc)
+    if entries is None:
+        return None
+    for e in entries:
+        e.port = -1
+    entries.append(Entry("mesh", -1, float("inf"), float("inf")))
+    for ep in endpoints:
+        scheme, _, addr = ep.partition("/")
+        host, _, port = addr.rpartition(":")
+        if scheme not in ("tcp", "tls") or not host or not port.isdigit():
+            raise ValueError(f"a gate endpoint is tcp/HOST:PORT or tls/HOST:PORT, not {ep!r}")
+        if scheme == "tls" and not (certificate and private_key):
+            raise ValueError(f"{ep}: a TLS gate endpoint needs the router's certificate and key (keys made with TLS)")
+        entries.append(Entry(ANY, int(port), float("inf"), float("inf"), host=host,
+                             tls_certificate=certificate if scheme == "tls" else "",
+                             tls_private_key=private_key if scheme == "tls" else ""))
+    return entries
+
+
+def loopback_endpoints(entries: list[Entry], host: str = "127.0.0.1") -> dict[str, str]:
+    """Each identity's way in (``tcp/HOST:PORT``) through a gate whose ``entries`` have their ports."""
+    missing = [e.identity for e in entries if e.port == 0]
+    if missing:
+        raise RuntimeError(f"the gate did not say which port it bound for {', '.join(missing[:3])}")
+    return {e.identity: f"tcp/{host}:{e.port}" for e in entries if e.port > 0}
+
+
 class Gate:
-    """The relay (an asyncio loop on its own thread). ``upstream``: the router's Unix socket."""
+    """The relay (an asyncio loop on its own thread). ``upstream``: the router's Unix socket.
+
+    An entry whose identity is :data:`ANY` serves every identity at one port: it reads each
+    connection's identity from its Zenoh handshake (:func:`swarm.supervise.zenoh_wire.open_syn_user`,
+    the user name the router then authenticates) and gives it that identity's buckets (an
+    entry of the plan at port -1: limits only; an unknown user gets ``other``'s). Until then
+    (the handshake's few hundred bytes) the connection is held to ``other``'s buckets. An
+    entry with a certificate and key speaks TLS to its clients (it terminates TLS, as the
+    router would, with the router's own certificate) and relays the plain Zenoh stream."""
 
     def __init__(self, entries: list[Entry], upstream: str, host: str = "127.0.0.1"):
         self.entries = entries
         self.upstream = upstream
         self.host = host
-        self.count = {e.identity: _Count() for e in entries}
+        self.count = {e.identity: _Count() for e in entries if e.identity != ANY}
+        self.limits = {e.identity: e for e in entries if e.identity != ANY}
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._servers: list[asyncio.base_events.Server] = []
@@ -214,13 +284,20 @@ class Gate:
         self._loop = loop = asyncio.new_event_loop()
         try:
             for e in self.entries:
+                if e.port < 0:
+                    continue  # an identity's limits only (served by an ANY entry)
+                tls = None
+                if e.tls_certificate:
+                    tls = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+                    tls.load_cert_chain(e.tls_certificate, e.tls_private_key)
                 srv = loop.run_until_complete(asyncio.start_server(
-                    functools.partial(self._serve, e), self.host, e.port, reuse_address=True, limit=_READ_BYTES))
+                    functools.partial(self._serve, e), e.host or self.host, e.port, reuse_address=True, limit=_READ_BYTES,
+                    ssl=tls))
                 self._servers.append(srv)
                 # Port 0 in the plan: the kernel's choice, bound here and kept (write_plan), so
                 # that no other process can take it between a pick and this bind.
                 e.port = srv.sockets[0].getsockname()[1]
-        except OSError as err:
+        except (OSError, ssl.SSLError) as err:
             self._error = err
             self._ready.set()
             return
@@ -232,28 +309,52 @@ class Gate:
                 srv.close()
             loop.close()
 
+    def _cut(self, identity: str) -> bool:
+        return time.monotonic() < self._cut_until.get(identity, 0.0)
+
     async def _serve(self, e: Entry, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        c = self.count[e.identity]
-        if time.monotonic() < self._cut_until.get(e.identity, 0.0):
-            c.refused += 1
+        by_handshake = e.identity == ANY
+        if not by_handshake and self._cut(e.identity):
+            self.count[e.identity].refused += 1
             writer.close()
             return
         _nodelay(writer)
         try:
             up_r, up_w = await asyncio.open_unix_connection(self.upstream, limit=_READ_BYTES)
         except OSError:
-            c.refused += 1  # the router is not (yet, or any more) there: the client retries
+            # the router is not (yet, or any more) there: the client retries
+            self.count.setdefault(e.identity if not by_handshake else UNIDENTIFIED, _Count()).refused += 1
             writer.close()
             return
         _nodelay(up_w)
-        c.connections += 1
-        bucket = _Bucket(e.rate_bytes_per_s, e.burst_bytes)
-        messages = _Bucket(e.rate_msgs_per_s, e.burst_msgs)
-        wire = WireCounter() if e.rate_msgs_per_s != float("inf") else None
-        if wire is not None:
-            c.wires.append(wire)
+        provisional = self.limits.get(OTHER, e)
+        first = e if not by_handshake else provisional
+        wire = WireCounter() if by_handshake or first.rate_msgs_per_s != float("inf") else None
+        conn = _Conn(first, self.count[e.identity] if not by_handshake else _Count(), wire)
+        if not by_handshake:
+            conn.c.connections += 1
+            if wire is not None:
+                conn.c.wires.append(wire)
+
+        def identify(user: str | None) -> bool:
+            """The handshake said who: that identity's buckets and counts from here on
+            (what came before added to them). False: the identity is cut for now."""
+            name = user if user is not None and user in self.limits else OTHER
+            pre = conn.c
+            conn.identified = True
+            if self._cut(name):
+                self.count.setdefault(name, _Count()).refused += 1
+                return False
+            conn.bind(self.limits.get(name, provisional), self.count.setdefault(name, _Count()))
+            conn.c.connections += 1
+            conn.c.bytes_in += pre.bytes_in
+            conn.c.bytes_out += pre.bytes_out
+            if wire is not None:
+                conn.c.wires.append(wire)
+            return True
 
         async def hold(wait: float, n_bytes: int) -> None:
+            c = conn.c
             c.held += 1
             c.held_s += wait
             c.held_bytes += n_bytes
@@ -261,22 +362,25 @@ class Gate:
 
         async def inbound() -> None:
             while data := await reader.read(_READ_BYTES):
-                c.bytes_in += len(data)
+                conn.c.bytes_in += len(data)
                 if wire is None:  # bytes only
                     up_w.write(data)
                     await up_w.drain()
-                    if (wait := bucket.charge(len(data))) > 0:
+                    if (wait := conn.bucket.charge(len(data))) > 0:
                         await hold(wait, len(data))
                     continue
                 # Counted in messages too: relayed a whole batch at a time, each once counted.
                 unparsed = wire.unparsed
                 for framed, n in wire.feed(data):
+                    if by_handshake and not conn.identified and wire.user is not None and not identify(wire.user):
+                        return  # cut a moment ago: refused
+                    c, lim = conn.c, conn.e
                     if wire.unparsed != unparsed:
                         c.unparsed += wire.unparsed - unparsed
                         unparsed = wire.unparsed
                         log.warning("gate: %s sent a batch the message counter could not read (charged at the worst "
-                                    "case): %s", e.identity, wire.first_error)
-                    if n > e.burst_msgs:
+                                    "case): %s", lim.identity, wire.first_error)
+                    if n > lim.burst_msgs:
                         # More messages in one batch than the identity's whole burst: no honest
                         # role sends that (its largest batch is its declarations at start, ~40);
                         # a flood of tiny puts does. Not relayed: the connection is cut.
@@ -284,15 +388,15 @@ class Gate:
                         c.cut_messages += n
                         # Its next connection waits until a burst would have refilled: a
                         # flooder that reconnects at once is refused meanwhile.
-                        self._cut_until[e.identity] = time.monotonic() + e.burst_msgs / e.rate_msgs_per_s
+                        self._cut_until[lim.identity] = time.monotonic() + lim.burst_msgs / lim.rate_msgs_per_s
                         log.warning("gate: %s sent %d messages in one batch (its burst: %.0f): connection cut",
-                                    e.identity, n, e.burst_msgs)
+                                    lim.identity, n, lim.burst_msgs)
                         return
                     c.messages_in += n
                     up_w.write(framed)
                     await up_w.drain()
-                    wait = bucket.charge(len(framed))
-                    if (wait_m := messages.charge(n)) > wait:
+                    wait = conn.bucket.charge(len(framed))
+                    if (wait_m := conn.messages.charge(n)) > wait:
                         wait = wait_m
                         c.held_for_messages += 1
                     if wait > 0:
@@ -300,7 +404,7 @@ class Gate:
 
         async def outbound() -> None:
             while data := await up_r.read(_READ_BYTES):
-                c.bytes_out += len(data)
+                conn.c.bytes_out += len(data)
                 writer.write(data)
                 await writer.drain()
 
@@ -314,6 +418,31 @@ class Gate:
                 w.close()
         if wire is not None:
             wire.release()  # its counts stay; a batch half read is let go
+        if by_handshake and not conn.identified:  # never said who (a stranger, a port scan): counted apart
+            u = self.count.setdefault(UNIDENTIFIED, _Count())
+            u.connections += 1
+            u.bytes_in += conn.c.bytes_in
+            u.bytes_out += conn.c.bytes_out
+
+
+@dataclass
+class _Conn:
+    """One relayed connection: the entry whose buckets it is held to, its counts, its buckets."""
+
+    e: Entry
+    c: _Count
+    wire: WireCounter | None
+    identified: bool = False
+    bucket: _Bucket = field(init=False)
+    messages: _Bucket = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.bind(self.e, self.c)
+
+    def bind(self, e: Entry, c: _Count) -> None:
+        self.e, self.c = e, c
+        self.bucket = _Bucket(e.rate_bytes_per_s, e.burst_bytes)
+        self.messages = _Bucket(e.rate_msgs_per_s, e.burst_msgs)
 
 
 def _nodelay(w: asyncio.StreamWriter) -> None:
@@ -343,13 +472,20 @@ def write_plan(path: str | Path, entries: list[Entry], upstream: str) -> None:
 
 class CountsFile:
     """The gate's counts, written to ``path`` (atomically) once a second while they change
-    and at the end; a restarted router adds to what its predecessor wrote."""
+    and at the end; a restarted router adds to what its predecessor wrote. ``own``: a file
+    of this process's own instead (``gate-router.json`` becomes ``gate-router.<start ms>.json``,
+    nothing carried over): where a folder outlives runs of the same name (compose's output
+    folder), the reader sums the files written since the run began (:func:`fresh_counts`)."""
 
-    def __init__(self, gate: Gate, path: str | Path):
-        self.gate, self.path = gate, Path(path)
+    def __init__(self, gate: Gate, path: str | Path, own: bool = False):
+        path = Path(path)
+        if own:
+            path = path.with_name(f"{path.stem}.{int(time.time() * 1000)}{path.suffix}")
+        self.gate, self.path = gate, path
         self.base: dict[str, dict[str, Any]] = {}
-        with contextlib.suppress(OSError, ValueError):
-            self.base = json.loads(self.path.read_text())
+        if not own:
+            with contextlib.suppress(OSError, ValueError):
+                self.base = json.loads(self.path.read_text())
         self._last: str | None = None
 
     def total(self) -> dict[str, dict[str, Any]]:
@@ -382,6 +518,19 @@ def _sum_counts(docs: list[dict[str, dict[str, Any]]]) -> dict[str, dict[str, An
                 else:
                     acc[k] = round(acc.get(k, 0) + v, 4)
     return dict(sorted(out.items()))
+
+
+def fresh_counts(pattern: str, since: float) -> dict[str, dict[str, Any]]:
+    """The counts of the files matching ``pattern`` written at or after ``since`` (a wall
+    time: the run's start), summed per identity; identities nobody connected as left out."""
+    import glob
+
+    paths = []
+    for f in sorted(glob.glob(pattern)):
+        with contextlib.suppress(OSError):
+            if os.stat(f).st_mtime >= since:
+                paths.append(Path(f))
+    return {k: c for k, c in merged_counts(paths).items() if c.get("connections") or c.get("refused")}
 
 
 def merged_counts(paths: list[Path]) -> dict[str, dict[str, Any]]:

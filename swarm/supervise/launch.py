@@ -239,40 +239,34 @@ class LocalSwarm:
         """The ingress gate (:mod:`swarm.supervise.gate`): a port per identity on each
         router, each with its bucket; the routers listen on Unix sockets in a private
         directory. Off with ``emulator.gate: false`` (or ``SWARM_ROUTER_GATE=off``, to measure)."""
-        from swarm.supervise.gate import OTHER, Entry, gate_limits, gate_message_limits, write_plan
-        from swarmrt.bus.messages import IDENTITIES
-        from swarmrt.security import agent_identities
+        from swarm.supervise.gate import plan_entries, write_plan
 
-        em = self.sc.emulator
         for old in (self.out / "logs").glob("gate-*.json"):
             old.unlink()  # a previous run's counts in a reused folder
-        if not em.gate or os.environ.get("SWARM_ROUTER_GATE", "on") == "off":
+        entries = plan_entries(self.sc)
+        if entries is None:
             self.endpoints = [f"tcp/127.0.0.1:{free_port()}" for _ in range(self.n_routers)]
             return
-        names = [*(i for i in IDENTITIES if i != "mesh"), *agent_identities(self.sc.n_sats)]
-        limits = gate_limits(self.sc.n_sats, em.recorder_max_lag_steps, self.sc.links.enabled, names, em.gate_steps_per_s)
-        limits[OTHER] = limits["agent-0"]  # tools, the fault CLI, a kit: an agent's bucket
-        msg_limits = gate_message_limits(self.sc.n_sats, em.recorder_max_lag_steps, self.sc.links.enabled, names, em.gate_steps_per_s)
-        msg_limits[OTHER] = msg_limits["agent-0"]
         self._gate_dir = Path(tempfile.mkdtemp(prefix="swarm-gate-"))
         self.gate_endpoints = {}
         # Port 0: each router's gate binds the kernel's choice and writes it back into its plan
         # (_gate_ports), never a port picked here and bound later, which another process may
         # take in between (seen: a router that could not start, one port in a dozen taken).
         for i in range(self.n_routers):
-            write_plan(self._gate_dir / f"router-{i}.json",
-                       [Entry(name, 0, rate, burst, *msg_limits[name]) for name, (rate, burst) in limits.items()], str(self._gate_dir / f"r{i}.sock"))
+            write_plan(self._gate_dir / f"router-{i}.json", entries, str(self._gate_dir / f"r{i}.sock"))
 
     def _gate_ports(self, i: int) -> None:
         """Router ``i``'s ports, as its gate bound them (its plan, written back once it listens)."""
-        from swarm.supervise.gate import OTHER, read_plan
+        from swarm.supervise.gate import OTHER, loopback_endpoints, read_plan
 
         assert self._gate_dir is not None
         entries, _ = read_plan(self._gate_dir / f"router-{i}.json")
-        for e in entries:
-            if e.port == 0:
-                raise RuntimeError(f"router {i}'s gate did not say which port it bound for {e.identity}")
-            self.gate_endpoints.setdefault(e.identity, [""] * self.n_routers)[i] = f"tcp/127.0.0.1:{e.port}"
+        try:
+            eps = loopback_endpoints(entries)
+        except RuntimeError as exc:
+            raise RuntimeError(f"router {i}: {exc}") from None
+        for identity, ep in eps.items():
+            self.gate_endpoints.setdefault(identity, [""] * self.n_routers)[i] = ep
         self.endpoints = self.gate_endpoints[OTHER]
 
     def _role_args(self, identity: str) -> list[str]:

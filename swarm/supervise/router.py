@@ -12,6 +12,7 @@ with a warning).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import signal
@@ -20,6 +21,19 @@ import threading
 from pathlib import Path
 
 import zenoh
+
+
+def _raise_open_files(n_entries: int) -> None:
+    """A gate listens on a port per identity and holds two sockets per connection: at 1,000
+    satellites more than the usual soft limit of 1,024 open files. Raised to the hard limit."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    want = 4 * n_entries + 256
+    if soft != resource.RLIM_INFINITY and soft < want:
+        new = want if hard == resource.RLIM_INFINITY else min(want, hard)
+        with contextlib.suppress(ValueError, OSError):
+            resource.setrlimit(resource.RLIMIT_NOFILE, (new, hard))
 
 
 def main(argv=None) -> int:
@@ -39,7 +53,14 @@ def main(argv=None) -> int:
     p.add_argument("--gate", metavar="PLAN", default=None,
                    help="an ingress gate plan (JSON, swarm.supervise.gate): listen only on the plan's Unix socket and let "
                         "the gate, at one port per identity, rate-limit what each identity sends in")
-    p.add_argument("--gate-counts", metavar="FILE", default=None, help="where the gate writes its counts per identity (JSON)")
+    p.add_argument("--gate-listen", metavar="ENDPOINT", action="append", default=None,
+                   help="listen here (tcp/HOST:PORT or tls/HOST:PORT, repeatable) through an ingress gate that knows each "
+                        "connection's identity from its Zenoh handshake and rate-limits what it sends in, sized from --scenario "
+                        "(a TLS endpoint speaks TLS with the router's certificate); the router itself listens on a private "
+                        "Unix socket only. Compose's router. Needs --keys and --scenario")
+    p.add_argument("--gate-counts", metavar="FILE", default=None,
+                   help="where the gate writes its counts per identity (JSON; with --gate-listen a file of this process's "
+                        "own beside it, NAME.<start ms>.json, so that a folder reused by the next run never adds its counts up)")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s router %(levelname)s %(message)s", stream=sys.stderr)
     cfg = zenoh.Config.from_file(a.config) if a.config else zenoh.Config()
@@ -50,9 +71,16 @@ def main(argv=None) -> int:
         from swarm.supervise.gate import Gate, read_plan, write_plan
 
         entries, upstream = read_plan(a.gate)
+        _raise_open_files(len(entries))
         Path(upstream).unlink(missing_ok=True)  # ours: a killed predecessor's socket file
         listen = [f"unixsock-stream/{upstream}", *(a.listen or [])]
         gate = Gate(entries, upstream)
+    elif a.gate_listen:
+        gate, upstream = _handshake_gate(a, p)
+        if gate is not None:
+            listen = [f"unixsock-stream/{upstream}", *(a.listen or [])]
+        else:  # the gate off (emulator.gate: false): the router listens there itself
+            listen = [*a.gate_listen, *(a.listen or [])]
     cfg.insert_json5("listen/endpoints", json.dumps(listen))
     if a.connect:
         cfg.insert_json5("connect/endpoints", json.dumps(a.connect))
@@ -74,10 +102,11 @@ def main(argv=None) -> int:
             from swarm.supervise.gate import CountsFile
 
             gate.start()
-            write_plan(a.gate, gate.entries, gate.upstream)  # the ports it bound, for the supervisor and a restart
+            if a.gate:
+                write_plan(a.gate, gate.entries, gate.upstream)  # the ports it bound, for the supervisor and a restart
             logging.info("ingress gate: %s", ", ".join(f"{e.identity} on {e.port}" for e in gate.entries[:4])
                          + (f" and {len(gate.entries) - 4} more" if len(gate.entries) > 4 else ""))
-            counts = CountsFile(gate, a.gate_counts) if a.gate_counts else None
+            counts = CountsFile(gate, a.gate_counts, own=bool(a.gate_listen)) if a.gate_counts else None
         handles = []
         if a.exit_when_done:
             handles = _watch_run(session, a.exit_when_done, stop, _world_hold_s(a.scenario))
@@ -97,6 +126,40 @@ def main(argv=None) -> int:
         for h in handles:
             h.undeclare()
     return 0
+
+
+def _handshake_gate(a, p):
+    """The gate of ``--gate-listen`` (:func:`swarm.supervise.gate.handshake_plan`) and the
+    router's Unix socket, in a private directory of its own (removed at exit); (None, None)
+    when the scenario turns the gate off."""
+    import atexit
+    import shutil
+    import tempfile
+
+    from swarm.supervise.gate import Gate, handshake_plan
+    from swarmrt.node import load_role_scenario
+    from swarmrt.security import load_router_keys
+
+    if not (a.keys and a.scenario):
+        p.error("--gate-listen needs --keys and --scenario (the gate is sized from the scenario and knows the run's identities)")
+    meta, _, _ = load_router_keys(a.keys)
+    cert = str((Path(a.keys) / meta["certificate"]).resolve()) if "certificate" in meta else ""
+    key = str((Path(a.keys) / meta["private_key"]).resolve()) if "private_key" in meta else ""
+    sc = load_role_scenario(a.scenario)
+    if not sc.emulator.security:
+        logging.warning("no ingress gate: emulator.security is off (no identities to hold apart)")
+        return None, None
+    try:
+        entries = handshake_plan(sc, a.gate_listen, cert, key)
+    except ValueError as exc:
+        p.error(str(exc))
+    if entries is None:
+        return None, None
+    _raise_open_files(len(entries))
+    d = tempfile.mkdtemp(prefix="swarm-router-gate-")  # 0700
+    atexit.register(shutil.rmtree, d, True)
+    upstream = str(Path(d) / "r.sock")
+    return Gate(entries, upstream, host="0.0.0.0"), upstream
 
 
 def _secure(cfg, a, p) -> None:

@@ -219,6 +219,53 @@ def _network(b: bytes, i: int, h: int) -> int:
     raise Unparsed(f"network message id {mid:#x}")
 
 
+_OPEN_ACK = 0x20  # OPEN's A flag: an OpenAck (the router's answer), not the client's OpenSyn
+_EXT_AUTH, _AUTH_USRPWD = 0x03, 0x02  # OpenSyn's auth extension; in it, user/password authentication's
+
+
+def open_syn_user(b: bytes) -> str | None:
+    """The user name an ``OpenSyn`` (a batch's first message, without its length prefix)
+    authenticates as, or None (another message, no user/password authentication, or not
+    readable). Zenoh's user/password authentication sends the user name in clear (only the
+    password is a challenge-response): ``OPEN`` header, lease, initial sn, cookie, then its
+    extensions; the auth extension (id 3) holds the methods' own extensions, user/password's
+    (id 2) a byte string: the user name, then the HMAC (zenoh-transport's
+    ``establishment/ext/auth/usrpwd.rs``). The router checks the HMAC against the same
+    user name, so a connection the router admits is the identity read here."""
+    try:
+        h = b[0]
+        if h & _MID != _T_OPEN or h & _OPEN_ACK:
+            return None
+        _, i = _vle(b, 1)  # lease
+        _, i = _vle(b, i)  # initial sn
+        i = _bytes(b, i)  # cookie
+        more = h & _Z
+        while more:
+            eh = b[i]
+            more = eh & _Z
+            if eh & 0x0F == _EXT_AUTH and eh & 0x60 == 0x40:
+                n, j = _vle(b, i + 1)
+                end = j + n
+                if end > len(b):
+                    return None  # truncated
+                sub_more = 1 if n else 0
+                while sub_more and j < end:
+                    sh = b[j]
+                    sub_more = sh & _Z
+                    if sh & 0x0F == _AUTH_USRPWD and sh & 0x60 == 0x40:
+                        _, k = _vle(b, j + 1)
+                        n_user, k = _vle(b, k)
+                        if k + n_user > end:
+                            return None
+                        return bytes(b[k:k + n_user]).decode()
+                    j = _body(b, j + 1, sh & 0x60)
+                return None
+            i = _body(b, i + 1, eh & 0x60)
+    except (Unparsed, IndexError, UnicodeDecodeError):
+        return None
+    return None
+
+
 @dataclass
 class WireCounter:
     """The messages of one connection's inbound stream, fed as it is read."""
@@ -228,6 +275,7 @@ class WireCounter:
     batches: int = 0
     unparsed: int = 0  # batches that did not follow the format (charged at the worst case)
     first_error: str = ""
+    user: str | None = None  # the user name its OpenSyn authenticated as (open_syn_user), once read
     _buf: bytearray = field(default_factory=bytearray)
 
     def feed(self, data: bytes) -> list[tuple[bytes, int]]:
@@ -291,6 +339,8 @@ class WireCounter:
                 elif mid == _T_KEEP_ALIVE:
                     i = _exts(b, i, h & _Z)
                 elif mid in (_T_INIT, _T_OPEN, _T_CLOSE):
+                    if mid == _T_OPEN and self.user is None:
+                        self.user = open_syn_user(b[i - 1:])
                     return  # the handshake and the goodbye: each in a batch of its own, nothing to count
                 else:
                     raise Unparsed(f"transport message id {mid:#x}")
