@@ -142,6 +142,12 @@ def test_compose_up_runs_the_default_scenario_to_the_end(image, tmp_path):
     ref = _sim(4, sets.split())
     for key in ("rms", "rms_second_half", "per_pair", "nees", "gate"):
         assert s[key] == ref[key], f"{key}: containers and in-process differ"
+    # Every container came in through the router's ingress gate, known by its handshake (the
+    # replicas first as the claimant, then as their satellites), and nobody honest was held.
+    gate = s["router_gate"]
+    for name in ("world", "recorder", "claimant", *(f"agent-{i}" for i in range(4))):
+        assert gate[name]["connections"] >= 1, (name, gate)
+    assert not [k for k, x in gate.items() if x["held"] or x["cut"]], gate
 
 
 def test_first_up_makes_the_keys_outside_the_tracked_files(image, tmp_path):
@@ -381,6 +387,8 @@ def test_agent_on_another_site_joins_through_the_router(image, tmp_path):
     assert "with its credential" in logs, logs[-2000:]
     s = _summary(c.out)
     assert s["steps"] == 16
+    # Its TLS ended at the router's gate, which knew it by its handshake (4 agents, 3 local).
+    assert all(s["router_gate"][f"agent-{i}"]["connections"] >= 1 for i in range(4)), s["router_gate"]
     ref = _sim(4, ["duration_s=15"])
     assert s["rms"] == ref["rms"] and s["per_pair"] == ref["per_pair"]
 
