@@ -3,6 +3,7 @@ of tests/test_security.py and the compose one of tests/test_compose.py share the
 
 from __future__ import annotations
 
+import subprocess
 import threading
 
 import numpy as np
@@ -44,6 +45,18 @@ def _batch(run: str, sender: str, observer: int, k: int = MARK_K) -> bytes:
                                np.array([[1.0, 2, 3]]), np.eye(6)[None] * 1e-4)
     # t_s half a step off: no batch of a real run has it.
     return M.encode(batch_msg(rel, np.array([0]), run=run, sender=sender, k=k, t_s=k + 0.5, observer=observer))
+
+
+def end_router(p, log) -> None:
+    """SIGTERM a router a test started and wait for it; one that does not end within 30 s is
+    killed and fails the test with the end of its log (``log``: its log file's path)."""
+    p.terminate()
+    try:
+        p.wait(30)
+    except subprocess.TimeoutExpired:
+        p.kill()
+        p.wait()
+        raise AssertionError(f"the router did not end within 30 s of SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
 
 
 def _open(endpoint: str, cred=None, timeout_ms: int = 10_000):

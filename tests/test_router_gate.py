@@ -19,7 +19,7 @@ import time
 
 import pytest
 import zenoh
-from forgery import _open
+from forgery import _open, end_router
 
 from swarm.supervise.gate import OTHER, Entry, _Bucket, gate_limits, gate_message_limits, merged_counts, read_plan, write_plan
 from swarmcore.scenario import Emulator
@@ -108,8 +108,7 @@ def gated_router(tmp_path):
         nonlocal stopped
         if not stopped:
             stopped = True
-            p.terminate()
-            p.wait(30)
+            end_router(p, log)
 
     try:
         assert b"READY" in p.stdout.readline(), log.read_text()
@@ -117,12 +116,7 @@ def gated_router(tmp_path):
         assert all(e.port > 0 for e in bound) and len({e.port for e in bound}) == len(bound)
         yield {e.identity: f"tcp/127.0.0.1:{e.port}" for e in bound}, keys, counts, stop, limits, msg_limits
     finally:
-        try:
-            stop()
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-            raise AssertionError(f"the router did not end within 30 s of SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
+        stop()
 
 
 HONEST = [f"honest {i}".encode() for i in range(20)]
@@ -201,16 +195,12 @@ def test_a_flood_is_held_to_its_identitys_rate_and_an_honest_agent_still_gets_th
     assert c["agent-2"]["held"] == 0 and c["recorder"]["held"] == 0
 
 
-@pytest.mark.integration
-def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
-    """Tiny puts stay far under any byte rate an honest role needs, but each costs every
-    receiver: the gate counts Zenoh messages too. A batch of more messages than the
-    identity's whole burst (what a flood at full speed sends: the client packs thousands of
-    tiny puts into one) is not relayed and its connection is cut; in all, no more messages
-    come in than the burst, the rate for as long as the test lasts, and that one batch."""
-    ports, keys, counts, stop, _, msg_limits = gated_router
+def _tiny_flood(recorder, thief, honest_agent):
+    """Agent 1's credential (``thief``: endpoint, credential file) floods tiny puts on its
+    estimate at full speed for 2 s while the recorder subscribes and agent 2 puts its 20
+    honest messages; returns what arrived ({"flood": count, "honest": payloads}), its lock,
+    and how many puts were offered. Every honest put arrives (or it fails)."""
     k = M.Keys(RUN)
-    rate, burst = msg_limits["agent-1"]
     got = {"flood": 0, "honest": set()}
     first_flood = threading.Event()
     lock = threading.Condition()
@@ -224,12 +214,10 @@ def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
                 got["honest"].add(sample.payload.to_bytes())
                 lock.notify_all()
 
-    t0 = time.monotonic()
-    with _open(ports["recorder"], str(keys / "recorder.json")) as rec, \
-            _open(ports["agent-1"], str(keys / "agent-1.json")) as thief, \
-            _open(ports["agent-2"], str(keys / "agent-2.json")) as honest:
+    with _open(recorder[0], str(recorder[1])) as rec, _open(thief[0], str(thief[1])) as flooder, \
+            _open(honest_agent[0], str(honest_agent[1])) as honest:
         sub = rec.declare_subscriber(k.est(), on_sample)
-        pub = thief.declare_publisher(k.est(1))
+        pub = flooder.declare_publisher(k.est(1))
         deadline = time.monotonic() + 30
         while not first_flood.is_set() and time.monotonic() < deadline:
             pub.put(b"\x01")
@@ -244,6 +232,21 @@ def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
         _honest_puts(honest, k.est(2))
         _all_honest_arrive(got, lock)
         sub.undeclare()
+    return got, lock, offered
+
+
+@pytest.mark.integration
+def test_a_flood_of_tiny_puts_is_held_by_its_message_count(gated_router):
+    """Tiny puts stay far under any byte rate an honest role needs, but each costs every
+    receiver: the gate counts Zenoh messages too. A batch of more messages than the
+    identity's whole burst (what a flood at full speed sends: the client packs thousands of
+    tiny puts into one) is not relayed and its connection is cut; in all, no more messages
+    come in than the burst, the rate for as long as the test lasts, and that one batch."""
+    ports, keys, counts, stop, _, msg_limits = gated_router
+    rate, burst = msg_limits["agent-1"]
+    t0 = time.monotonic()
+    got, lock, offered = _tiny_flood((ports["recorder"], keys / "recorder.json"), (ports["agent-1"], keys / "agent-1.json"),
+                                     (ports["agent-2"], keys / "agent-2.json"))
     elapsed = time.monotonic() - t0
     stop()
     c = json.loads(counts.read_text())["agent-1"]
@@ -283,13 +286,7 @@ def handshake_router(tmp_path):
         assert plan is not None
         yield eps, keys, counts, p, {e.identity: e for e in plan}
     finally:
-        p.terminate()
-        try:
-            p.wait(30)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-            raise AssertionError(f"the router did not end within 30 s of SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
+        end_router(p, log)
     assert not list(tmp_path.glob("swarm-router-gate-*"))
 
 
@@ -301,41 +298,10 @@ def test_one_port_knows_each_identity_by_its_handshake_over_tcp_and_tls(handshak
     TLS with the router's certificate) gets every put through; each identity counted apart,
     a stranger without a credential as ``unidentified``."""
     eps, keys, counts, router, _limits = handshake_router
-    k = M.Keys(RUN)
-    got = {"flood": 0, "honest": set()}
-    first_flood = threading.Event()
-    lock = threading.Condition()
-
-    def on_sample(sample) -> None:
-        with lock:
-            if str(sample.key_expr) == k.est(1):
-                got["flood"] += 1
-                first_flood.set()
-            else:
-                got["honest"].add(sample.payload.to_bytes())
-                lock.notify_all()
-
     with pytest.raises(zenoh.ZError):
         _open(eps["tcp"], timeout_ms=2000)  # a stranger: refused by the router, counted by the gate
-    with _open(eps["tcp"], str(keys / "recorder.json")) as rec, \
-            _open(eps["tcp"], str(keys / "agent-1.json")) as thief, \
-            _open(eps["tls"], str(keys / "agent-2.json")) as honest:
-        sub = rec.declare_subscriber(k.est(), on_sample)
-        pub = thief.declare_publisher(k.est(1))
-        deadline = time.monotonic() + 30
-        while not first_flood.is_set() and time.monotonic() < deadline:
-            pub.put(b"\x01")
-            first_flood.wait(0.05)
-        assert first_flood.is_set(), "nothing of agent 1's reached the recorder"
-        offered = 0
-        t_flood = time.monotonic()
-        while time.monotonic() - t_flood < 2.0:
-            for _ in range(1000):
-                pub.put(b"\x02")
-            offered += 1000
-        _honest_puts(honest, k.est(2))
-        _all_honest_arrive(got, lock)
-        sub.undeclare()
+    _got, _lock, offered = _tiny_flood((eps["tcp"], keys / "recorder.json"), (eps["tcp"], keys / "agent-1.json"),
+                                       (eps["tls"], keys / "agent-2.json"))
     router.terminate()
     router.wait(30)
     # A file of the router process's own beside the path given (compose's folder outlives runs).

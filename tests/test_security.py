@@ -14,7 +14,7 @@ import sys
 
 import pytest
 import zenoh
-from forgery import Witness, _batch, _open, check_forgeries, forge
+from forgery import Witness, _batch, _open, check_forgeries, end_router, forge
 from swarm_harness import run_swarm, scenario
 
 from swarm.supervise.launch import free_port
@@ -40,13 +40,7 @@ def router(tmp_path):
         assert b"READY" in p.stdout.readline(), log.read_text()
         yield endpoint, keys
     finally:
-        p.terminate()
-        try:
-            p.wait(30)
-        except subprocess.TimeoutExpired:
-            p.kill()
-            p.wait()
-            raise AssertionError(f"the router did not end within 30 s of SIGTERM; its log:\n{log.read_text()[-3000:]}") from None
+        end_router(p, log)
 
 
 def _until_seen(put, witness, pred, tries: int = 100) -> bool:
