@@ -97,7 +97,7 @@ class NodeHost:
         self.out: Path = self.dir / "out"  # the run folder here (the driver's own when the file system is shared)
         self.shared_out = False
         self.endpoints: list[str] = []  # how this node's processes reach its router
-        self.local_endpoints: list[str] = []  # its loopback TCP endpoint for agents without TLS (set_endpoints)
+        self.local_endpoints: list[str] = []  # without the gate over TLS: its loopback TCP endpoint (set_endpoints)
         self.gate_endpoints: dict[str, str] = {}  # with the ingress gate: each identity's port on this host's loopback
         self._lock = threading.RLock()
         self._cond = threading.Condition(self._lock)
@@ -223,7 +223,7 @@ class NodeHost:
             from swarm.supervise.gate import OTHER
 
             return [self.gate_endpoints.get(identity, self.gate_endpoints[OTHER])]
-        return list(self.endpoints)
+        return list(self.local_endpoints or self.endpoints)  # (no gate: the router's loopback listener, if any)
 
     def bus_args(self, identity: str) -> list[str]:
         cred = ["--credential", str(self.keys_dir / f"{identity}.json")] if self.keys_dir is not None else []
@@ -272,9 +272,9 @@ class NodeHost:
         return self._track(name, p)
 
     def set_endpoints(self, endpoints: list[str], local: list[str] | None = None) -> None:
-        """How this node's processes reach its router (``endpoints``); ``local``: a loopback
-        TCP endpoint of it, for agents of another language that have no TLS (when the cluster's
-        links are TLS): reachable from this host only."""
+        """How this node's router is reached (``endpoints``); ``local``: a loopback TCP
+        endpoint of it, for this node's processes when the cluster's links are mutual TLS and
+        there is no gate: reachable from this host only."""
         self.endpoints = list(endpoints)
         self.local_endpoints = list(local or [])
 
@@ -299,7 +299,7 @@ class NodeHost:
             from swarmrt.node import load_role_scenario
 
             sc = load_role_scenario(str(self.scenario_file))
-            bus = BusConfig(mode="client", connect=self.connect_to(name) if self.gate_endpoints else list(self.local_endpoints or self.endpoints),
+            bus = BusConfig(mode="client", connect=self.connect_to(name),
                             credential_file=str(self.keys_dir / f"{name}.json") if self.keys_dir is not None else None)
             env = foreign_agent_env(sc, i, self.run, bus, self.dir, restart)
             with open(self._log(name), "ab" if name in self.procs else "wb") as logf:

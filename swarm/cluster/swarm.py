@@ -255,7 +255,7 @@ class RaySwarm(LocalSwarm):
         self.startup_s: dict[str, float] = {}
         self.on_routers: Any = None  # called with the routers' endpoints once they are up (benchmarks: byte counters)
         self.tls = False  # the routers' links (the mesh, every process's) over TLS: security on, two nodes or more
-        self.listens: list[list[str]] = []  # each router's endpoints (its TLS or TCP one; without the gate, a loopback TCP one for --agent programs)
+        self.listens: list[list[str]] = []  # each router's endpoints (its TLS or TCP one; without the gate over TLS, a loopback TCP one)
         self.gate_plan: list[dict[str, Any]] | None = None  # each node's ingress gate (its entries; None: off)
         self.local_endpoints: list[str] = []
         self._tokens: set[int] = set()  # the agents whose liveliness token the supervisor holds live (its hold applied)
@@ -423,9 +423,10 @@ class RaySwarm(LocalSwarm):
 
         entries = plan_entries(self.sc)
         self.gate_plan = [asdict(e) for e in entries] if entries is not None else None
-        if self.tls and self.sc.emulator.agent_commands and self.gate_plan is None:
-            # Programs of other languages may have no Zenoh TLS transport (the Rust agent has
-            # none): each router also listens on its host's loopback, which no other host reaches.
+        if self.tls and self.gate_plan is None:
+            # No gate: the routers' TLS listeners take only the mesh and the driver (mutual TLS:
+            # a client certificate no role or agent holds), so each router also listens on its
+            # host's loopback, which no other host reaches, for the node's own processes.
             lports = ray.get([h.actor.free_port.remote("127.0.0.1") for h in self.hosts], timeout=_CALL_TIMEOUT_S)
             self.local_endpoints = [f"tcp/127.0.0.1:{p}" for p in lports]
             for ls, e in zip(self.listens, self.local_endpoints, strict=True):
