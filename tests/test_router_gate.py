@@ -302,6 +302,21 @@ def test_one_port_knows_each_identity_by_its_handshake_over_tcp_and_tls(handshak
         _open(eps["tcp"], timeout_ms=2000)  # a stranger: refused by the router, counted by the gate
     _got, _lock, offered = _tiny_flood((eps["tcp"], keys / "recorder.json"), (eps["tcp"], keys / "agent-1.json"),
                                        (eps["tls"], keys / "agent-2.json"))
+    # The world (its messages not limited): once known, its stream is relayed as bytes, not
+    # parsed; every one of its 300 clocks arrives.
+    k = M.Keys(RUN)
+    clocks = threading.Semaphore(0)
+    with _open(eps["tcp"], str(keys / "recorder.json")) as rec, _open(eps["tcp"], str(keys / "world.json")) as world:
+        sub = rec.declare_subscriber(k.clock(), lambda _s: clocks.release())
+        pub = world.declare_publisher(k.clock(), congestion_control=zenoh.CongestionControl.BLOCK)
+        clock = M.encode(M.Clock(run=RUN, sender="world", k=1, t_s=1.0, live_agents=[1], mode="lockstep"))
+        deadline = time.monotonic() + 30
+        while not clocks.acquire(timeout=0.05) and time.monotonic() < deadline:  # until the subscription is in place
+            pub.put(clock)
+        for _ in range(300):
+            pub.put(clock)
+        assert all(clocks.acquire(timeout=30) for _ in range(300)), "a clock of the world's was lost"
+        sub.undeclare()
     router.terminate()
     router.wait(30)
     # A file of the router process's own beside the path given (compose's folder outlives runs).
@@ -314,6 +329,7 @@ def test_one_port_knows_each_identity_by_its_handshake_over_tcp_and_tls(handshak
     for name in ("agent-2", "recorder"):  # each its own bucket: the thief's cut held nobody else
         assert c[name]["connections"] >= 1 and c[name]["held"] == 0 and c[name]["cut"] == 0, (name, c[name])
     assert c["unidentified"]["connections"] >= 1, c
+    assert c["world"]["connections"] >= 1 and c["world"]["messages_in"] < 300 and c["world"]["bytes_in"] > 300 * len(clock), c["world"]
     assert "*" not in c and c["other"]["connections"] == 0, c  # nobody honest left unidentified
 
 

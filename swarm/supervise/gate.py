@@ -360,10 +360,13 @@ class Gate:
             c.held_bytes += n_bytes
             await asyncio.sleep(wait)  # not reading: TCP holds the sender back
 
+        counting = wire is not None
+
         async def inbound() -> None:
+            nonlocal counting
             while data := await reader.read(_READ_BYTES):
                 conn.c.bytes_in += len(data)
-                if wire is None:  # bytes only
+                if not counting or wire is None:  # bytes only
                     up_w.write(data)
                     await up_w.drain()
                     if (wait := conn.bucket.charge(len(data))) > 0:
@@ -401,6 +404,13 @@ class Gate:
                         c.held_for_messages += 1
                     if wait > 0:
                         await hold(wait, len(framed))
+                if conn.identified and conn.e.rate_msgs_per_s == float("inf"):
+                    # Known by its handshake as an identity whose messages are not limited (the
+                    # world, the mesh): its bytes only from here on, as with a port of its own.
+                    counting = False
+                    if rest := wire.take_pending():
+                        up_w.write(rest)
+                        await up_w.drain()
 
         async def outbound() -> None:
             while data := await up_r.read(_READ_BYTES):

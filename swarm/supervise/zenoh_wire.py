@@ -305,6 +305,12 @@ class WireCounter:
         must not leave a half batch behind each time)."""
         self._buf = bytearray()
 
+    def take_pending(self) -> bytes:
+        """What is buffered of a batch not yet whole, handed over (the stream goes on
+        uncounted from here: the gate relays it as bytes)."""
+        rest, self._buf = bytes(self._buf), bytearray()
+        return rest
+
     @property
     def pending(self) -> int:
         """Bytes of a batch not yet whole."""
