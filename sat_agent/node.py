@@ -62,6 +62,9 @@ class Agent(Node):
         return self.machine.done
 
 
+_CLAIM_RETRY_S = 0.2  # the least time between two claims while no world answers
+
+
 def claim_id(sc: Scenario, run: str, bus, timeout: float | None = None) -> tuple[int, bool, str]:
     """Ask the world for a satellite id (``--id auto``); returns (id, run already under way,
     the satellite's bus password or "" when the world has none to give)."""
@@ -71,11 +74,17 @@ def claim_id(sc: Scenario, run: str, bus, timeout: float | None = None) -> tuple
     deadline = time.monotonic() + limit
     try:
         while time.monotonic() < deadline:
+            asked = time.monotonic()
             msg = node.query(node.keys.claim(token), "claim", timeout=2.0)
             if msg is not None:
                 node.log.info("world gave satellite %d (run under way: %s%s)", msg.sat, msg.running,
                               "; with its credential" if msg.password else "")
                 return msg.sat, msg.running, msg.password
+            # No world serving claims yet: the query came back at once. Ask again after a pause
+            # (an event of the bus ends it sooner), not in a spin: seen, 574 queries of four
+            # replicas waiting for the world, held back by the router's ingress gate.
+            if (pause := asked + _CLAIM_RETRY_S - time.monotonic()) > 0:
+                node.inbox.get(timeout=pause)
         raise SystemExit(f"no satellite id from the world within {limit:.0f} s")
     finally:
         node.close()

@@ -349,3 +349,26 @@ def test_a_local_run_goes_through_the_gate_with_the_numbers_of_swarm_sim(tmp_pat
     assert all(c["unparsed"] == 0 and c["cut"] == 0 for c in gate.values()), gate
     assert all(c["messages_in"] > 0 for name, c in gate.items() if name.startswith("agent-")), gate
     assert all(c["bytes_in"] > 0 for name, c in gate.items() if name.startswith("agent-"))
+
+
+@pytest.mark.integration
+def test_a_claimant_waiting_for_the_world_asks_a_few_times_a_second_not_in_a_spin(handshake_router, tmp_path):
+    """``--id auto`` before any world serves claims: its query comes back at once, and it
+    asked again at once (seen in compose: 574 queries of four replicas, held back by the
+    gate). It now pauses between claims: over 2 s, a dozen queries at most."""
+    from sat_agent.node import claim_id
+    from swarmrt.bus.session import BusConfig
+    from swarmrt.scenario_files import load_scenario
+
+    eps, keys, counts, router, _limits = handshake_router
+    sc = load_scenario(tmp_path / "sc.yaml")
+    bus = BusConfig(mode="client", connect=[eps["tcp"]], credential_file=str(keys / "claimant.json"))
+    with pytest.raises(SystemExit, match="no satellite id from the world"):
+        claim_id(sc, RUN, bus, timeout=2.0)
+    router.terminate()
+    router.wait(30)
+    (own,) = counts.parent.glob("gate-router.*.json")
+    c = json.loads(own.read_text())["claimant"]
+    print(c)
+    assert 1 <= c["messages_by_kind"].get("request", 0) <= 2.0 / 0.2 + 2, c
+    assert c["held"] == 0, c
