@@ -114,6 +114,10 @@ def gated_router(tmp_path):
         assert b"READY" in p.stdout.readline(), log.read_text()
         bound, _ = read_plan(plan)  # the gate wrote back the ports it bound for the plan's 0s
         assert all(e.port > 0 for e in bound) and len({e.port for e in bound}) == len(bound)
+        # Below the kernel's ephemeral range: no outgoing connection of the machine can take
+        # one while its router is down for a restart.
+        low = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
+        assert all(e.port < low for e in bound), sorted(e.port for e in bound)
         yield {e.identity: f"tcp/127.0.0.1:{e.port}" for e in bound}, keys, counts, stop, limits, msg_limits
     finally:
         stop()
