@@ -16,6 +16,7 @@ import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 import zenoh
@@ -116,7 +117,7 @@ def gated_router(tmp_path):
         assert all(e.port > 0 for e in bound) and len({e.port for e in bound}) == len(bound)
         # Below the kernel's ephemeral range: no outgoing connection of the machine can take
         # one while its router is down for a restart.
-        low = int(open("/proc/sys/net/ipv4/ip_local_port_range").read().split()[0])
+        low = int(Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()[0])
         assert all(e.port < low for e in bound), sorted(e.port for e in bound)
         yield {e.identity: f"tcp/127.0.0.1:{e.port}" for e in bound}, keys, counts, stop, limits, msg_limits
     finally:
