@@ -109,6 +109,7 @@ class NodeHost:
         self._forkserver: Any = None  # swarm.supervise.forkserver.AgentForkServer, on the first forked agent
         self._closed = False
         self._nets: list[subprocess.Popen] = []
+        self._ports: Any = None  # swarm.supervise.gate.PortReservation of its router's gate, on the first router
         threading.Thread(target=self._reap, name="reap", daemon=True).start()
 
     # -- facts ------------------------------------------------------------------------
@@ -246,10 +247,14 @@ class NodeHost:
         listens = [a for e in listen for a in ("--listen", e)]
         plan = self.dir / f"gate-{name}.json"
         if gate is not None:
-            from swarm.supervise.gate import Entry, write_plan
+            from swarm.supervise.gate import Entry, PortReservation, write_plan
 
             if not plan.exists():
-                write_plan(plan, [Entry(**e) for e in gate], str(self.dir / f"{name}.sock"))
+                # Its ports reserved by this actor, which outlives the router (a restart binds
+                # them again whatever ran meanwhile: swarm.supervise.gate.PortReservation).
+                if self._ports is None:
+                    self._ports = PortReservation()
+                write_plan(plan, [Entry(**{**e, "port": self._ports.take()}) for e in gate], str(self.dir / f"{name}.sock"))
             listens += ["--gate", str(plan), "--gate-counts", str(self.dir / "logs" / f"gate-{name}.json")]
         with open(self._log(name), "ab") as logf:
             p = self._popen(name, ["swarm.supervise.router", *listens, "--index", str(index), *mesh, *secure],
@@ -450,6 +455,8 @@ class NodeHost:
         if self._forkserver is not None:
             self._forkserver.close()
             self._forkserver = None
+        if self._ports is not None:
+            self._ports.release()
         for fd in self._lifeline:
             with contextlib.suppress(OSError):
                 os.close(fd)

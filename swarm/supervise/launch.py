@@ -50,6 +50,7 @@ from typing import Any
 import yaml
 
 from swarm.supervise.forkserver import AgentForkServer, ForkedAgent
+from swarm.supervise.gate import PortReservation
 from swarmcore.scenario import AGENT_PROCESS_FAULTS, CLUSTER_FAULTS, ROUTER_FAULTS, STALL_FAULTS, Scenario
 from swarmrt.bus.messages import Fault, Keys, as_dict, opt, replace
 from swarmrt.bus.session import BusConfig
@@ -166,6 +167,7 @@ class LocalSwarm:
         self.endpoints: list[str] = []  # router i listens on endpoints[i] (with the gate: its shared "other" port)
         self.gate_endpoints: dict[str, list[str]] = {}  # with the gate: each identity's own port on each router
         self._gate_dir: Path | None = None  # the gate plans and the routers' Unix sockets (a private 0700 directory)
+        self._port_reservation = PortReservation()  # the gates' ports, held for the run (released at stop)
         self.router_names = ["router" if i == 0 else f"router-{i}" for i in range(routers)]
         self.broken: str | None = None  # why the run could not go on (bus lost, world gone, an agent gone by itself)
         self.broken_code: int | None = None  # the exit status that says so, when not the world's
@@ -249,11 +251,16 @@ class LocalSwarm:
             return
         self._gate_dir = Path(tempfile.mkdtemp(prefix="swarm-gate-"))
         self.gate_endpoints = {}
-        # Port 0: each router's gate binds the kernel's choice and writes it back into its plan
-        # (_gate_ports), never a port picked here and bound later, which another process may
-        # take in between (seen: a router that could not start, one port in a dozen taken).
+        # Each router's ports reserved here for the whole run (PortReservation: below the
+        # ephemeral range, claimed against every other swarm process of the machine), so that
+        # a router restarted by a fault binds them again whatever ran meanwhile; each router
+        # writes back what it bound (_gate_ports). A port none could be reserved for stays 0:
+        # the router's gate chooses it (as it did before reservations).
+        from dataclasses import replace
+
         for i in range(self.n_routers):
-            write_plan(self._gate_dir / f"router-{i}.json", entries, str(self._gate_dir / f"r{i}.sock"))
+            mine = [replace(e, port=self._port_reservation.take()) for e in entries]
+            write_plan(self._gate_dir / f"router-{i}.json", mine, str(self._gate_dir / f"r{i}.sock"))
 
     def _gate_ports(self, i: int) -> None:
         """Router ``i``'s ports, as its gate bound them (its plan, written back once it listens)."""
@@ -857,6 +864,7 @@ class LocalSwarm:
             import shutil
 
             shutil.rmtree(self._gate_dir, ignore_errors=True)
+        self._port_reservation.release()  # the routers are gone: their ports with them
         if self._lifeline is not None:
             for fd in self._lifeline:
                 os.close(fd)
