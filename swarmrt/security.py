@@ -138,22 +138,20 @@ def _make_tls(out: Path, certs: list[tuple[str, list[str]]], clients: list[str] 
         run("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-days", "825",
             "-subj", "/CN=swarm-coloc CA", "-keyout", str(out / "ca.key"), "-out", str(out / "ca.pem"),
             "-addext", "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign")
+        def sign(name: str, subject: str, extensions: str) -> None:
+            """A key ``<name>.key`` and its certificate ``<name>.pem``, signed by the CA."""
+            run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", subject,
+                "-keyout", str(out / f"{name}.key"), "-out", str(out / f"{name}.csr"))
+            ext = out / f"{name}.ext"
+            ext.write_text(f"basicConstraints=CA:FALSE\nkeyUsage=digitalSignature\n{extensions}")
+            run("x509", "-req", "-in", str(out / f"{name}.csr"), "-CA", str(out / "ca.pem"), "-CAkey", str(out / "ca.key"),
+                "-CAcreateserial", "-days", "825", "-extfile", str(ext), "-out", str(out / f"{name}.pem"))
+
         for name, hosts in certs:
             san = ",".join(f"IP:{h}" if re.fullmatch(r"[0-9.]+|[0-9a-fA-F:]+:[0-9a-fA-F:]*", h) else f"DNS:{h}" for h in hosts)
-            run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", f"/CN={hosts[0]}",
-                "-keyout", str(out / f"{name}.key"), "-out", str(out / f"{name}.csr"))
-            ext = out / f"{name}.ext"
-            ext.write_text(f"subjectAltName={san}\nbasicConstraints=CA:FALSE\nkeyUsage=digitalSignature\n"
-                           "extendedKeyUsage=serverAuth,clientAuth\n")
-            run("x509", "-req", "-in", str(out / f"{name}.csr"), "-CA", str(out / "ca.pem"), "-CAkey", str(out / "ca.key"),
-                "-CAcreateserial", "-days", "825", "-extfile", str(ext), "-out", str(out / f"{name}.pem"))
+            sign(name, f"/CN={hosts[0]}", f"subjectAltName={san}\nextendedKeyUsage=serverAuth,clientAuth\n")
         for name in clients or []:
-            run("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:P-256", "-nodes", "-subj", f"/CN=swarm-coloc {name}",
-                "-keyout", str(out / f"{name}.key"), "-out", str(out / f"{name}.csr"))
-            ext = out / f"{name}.ext"
-            ext.write_text("basicConstraints=CA:FALSE\nkeyUsage=digitalSignature\nextendedKeyUsage=clientAuth\n")
-            run("x509", "-req", "-in", str(out / f"{name}.csr"), "-CA", str(out / "ca.pem"), "-CAkey", str(out / "ca.key"),
-                "-CAcreateserial", "-days", "825", "-extfile", str(ext), "-out", str(out / f"{name}.pem"))
+            sign(name, f"/CN=swarm-coloc {name}", "extendedKeyUsage=clientAuth\n")
     finally:
         os.umask(old)
         (out / "ca.key").unlink(missing_ok=True)  # whatever happened: the CA signs nothing more
@@ -373,11 +371,17 @@ def apply_router_security(cfg, keys_dir: str | Path, run: str, n_sats: int, link
             # CA (another node's router, or the driver's), so a stolen agent's password alone
             # cannot reach the router from another host, around the node's ingress gate; the
             # router dials its peers with its own certificate.
-            cfg.insert_json5("transport/link/tls/enable_mtls", "true")
-            cfg.insert_json5("transport/link/tls/connect_certificate", cert)
-            cfg.insert_json5("transport/link/tls/connect_private_key", key)
+            _mutual_tls(cfg, cert, key)
             applied.append("mtls")
     return applied
+
+
+def _mutual_tls(cfg, certificate_json: str, private_key_json: str) -> None:
+    """Mutual TLS on: ask a TLS peer for its certificate, and show this one (JSON strings of
+    the files' paths) when connecting."""
+    cfg.insert_json5("transport/link/tls/enable_mtls", "true")
+    cfg.insert_json5("transport/link/tls/connect_certificate", certificate_json)
+    cfg.insert_json5("transport/link/tls/connect_private_key", private_key_json)
 
 
 # -- a process's own credential -------------------------------------------------------------
@@ -406,9 +410,7 @@ class Credential:
         if self.ca:
             cfg.insert_json5("transport/link/tls/root_ca_certificate", json.dumps(self.ca))
         if self.certificate and self.private_key:
-            cfg.insert_json5("transport/link/tls/enable_mtls", "true")
-            cfg.insert_json5("transport/link/tls/connect_certificate", json.dumps(self.certificate))
-            cfg.insert_json5("transport/link/tls/connect_private_key", json.dumps(self.private_key))
+            _mutual_tls(cfg, json.dumps(self.certificate), json.dumps(self.private_key))
 
     def __repr__(self) -> str:  # never the password
         return f"Credential({self.user!r}{', TLS' if self.ca else ''}{', client certificate' if self.certificate else ''})"

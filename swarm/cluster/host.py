@@ -254,7 +254,7 @@ class NodeHost:
                 # them again whatever ran meanwhile: swarm.supervise.gate.PortReservation).
                 if self._ports is None:
                     self._ports = PortReservation()
-                write_plan(plan, [Entry(**{**e, "port": self._ports.take()}) for e in gate], str(self.dir / f"{name}.sock"))
+                write_plan(plan, self._ports.assign([Entry(**e) for e in gate]), str(self.dir / f"{name}.sock"))
             listens += ["--gate", str(plan), "--gate-counts", str(self.dir / "logs" / f"gate-{name}.json")]
         with open(self._log(name), "ab") as logf:
             p = self._popen(name, ["swarm.supervise.router", *listens, "--index", str(index), *mesh, *secure],

@@ -39,7 +39,7 @@ import socket
 import ssl
 import threading
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -187,8 +187,9 @@ def gate_message_limits(n_sats: int, recorder_max_lag_steps: int, links: bool, i
 
 
 def plan_entries(sc: Any) -> list[Entry] | None:
-    """A run's gate entries (every identity but the mesh, at port 0: the gate binds the
-    kernel's choice), sized from scenario ``sc``; None when the gate is off
+    """A run's gate entries (every identity but the mesh, at port 0: the plan's writer
+    reserves ports for them, :meth:`PortReservation.assign`, or the gate chooses), sized from
+    scenario ``sc``; None when the gate is off
     (``emulator.gate: false``, or ``SWARM_ROUTER_GATE=off`` to measure without it). The
     shared ``other`` entry (tools, the fault CLI, a kit) gets an agent's buckets."""
     from swarmrt.bus.messages import IDENTITIES
@@ -335,7 +336,7 @@ class Gate:
         provisional = self.limits.get(OTHER, e)
         first = e if not by_handshake else provisional
         wire = WireCounter() if by_handshake or first.rate_msgs_per_s != float("inf") else None
-        conn = _Conn(first, self.count[e.identity] if not by_handshake else _Count(), wire)
+        conn = _Conn(first, self.count[e.identity] if not by_handshake else _Count())
         if not by_handshake:
             conn.c.connections += 1
             if wire is not None:
@@ -446,7 +447,6 @@ class _Conn:
 
     e: Entry
     c: _Count
-    wire: WireCounter | None
     identified: bool = False
     bucket: _Bucket = field(init=False)
     messages: _Bucket = field(init=False)
@@ -498,6 +498,10 @@ class PortReservation:
             self._held.append(lock)
             return port
         return 0
+
+    def assign(self, entries: list[Entry]) -> list[Entry]:
+        """``entries`` with a port taken here for each (a copy; 0 where none could be)."""
+        return [replace(e, port=self.take(e.host or "127.0.0.1")) for e in entries]
 
     def release(self) -> None:
         for lock in self._held:
@@ -601,6 +605,11 @@ def fresh_counts(pattern: str, since: float) -> dict[str, dict[str, Any]]:
         with contextlib.suppress(OSError):
             if os.stat(f).st_mtime >= since:
                 paths.append(Path(f))
+    return seen_counts(paths)
+
+
+def seen_counts(paths: list[Path]) -> dict[str, dict[str, Any]]:
+    """:func:`merged_counts` of ``paths`` without the identities nobody connected (or tried to) as."""
     return {k: c for k, c in merged_counts(paths).items() if c.get("connections") or c.get("refused")}
 
 

@@ -232,10 +232,9 @@ class LocalSwarm:
     def gate_counts(self) -> dict[str, dict[str, Any]]:
         """What the routers' ingress gates counted, per identity (``router_gate`` in
         summary.json; empty without the gate)."""
-        from swarm.supervise.gate import merged_counts
+        from swarm.supervise.gate import seen_counts
 
-        counts = merged_counts(sorted((self.out / "logs").glob("gate-*.json")))
-        return {k: c for k, c in counts.items() if c.get("connections") or c.get("refused")}
+        return seen_counts(sorted((self.out / "logs").glob("gate-*.json")))
 
     def _plan_gate(self) -> None:
         """The ingress gate (:mod:`swarm.supervise.gate`): a port per identity on each
@@ -256,11 +255,8 @@ class LocalSwarm:
         # a router restarted by a fault binds them again whatever ran meanwhile; each router
         # writes back what it bound (_gate_ports). A port none could be reserved for stays 0:
         # the router's gate chooses it (as it did before reservations).
-        from dataclasses import replace
-
         for i in range(self.n_routers):
-            mine = [replace(e, port=self._port_reservation.take()) for e in entries]
-            write_plan(self._gate_dir / f"router-{i}.json", mine, str(self._gate_dir / f"r{i}.sock"))
+            write_plan(self._gate_dir / f"router-{i}.json", self._port_reservation.assign(entries), str(self._gate_dir / f"r{i}.sock"))
 
     def _gate_ports(self, i: int) -> None:
         """Router ``i``'s ports, as its gate bound them (its plan, written back once it listens)."""
