@@ -136,7 +136,12 @@ class AgentProtocol:
         hears = radio_peers(scenario_graph(sc), type(estimator).radio)
         self.hears: set[int] | None = None if hears is None else set(hears[sat].tolist())
         self.rx_steps: set[int] = set()  # steps whose delivery (lockstep) has come
-        self.rx_items: list[MeasBatch] = []  # delivered peer batches not yet used
+        self.rx_items: list[tuple[int, MeasBatch]] = []  # delivered peer batches not yet used, with their delivery's step
+        # The first step this process flies: the radio's deliveries (and the ideal radio's
+        # messages) of earlier steps went to the satellite's previous process, whatever
+        # reaches this one of them (the world's last steps sent again after the bus came
+        # back, which depends on timing) is not its to use. See _flies_from.
+        self.first_step = 0
         self.late_used = self.late_dropped = self.replayed_steps = 0
         self._missing: list[int] = []  # peers whose batch of the current step did not come
         self._peer_batch: RelativeMeasurements | None = None  # the ideal radio's peers' measurements of the step, columnar
@@ -207,11 +212,13 @@ class AgentProtocol:
         elif ev.kind == "img":
             self.imgs[k] = ev.msg
         elif ev.kind == "rx":
-            if k in self.rx_steps or k < self.last_step - 1:
-                return []  # a delivery sent again after the bus came back
+            if k in self.rx_steps or k < self.last_step - 1 or k < self.first_step:
+                return []  # a delivery sent again after the bus came back, or the previous process's
             self.rx_steps.add(k)
-            self.rx_items.extend(it.batch for it in ev.msg.items if it.batch.observer != self.i)
+            self.rx_items.extend((k, it.batch) for it in ev.msg.items if it.batch.observer != self.i)
         elif ev.kind == "batches":
+            if k < self.first_step:
+                return []  # the previous process's (sent again after the bus came back)
             obs = set(ev.msg.observers) - {self.i}
             seen = self.radio_obs.setdefault(k, set())
             if obs <= seen and (obs or k in self.radio):
@@ -265,6 +272,7 @@ class AgentProtocol:
                     self.estimator.start(estimate_from_full(msg, self.n), step_pending=True)
                     self.started = True
                     self.last_step = int(msg.k) - 1
+                    self._flies_from(int(msg.k))
                     break
                 # No prior yet (the world's queryable not declared, so the query came back at
                 # once): ask again after a pause, not in a spin (seen: 7,000 queries an agent).
@@ -339,10 +347,26 @@ class AgentProtocol:
                 break
             self.started = True
             self.last_step = self.estimator.step_index
+            self._flies_from(self.last_step + 1)
             self.log.info("restarted from agent %d's estimate at step %d", msg.own, self.estimator.step_index)
         self._served = self.est
         yield Send(self.keys.est(self.i), view_msg(self.estimator.view(), run=self.run_id, sender=self.name, phase="prior",
                                                     estimator=self.estimator.kind))
+
+    def _flies_from(self, k: int) -> None:
+        """This process flies from step k on: what came of earlier steps' radio is forgotten.
+        A restarted agent hears the world's last steps sent again whenever the bus comes back
+        (a router's return): the deliveries of steps before its rejoin were its previous
+        process's, and whether they reached this one depended on timing; taken, their batches
+        were counted late and dropped at its first step (a campaign's two runs reported
+        different ``late_dropped``, issue 35). The world lists the agent live, and delivers
+        to it, from step k on."""
+        self.first_step = k
+        self.rx_steps = {s for s in self.rx_steps if s >= k}
+        self.rx_items = [(s, b) for s, b in self.rx_items if s >= k]
+        for store in (self.radio, self.radio_obs):
+            for old in [s for s in store if s < k]:
+                store.pop(old, None)
 
     def _peer_states(self):
         """Every other satellite's agent's full estimate (those that serve one: a dead or
@@ -429,6 +453,8 @@ class AgentProtocol:
             # start tried here failed for want of a star tracker reading: CI saw it, loaded).
             yield Send(self.keys.health(self.i), self._health(k, t))
             return
+        if not self.started:
+            self._flies_from(k)  # a cold start: from the first step that lists us live
         # Lockstep: what the world sends of the step may be held up by a stalled world
         # until its lease runs out (then the wait pauses while its token is held).
         timeout = world_wait_s(em) if em.time_mode == "lockstep" else 0.8 * self.sc.dt_s / em.realtime_factor
@@ -524,8 +550,8 @@ class AgentProtocol:
             # Lockstep: the world delivers once per step, after every batch of k is in.
             # Free-running: take what the radio has delivered by now; the rest is late.
             yield Wait(lambda: k in self.rx_steps, timeout)
-        items = [b for b in self.rx_items if b.k <= k]
-        self.rx_items = [b for b in self.rx_items if b.k > k]
+        items = [b for _s, b in self.rx_items if b.k <= k]
+        self.rx_items = [(s, b) for s, b in self.rx_items if b.k > k]
         self.batches_late += sum(1 for b in items if b.k < k)
         received = received_from_batches(items, self._payload)
         received.sort(key=lambda r: (r.step, r.sender))

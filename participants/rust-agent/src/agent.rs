@@ -67,7 +67,10 @@ pub struct State {
     radio_obs: BTreeMap<u64, BTreeSet<u32>>,
     // links.enabled: the steps whose delivery (rx/<i>) came, and the batches not yet used.
     rx_steps: BTreeSet<u64>,
-    rx_items: Vec<MeasBatch>,
+    rx_items: Vec<(u64, MeasBatch)>, // with their delivery's step
+    // The first step this process flies: what the radio brought of earlier steps was the
+    // satellite's previous process's (`flies_from`).
+    first_step: u64,
     peers_alive: BTreeSet<u32>,
     sent_k: i64,
     batches_missing: u64,
@@ -108,6 +111,7 @@ impl State {
             radio_obs: BTreeMap::new(),
             rx_steps: BTreeSet::new(),
             rx_items: vec![],
+            first_step: 0,
             peers_alive: BTreeSet::new(),
             sent_k: -1,
             batches_missing: 0,
@@ -193,6 +197,9 @@ impl State {
 
     fn on_batches(&mut self, b: StepBatches) {
         let k = b.k;
+        if k < self.first_step {
+            return; // the previous process's (sent again after the bus came back)
+        }
         let obs: BTreeSet<u32> = b.observers.iter().copied().filter(|&o| o as usize != self.i).collect();
         let seen = self.radio_obs.entry(k).or_default();
         if obs.is_subset(seen) && (!obs.is_empty() || self.radio.contains_key(&k)) {
@@ -210,12 +217,24 @@ impl State {
     /// The radio with links: the world's delivery of step k (once per step, an empty one
     /// too), each item a peer's batch; one of an earlier step is late (`_linked_radio`).
     fn on_delivery(&mut self, d: pb::Delivery) {
-        if self.rx_steps.contains(&d.k) || ki(d.k) < self.last_step - 1 {
-            return; // a delivery sent again after the bus came back
+        if self.rx_steps.contains(&d.k) || ki(d.k) < self.last_step - 1 || d.k < self.first_step {
+            return; // a delivery sent again after the bus came back, or the previous process's
         }
         self.rx_steps.insert(d.k);
-        let i = self.i;
-        self.rx_items.extend(d.items.into_iter().filter_map(|it| it.batch).filter(|b| b.observer as usize != i));
+        let (i, k) = (self.i, d.k);
+        self.rx_items.extend(d.items.into_iter().filter_map(|it| it.batch).filter(|b| b.observer as usize != i).map(|b| (k, b)));
+    }
+
+    /// This process flies from step k on: what came of earlier steps' radio is forgotten. A
+    /// restarted agent hears the world's last steps sent again whenever the bus comes back;
+    /// the deliveries of steps before it flies were its previous process's, and whether they
+    /// reach this one depends on timing (sat_agent/protocol.py `_flies_from`).
+    fn flies_from(&mut self, k: u64) {
+        self.first_step = k;
+        self.rx_steps.retain(|&s| s >= k);
+        self.rx_items.retain(|(s, _)| *s >= k);
+        self.radio.retain(|&s, _| s >= k);
+        self.radio_obs.retain(|&s, _| s >= k);
     }
 
     fn on_fault(&mut self, f: Fault) -> Vec<Out> {
@@ -515,6 +534,7 @@ impl Agent {
                 if let Some(Msg::FullEst(m)) = self.node.query(&key, "full_est", Duration::from_secs(2)) {
                     let prior = prior_of(&m, i).map_err(|why| Exit::Broken(Broken { code: 1, why }))?;
                     self.st.last_step = ki(m.k).saturating_sub(1);
+                    self.st.flies_from(m.k);
                     self.st.ci.start(prior, true);
                     break;
                 }
@@ -569,6 +589,9 @@ impl Agent {
             let h = self.st.health(k, t, &self.node.counters);
             self.send(&format!("health/{i}"), &h);
             return Ok(());
+        }
+        if !self.st.ci.started() {
+            self.st.flies_from(k); // a cold start: from the first step that lists us live
         }
         let timeout = self.st.sc.emulator.step_timeout_s;
         if clock.live_agents.contains(&(i as u32)) {
@@ -710,8 +733,10 @@ impl Agent {
         if clock.live_agents.contains(&(self.st.i as u32)) {
             self.wait_for(|st| st.rx_steps.contains(&k), timeout)?;
         }
-        let (now, later): (Vec<MeasBatch>, Vec<MeasBatch>) = std::mem::take(&mut self.st.rx_items).into_iter().partition(|b| b.k <= k);
+        let (now, later): (Vec<(u64, MeasBatch)>, Vec<(u64, MeasBatch)>) =
+            std::mem::take(&mut self.st.rx_items).into_iter().partition(|(_, b)| b.k <= k);
         self.st.rx_items = later;
+        let now: Vec<MeasBatch> = now.into_iter().map(|(_, b)| b).collect();
         self.st.batches_late += now.iter().filter(|b| b.k < k).count() as u64;
         let mut received: Vec<Received> = now.iter().map(received_from_batch).collect();
         received.sort_by_key(|r| (r.step, r.sender));
