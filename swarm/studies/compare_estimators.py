@@ -19,8 +19,9 @@ What each run reports (:func:`run_one`, from its ``summary.json``): own-state er
 the run's centralized Cramér–Rao bound (:mod:`swarmcore.crlb`: every gyro, anchor and
 relative measurement taken; the same for every estimator of a seed) and each estimator's
 RMS over it (own and relative position, "RMS / bound"), errors of its estimate of each
-tracked peer relative to itself, NEES of both against what
-the estimator claims, bytes each satellite put on its radio per second, median filter step
+tracked peer relative to itself (and, per (filter, peer) pair, their second-half squares,
+so that the paired ratio of relative errors to the reference is taken over the pairs both
+estimate: :func:`same_pairs_ratio`), NEES of both against what the estimator claims, bytes each satellite put on its radio per second, median filter step
 CPU time. Writes ``results.jsonl`` (as runs finish), ``compare_estimators.json``,
 ``compare_estimators.md`` and ``estimators.png`` into OUT. Runs on the local pool or a Dask
 cluster (:mod:`swarm.studies.executor`).
@@ -38,7 +39,7 @@ from swarm.outputs import write_json
 from swarm.studies.executor import ResultStore, open_executor, run_study
 from swarmcore.scenario import Scenario
 
-__all__ = ["CONDITIONS", "METRICS", "condition_overrides", "run_one", "run_compare_estimators"]
+__all__ = ["CONDITIONS", "METRICS", "condition_overrides", "relative_pairs", "run_one", "run_compare_estimators", "same_pairs_ratio"]
 
 #: The conditions of the study, in the order of its tables.
 CONDITIONS = ("ideal", "latency", "loss", "cap", "restart")
@@ -120,7 +121,44 @@ def run_one(data: dict, kind: str, condition: str, over: dict, seed: int) -> dic
         "cpu_ms": s.get("cpu", {}).get("filter_step_cpu_ms_median", float("nan")),
         "late": s.get("late", {}),
         "links": (s.get("links") or {}).get("totals", {}),
+        "rel_pairs": relative_pairs(res.rel_pos_err_m, res.rel_att_err_rad),
     }
+
+
+def relative_pairs(rel_pos_err_m: np.ndarray, rel_att_err_rad: np.ndarray) -> dict:
+    """Second-half sums of squared relative errors per (filter, peer) and their counts, (F, n)
+    each (plain lists): what :func:`same_pairs_ratio` needs to compare two estimators on the
+    pairs both estimate. An estimator that tracks only its graph neighbours is then held
+    against the reference's errors of those pairs, not of every pair (far pairs are worse)."""
+    K = rel_pos_err_m.shape[0]
+    p, a = rel_pos_err_m[K // 2 :], rel_att_err_rad[K // 2 :]
+    have = np.isfinite(p) & np.isfinite(a)
+    return {"count": have.sum(axis=0).tolist(), "pos_m2": np.where(have, p**2, 0.0).sum(axis=0).tolist(),
+            "att_rad2": np.where(have, a**2, 0.0).sum(axis=0).tolist()}
+
+
+def same_pairs_ratio(run: dict, ref: dict, key: str) -> float:
+    """The paired ratio of ``run``'s relative RMS (``key``: ``pos_m2`` or ``att_rad2``) to
+    ``ref``'s over the (filter, peer) pairs both estimate in the second half: for each, the
+    mean over its filters of each filter's RMS over those pairs (as the summary's relative
+    RMS is over all of an estimator's pairs), NaN when they share none."""
+    a, b = run.get("rel_pairs"), ref.get("rel_pairs")
+    if not a or not b:
+        return float("nan")
+    ca, cb = np.asarray(a["count"], float), np.asarray(b["count"], float)
+    if ca.shape != cb.shape:
+        return float("nan")
+    both = (ca > 0) & (cb > 0)
+    rows = both.any(axis=1)
+    if not rows.any():
+        return float("nan")
+
+    def rms(d: dict, c: np.ndarray) -> float:
+        s = np.where(both, np.asarray(d[key], float), 0.0).sum(axis=1)[rows]
+        return float(np.mean(np.sqrt(s / np.where(both, c, 0.0).sum(axis=1)[rows])))
+
+    den = rms(b, cb)
+    return rms(a, ca) / den if den > 0 else float("nan")
 
 
 def _num(x) -> float:
@@ -131,6 +169,11 @@ def _reference(estimators: Sequence[str]) -> str:
     """The estimator the others' paired ratios are taken to: the centralized reference
     (``central``) when it runs, else ``full``, else the first."""
     return next((e for e in ("central", "full") if e in estimators), estimators[0])
+
+
+def _nanmean(x: list[float]) -> float:
+    a = np.asarray(x, float)
+    return float(a[np.isfinite(a)].mean()) if np.isfinite(a).any() else float("nan")
 
 
 def _stats(rows: list[dict], key: str) -> dict:
@@ -154,7 +197,9 @@ def _markdown(doc: dict) -> str:
              f"{MEAN_BURST:g}); a data-rate cap of {CAP_FRACTION:g}× what the full estimator's batches need "
              f"({_fmt(doc.get('cap_Bps') or float('nan'), '.0f')} B/s per transmitter); satellite {doc['n_sats'] // 2}'s agent "
              "killed at a third of the run and restarted at half. Mean ± std over seeds; "
-             f"in brackets the paired ratio to `{ref}` (mean of per-seed ratios).", ""]
+             f"in brackets the paired ratio to `{ref}` (mean of per-seed ratios; the relative ones over the (filter, peer) "
+             f"pairs both estimate: an estimator that tracks only its graph neighbours is held against `{ref}`'s errors of "
+             "those pairs).", ""]
     for cond in conds:
         lines += [f"## {cond}", "", "| estimator | " + " | ".join(label for _, label, _ in METRICS) + " |",
                   "|---|" + "---:|" * len(METRICS)]
@@ -243,8 +288,11 @@ def run_compare_estimators(sc: Scenario, runs: int, out: Path, *, estimators: Se
             sm: dict[str, Any] = {key: _stats(rows, key) for key, _, _ in METRICS}
             if e != ref and rows:
                 refs = [st.results[f"{c}/{ref}@{s}"] for s in ok]
-                sm["vs_ref"] = {key: float(np.nanmean([r[key] / q[key] if q[key] else np.nan for r, q in zip(rows, refs)]))
+                sm["vs_ref"] = {key: _nanmean([r[key] / q[key] if q[key] else np.nan for r, q in zip(rows, refs)])
                                 for key, _, _ in METRICS}
+                # The relative errors on the pairs both estimate (module docstring).
+                for key, pk in (("rel_pos", "pos_m2"), ("rel_att", "att_rad2")):
+                    sm["vs_ref"][key] = _nanmean([same_pairs_ratio(r, q, pk) for r, q in zip(rows, refs)])
             summary[c][e] = sm
     doc = {"scenario": sc.name, "n_sats": sc.n_sats, "duration_s": sc.duration_s, "estimators": list(estimators),
            "conditions": list(conditions), "seeds": seeds, "cap_Bps": cap_Bps, "overrides": overs, "summary": summary,
