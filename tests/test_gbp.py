@@ -16,7 +16,7 @@ from test_estimators import _own_and_relative_nees
 
 from swarmcore import quat
 from swarmcore.estimators import BUILTIN, Received, StepInputs, builtin_estimator
-from swarmcore.estimators.gbp import GbpEstimator, GbpMessage, factor_message, joint_factors, stack_factors
+from swarmcore.estimators.gbp import GbpEstimator, GbpMessage, GbpParams, factor_message, joint_factors, stack_factors
 from swarmcore.estimators.own import absolute_update
 from swarmcore.mekf import FilterParams, RelativeMeasurements, SwarmEstimate, apply_correction, predict, relative_residuals
 from swarmcore.scenario import Scenario
@@ -294,18 +294,22 @@ def test_gbp_is_a_builtin_on_the_graph_radio():
 
 def _nees(fusion: str, seeds) -> tuple[float, float, int]:
     """Own and relative NEES/dof (test_estimators' measure) and the number of filters."""
-    own, rel = _own_and_relative_nees({"kind": "gbp", "fusion": fusion}, seeds, bound={"enabled": False})
+    est = {"kind": "gbp", "fusion": fusion.split("/")[0]}
+    if "/" in fusion:
+        est["peers"] = fusion.split("/")[1]
+    own, rel = _own_and_relative_nees(est, seeds, bound={"enabled": False})
     return own, rel, 5 * len(seeds)
 
 
-@pytest.mark.parametrize("fusion", ["joint", "ci"])
+@pytest.mark.parametrize("fusion", ["joint", "joint/bound", "ci"])
 def test_gbp_is_consistent_over_monte_carlo(fusion):
     """NEES/dof of the own and relative estimates over 4 seeds × 5 filters (second half of
     40 s; n = 5, complete graph: every triangle a loop) within the upper χ² bound (97.5 %)
     of the mean of 20 independent χ²(6)/6 (the steps of one filter are correlated: counted
     as one sample each, the stricter bound). Only the upper bound is held: split CI is
     conservative by construction (ci's is below the lower one too: docs/estimators.md), and
-    ``joint`` bounds the neighbours' mutual correlation (``peers: bound``)."""
+    ``joint`` bounds the neighbours' mutual correlation (``peers: auto``, here ``common``:
+    what they share counted once; ``joint/bound``: for any correlation)."""
     own, rel, N = _nees(fusion, range(4))
     hi = chi2.ppf(0.975, 6 * N) / (6 * N)
     print(f"gbp ({fusion}) NEES/dof own {own:.3f}, relative {rel:.3f}; upper bound {hi:.3f}")
@@ -361,10 +365,10 @@ def test_late_messages_are_replayed_or_dropped_and_counted():
     assert rnees < 1.4
 
 
-@pytest.mark.parametrize("peers", ["bound", "sequential", "independent"])
+@pytest.mark.parametrize("peers", ["auto", "common", "bound", "sequential", "independent"])
 def test_every_peers_option_flies(peers):
-    """The three ways of handling the neighbours' mutual correlation (module docstring) fly
-    and claim finite estimates; an unknown one is refused when the scenario is loaded."""
+    """The ways of handling the neighbours' mutual correlation (module docstring) fly and
+    claim finite estimates; an unknown one is refused when the scenario is loaded."""
     sc = _sc(n_sats=4, duration_s=12, estimator={"kind": "gbp", "peers": peers}, bound={"enabled": False})
     s = simulate(sc, wire_size=batch_wire_size("t", codec_for(sc).to_msg)).summary()
     assert np.isfinite(s["nees"]["mean"]) and s["rms"]["self"]["pos_m"] < 0.1
@@ -377,3 +381,61 @@ def test_unknown_options_are_refused_naming_the_field():
         configure(GbpEstimator, _sc(estimator={"kind": "gbp", "peers": "all"}))
     with pytest.raises(IncompatibleScenario, match=r"estimator\.fusion"):
         configure(GbpEstimator, _sc(estimator={"kind": "gbp", "fusion": "admm"}))
+    with pytest.raises(IncompatibleScenario, match=r"estimator\.peers: common .* fusion: ci"):
+        configure(GbpEstimator, _sc(estimator={"kind": "gbp", "fusion": "ci", "peers": "common"}))
+
+
+def test_auto_takes_common_with_poses_and_bound_with_bearings_and_filter_forms():
+    sc = _sc(n_sats=4, estimator={"kind": "gbp"})
+    assert GbpEstimator(sc, 0)._peers == "common"
+    assert GbpEstimator(sc, 0, GbpParams(fusion="ci"))._peers == "bound"
+    bearing = sc.model_copy(update={"sensors": sc.sensors.model_copy(update={
+        "relative": sc.sensors.relative.model_copy(update={"model": "bearing"})})})
+    assert GbpEstimator(bearing, 0)._peers == "bound"
+
+
+def _spd(rng, k: int = 6) -> np.ndarray:
+    A = rng.normal(size=(k, k))
+    return A @ A.T + 0.1 * np.eye(k)
+
+
+@pytest.mark.parametrize("m", [2, 3, 5])
+def test_common_noise_bounds_every_covariance_of_its_model(m):
+    """``peers: common`` (:func:`_peer_noise`): for messages whose errors are their own parts
+    plus a part common to all (the same attitude error in I, turned into each one's body
+    frame, and the same position error), of any covariance Γ the messages allow (``B_k Γ
+    B_kᵀ ⪯ C_k``), the stack's noise is at or above the true covariance; the differences of
+    the messages keep their own covariances (what ``bound`` inflates m times); and treating
+    them as independent would not be enough."""
+    from swarmcore.estimators.gbp import _common_modes, _peer_noise
+
+    rng = np.random.default_rng(70 + m)
+    short = 0.0
+    for _ in range(60):
+        Cs = [_spd(rng) for _ in range(m)]
+        q = [quat.random_quaternion(rng) for _ in range(m)]
+        Bs = [_common_modes(x) for x in q]
+        D = _peer_noise(Cs, Bs, "common", m)
+        G0 = _spd(rng)
+        # the largest multiple of G0 every message allows: B_k t G0 B_kᵀ ⪯ C_k
+        t = min(1.0 / np.linalg.eigvalsh(np.linalg.solve(np.linalg.cholesky(C), np.linalg.solve(np.linalg.cholesky(C), B @ G0 @ B.T).T)).max()
+                for C, B in zip(Cs, Bs))
+        for frac in (1.0, 0.5, 0.1):
+            Gam = frac * t * G0
+            B = np.vstack(Bs)
+            cov = np.zeros((6 * m, 6 * m))
+            for k in range(m):
+                cov[6 * k : 6 * k + 6, 6 * k : 6 * k + 6] = Cs[k] - Bs[k] @ Gam @ Bs[k].T
+            cov += B @ Gam @ B.T
+            assert np.linalg.eigvalsh(D - cov).min() > -1e-9 * np.abs(D).max()
+            short = max(short, np.linalg.eigvalsh(cov - _peer_noise(Cs, Bs, "independent", m)).max())
+        # a difference of two messages, in the frame where their common parts cancel: its own covariances
+        x = rng.normal(size=6)
+        v = np.zeros(6 * m)
+        v[:6], v[6:12] = Bs[0] @ x, -Bs[1] @ x
+        blk = _peer_noise(Cs, Bs, "independent", m)
+        assert v @ D @ v == pytest.approx(v @ blk @ v, rel=1e-9)
+        assert v @ _peer_noise(Cs, Bs, "bound", m) @ v == pytest.approx(m * (v @ blk @ v), rel=1e-12)
+    assert short > 0, "the model's covariances exceed the block diagonal: independence would be overconfident"
+    assert np.array_equal(_peer_noise(Cs[:1], Bs[:1], "common", 1), Cs[0])
+

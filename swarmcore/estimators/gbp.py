@@ -171,7 +171,7 @@ from ..mekf import (
     propagate_blockdiag,
     state_jacobian_blocks,
 )
-from .base import EstimateView, EstimatorParams, StepInputs, StepReport
+from .base import EstimateView, EstimatorParams, IncompatibleScenario, StepInputs, StepReport
 from .ci import _block_diag, _logdet_cost, _whitened, ci_weight, stack_factors
 from .own import Kept, ReplayingEstimator, absolute_update
 from .views import POSE, ViewRows, pose_block
@@ -191,10 +191,13 @@ class GbpParams(EstimatorParams):
                         description="joint (pair potentials with each graph neighbour, the neighbours' messages fused afresh each "
                         "step, never accumulated), ci (a filter that accumulates the messages by split covariance intersection) "
                         "or kalman (plain GBP in a filter, overconfident on loops)")
-    peers: str = Field("bound", pattern="^(sequential|bound|independent)$",
-                       description="how the neighbours' messages' unknown mutual correlation is handled: sequential (one CI per "
-                       "neighbour, in id order), bound (one CI, their stack bounded by m × blockdiag) or independent (one CI, "
-                       "taken as independent of each other: overconfident on dense graphs)")
+    peers: str = Field("auto", pattern="^(auto|sequential|bound|independent|common)$",
+                       description="how the neighbours' messages' unknown mutual correlation is handled: auto (common with "
+                       "relative pose measurements, bound with bearings), common (their errors taken as their own plus a part "
+                       "common to all, the swarm's absolute attitude and position, counted once), bound (their stack bounded by "
+                       "m × blockdiag: for any correlation), "
+                       "sequential (one CI per neighbour, in id order; filter forms) or independent (taken as independent of "
+                       "each other: overconfident on dense graphs)")
 
 
 _TRI_ROW = _TRI[0]  # the row of each packed entry
@@ -360,6 +363,13 @@ class GbpEstimator(ReplayingEstimator):
     Params = GbpParams
 
     @classmethod
+    def check_scenario(cls, sc: Any, params: Any) -> None:
+        super().check_scenario(sc, params)
+        if params.peers == "common" and params.fusion != "joint":
+            raise IncompatibleScenario(f"estimator.peers: common is a noise model of fusion: joint's message stack; with fusion: "
+                                       f"{params.fusion} use bound, sequential or independent (or auto: bound)")
+
+    @classmethod
     def encode(cls, message: Any) -> bytes:
         if not isinstance(message, GbpMessage):
             raise TypeError(f"gbp: cannot encode {type(message).__name__}")
@@ -399,6 +409,11 @@ class GbpEstimator(ReplayingEstimator):
             lat = lk.latency.fixed_s + (1e-6 if lk.latency.speed_of_light else 0.0)
             self._lead = min(math.ceil(lat / sc.dt_s - 1e-9), max(self.history_steps - 1, 0))
         self._pfp = dataclasses.replace(self.fp, missing_gyro_rate_sigma=s0.bias_rad_s)
+        # peers: auto: common when each link measures a relative pose, bound with bearings (:func:`_peer_noise`).
+        self._peers = self.params.peers  # type: ignore[attr-defined]
+        if self._peers == "auto":
+            joint_pose = self.params.fusion == "joint" and sc.sensors.relative.model != "bearing"  # type: ignore[attr-defined]
+            self._peers = "common" if joint_pose else "bound"
         self._diffuse = (_DIFFUSE * np.array([s0.att_rad] * 3 + [s0.rate_rad_s] * 3 + [s0.pos_m] * 3 + [s0.vel_m_s] * 3)) ** 2
         self.pairs: _Pairs | None = None
         self._view_peers: list[int] = []
@@ -615,29 +630,33 @@ class GbpEstimator(ReplayingEstimator):
             rj = self._jrow[j]
             held[j] = (np.r_[quat.local(q, ref.q_BI[rj]), rr - ref.r_H[rj]], E, Pm, 0)
         present = [j for j in sorted(held) if j in live]
-        mode = self.params.peers  # type: ignore[attr-defined]
-        scale = float(len(present)) if mode == "bound" and present else 1.0
-        zs, Rs, Hs = [], [], []
+        mode = self._peers
+        zs, Cs, Hs, Ts = [], [], [], []  # Ts: each message's common modes (peers: common)
         for j in present:
             z, M, C, _ = held[j]
             rj = self._jrow[j]
             zs.append(z)
-            Rs.append(scale * C)
+            Cs.append(C)
             Hm = np.zeros((6, N))
             Hm[:, BLOCK * rj : BLOCK * (rj + 1)] = M
             Hs.append(Hm)
+            Ts.append(_common_modes(ref.q_BI[rj]))
+
+        def noise(sel: list[int]) -> np.ndarray:
+            return _peer_noise([Cs[k] for k in sel], [Ts[k] for k in sel], mode, len(present))
+
         own0 = _row(ref, 0)
         cav = {}
         for j in self.neighbours:
             sel = [k for k, l in enumerate(present) if l != j]
             if sel:
                 H = np.vstack([Hs[k] for k in sel])
-                dc, Pc = _kalman(d, P, H, np.concatenate([zs[k] for k in sel]), _block_diag([Rs[k] for k in sel]), rows=BLOCK)
+                dc, Pc = _kalman(d, P, H, np.concatenate([zs[k] for k in sel]), noise(sel), rows=BLOCK)
             else:
                 dc, Pc = d[:BLOCK], P[:BLOCK, :BLOCK]
             cav[j] = apply_correction(own0, self.fp, dc, Pc)
         if present:
-            dB, PB = _kalman(d, P, np.vstack(Hs), np.concatenate(zs), _block_diag(Rs))
+            dB, PB = _kalman(d, P, np.vstack(Hs), np.concatenate(zs), noise(list(range(len(present)))))
         else:
             dB, PB = d, P
         new_ref = apply_correction(ref, jp, dB, PB)
@@ -721,7 +740,7 @@ class GbpEstimator(ReplayingEstimator):
         yv = y[a].ravel()
         Ho, Hp, R = stack_factors(local, Hi[a], Hj[a], len(peers))
         Pp = [pose_block(joint.P[BLOCK * r : BLOCK * (r + 1), BLOCK * r : BLOCK * (r + 1)]) for r in range(1, 1 + len(peers))]
-        mode = self.params.peers  # type: ignore[attr-defined]
+        mode = self._peers
         ci = self.params.fusion == "ci"  # type: ignore[attr-defined]
         C_p = (float(len(peers)) if mode == "bound" else 1.0) * (Hp @ _block_diag(Pp) @ Hp.T)
         other = np.repeat(np.asarray(peers)[np.where(local.observer == 0, local.target, local.observer) - 1], 6)
@@ -818,6 +837,52 @@ def _kalman(d: np.ndarray, P: np.ndarray, H: np.ndarray, y: np.ndarray, R: np.nd
     else:
         Pn = P[:rows, :rows] - K @ S @ K.T
     return dn, 0.5 * (Pn + Pn.T)
+
+
+def _common_modes(q_BI: np.ndarray) -> np.ndarray:
+    """``B_k`` of ``peers: common`` (6 × 6): how an error common to every neighbour's message
+    enters message k's pose coordinates ``[a (rad, B_k), Δr (m, H)]`` — the same attitude
+    error in I (turned into k's body frame by its attitude ``q_BI``) and the same position
+    error in H."""
+    B = np.eye(6)
+    B[:3, :3] = quat.attitude_matrix(q_BI)
+    return B
+
+
+def _peer_noise(Cs: list[np.ndarray], Bs: list[np.ndarray], mode: str, m_all: int) -> np.ndarray:
+    """The noise of a stack of the neighbours' messages (``fusion: joint``).
+
+    ``bound``: each message's covariance times the number of messages of the step ``m_all``
+    (for any correlation). ``independent`` and ``sequential``: as they are. ``common``: each
+    message's error taken as a part of its own (independent of the others')
+    plus a part common to all of them, ``e_k = u_k + B_k θ`` (:func:`_common_modes`), ``θ`` of
+    unknown covariance Γ, at most what every message claims (``B_k Γ B_kᵀ ⪯ C_k``). Then
+
+        Cov = blockdiag(C_k − B_k Γ B_kᵀ) + B Γ Bᵀ ⪯ blockdiag(C_k) + (m − 1)/m · B G Bᵀ
+
+    for any ``G ⪰ Γ`` (the off-diagonal blocks: Σ_{k≠l} v_kᵀ B_k Γ B_lᵀ v_l ≤ (m − 1)/m ·
+    vᵀ B Γ Bᵀ v by Cauchy–Schwarz), and ``G = m (Σ_k B_kᵀ C_k⁻¹ B_k)⁻¹`` — covariance
+    intersection of the constraints, equal weights — is such a G: its ellipsoid holds their
+    intersection, which holds Γ's. So the differences between the messages keep their own
+    covariances and what they share counts once, where ``bound`` pays m for both. It holds
+    as long as what the messages share is of this form: the swarm's absolute attitude and
+    position (the anchors' readings, reaching every neighbour), which is what they share
+    when every link measures a whole relative pose; with bearings (angles only) the
+    formation's shape along the lines of sight is itself estimated from shared data, with
+    correlations of either sign, and ``auto`` takes ``bound`` (measured: docs/estimators.md).
+    Hand-written: no library fuses measurements under this correlation model."""
+    m = len(Cs)
+    D = _block_diag(Cs)
+    if mode == "bound":
+        return float(m_all) * D
+    if mode != "common" or m < 2:
+        return D
+    try:
+        G = float(m) * np.linalg.inv(sum(B.T @ np.linalg.solve(C, B) for C, B in zip(Cs, Bs)))
+    except np.linalg.LinAlgError:  # the common part not bounded by the messages (equal levers): for any correlation
+        return float(m) * D
+    B = np.vstack(Bs)
+    return D + (m - 1) / m * (B @ G @ B.T)
 
 
 def _delta(e: SwarmEstimate, ref: SwarmEstimate) -> np.ndarray:
