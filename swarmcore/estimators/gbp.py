@@ -45,10 +45,15 @@ held for ``filter.history_s``). With a fixed link latency of L steps (``links.la
 ``filter.late: replay``) every message is late: each cavity is then sent predicted L steps
 (its held rate, the gyro bias prior's σ) and used at the step it arrives at, fresh. The
 loops of the graph (triangles: ``i → l → j → i``) still correlate the messages with each
-other and with the pair potentials; ``peers: bound`` (the default) fuses the m messages
-of a step with their covariances times m (for any mutual correlation), ``independent``
-and ``sequential`` (the same thing for a Kalman product) as they are — GBP's own
-assumption. The view claims the joint copy's own row and each neighbour's with their
+other and with the pair potentials. ``peers: common`` (``auto``, the default, with relative
+pose measurements) takes each message's error as its own part plus a part common to all of
+them — the swarm's absolute attitude and position, which every neighbour's estimate draws
+from the same anchors — and fuses the stack with ``blockdiag(C_k) + (m − 1)/m · B G Bᵀ``
+(:func:`_peer_noise`: at or above every covariance of that model), so the differences
+between the neighbours keep their information and what they share counts once;
+``peers: bound`` (``auto`` with bearings) fuses the m messages with their covariances times
+m (for any mutual correlation), ``independent`` and ``sequential`` (the same thing for a
+Kalman product) as they are — GBP's own assumption. The view claims the joint copy's own row and each neighbour's with their
 cross-covariance. Costs: the joint's (1 + m)·12 states, m + 1 Kalman updates of a step;
 the message is the same as below.
 
@@ -98,7 +103,7 @@ incoming cavities; the camera noise R is independent and not inflated. The incom
 cavities carry less of i's own information than the beliefs ``ci`` fuses (no direct
 echo of ``f_ij``): what ``gbp`` can gain over ``ci`` (measured: docs/estimators.md). The loops correlate
 the neighbours' cavities with each other as well, which CI between the belief and their
-stack does not cover: ``peers: bound`` (the default) bounds the stacked covariance of the
+stack does not cover: ``peers: bound`` (``auto``'s choice for the filter forms) bounds the stacked covariance of the
 m neighbours' cavities by ``m · blockdiag(P_1, …, P_m)`` (for any correlation,
 ``Var(Σ x_k) ≤ m Σ Var(x_k)``; as ``ci`` does), i.e. ``C(ω) = R + m H_j P_j H_jᵀ/(1 − ω)``;
 ``peers: sequential`` fuses one neighbour at a time, each by its own CI (consistent too,
