@@ -21,8 +21,8 @@ relative measurement taken; the same for every estimator of a seed) and each est
 RMS over it (own and relative position, "RMS / bound"), errors of its estimate of each
 tracked peer relative to itself (and, per (filter, peer) pair, their second-half squares,
 so that the paired ratio of relative errors to the reference is taken over the pairs both
-estimate: :func:`same_pairs_ratio`), NEES of both against what the estimator claims, bytes each satellite put on its radio per second, median filter step
-CPU time. Writes ``results.jsonl`` (as runs finish), ``compare_estimators.json``,
+estimate: :func:`same_pairs_ratio`), NEES of both against what the estimator claims, bytes
+each satellite put on its radio per second, median filter step CPU time. Writes ``results.jsonl`` (as runs finish), ``compare_estimators.json``,
 ``compare_estimators.md`` and ``estimators.png`` into OUT. Runs on the local pool or a Dask
 cluster (:mod:`swarm.studies.executor`).
 """

@@ -53,9 +53,9 @@ from the same anchors — and fuses the stack with ``blockdiag(C_k) + (m − 1)/
 between the neighbours keep their information and what they share counts once;
 ``peers: bound`` (``auto`` with bearings) fuses the m messages with their covariances times
 m (for any mutual correlation), ``independent`` and ``sequential`` (the same thing for a
-Kalman product) as they are — GBP's own assumption. The view claims the joint copy's own row and each neighbour's with their
-cross-covariance. Costs: the joint's (1 + m)·12 states, m + 1 Kalman updates of a step;
-the message is the same as below.
+Kalman product) as they are — GBP's own assumption. The view claims the joint copy's own
+row and each neighbour's with their cross-covariance. Costs: the joint's (1 + m)·12
+states, m + 1 Kalman updates of a step; the message is the same as below.
 
 **Messages** (``fusion: ci`` and ``kalman``, the filter forms kept beside it). Variable → factor: the belief of ``x_j`` with the factor's own incoming
 message removed, ``m_{j→f}(x_j) = b_j(x_j) / m_{f→j}(x_j)``. Over a time window the
@@ -103,8 +103,8 @@ incoming cavities; the camera noise R is independent and not inflated. The incom
 cavities carry less of i's own information than the beliefs ``ci`` fuses (no direct
 echo of ``f_ij``): what ``gbp`` can gain over ``ci`` (measured: docs/estimators.md). The loops correlate
 the neighbours' cavities with each other as well, which CI between the belief and their
-stack does not cover: ``peers: bound`` (``auto``'s choice for the filter forms) bounds the stacked covariance of the
-m neighbours' cavities by ``m · blockdiag(P_1, …, P_m)`` (for any correlation,
+stack does not cover: ``peers: bound`` (``auto``'s choice for the filter forms) bounds the
+stacked covariance of the m neighbours' cavities by ``m · blockdiag(P_1, …, P_m)`` (for any correlation,
 ``Var(Σ x_k) ≤ m Σ Var(x_k)``; as ``ci`` does), i.e. ``C(ω) = R + m H_j P_j H_jᵀ/(1 − ω)``;
 ``peers: sequential`` fuses one neighbour at a time, each by its own CI (consistent too,
 less accurate on the study's graph); ``peers: independent`` takes them as independent of
@@ -859,9 +859,9 @@ def _peer_noise(Cs: list[np.ndarray], Bs: list[np.ndarray], mode: str, m_all: in
 
     ``bound``: each message's covariance times the number of messages of the step ``m_all``
     (for any correlation). ``independent`` and ``sequential``: as they are. ``common``: each
-    message's error taken as a part of its own (independent of the others')
-    plus a part common to all of them, ``e_k = u_k + B_k θ`` (:func:`_common_modes`), ``θ`` of
-    unknown covariance Γ, at most what every message claims (``B_k Γ B_kᵀ ⪯ C_k``). Then
+    message's error taken as a part of its own (independent of the others') plus a part
+    common to all of them, ``e_k = u_k + B_k θ`` (:func:`_common_modes`), ``θ`` of unknown
+    covariance Γ, at most what every message claims (``B_k Γ B_kᵀ ⪯ C_k``). Then
 
         Cov = blockdiag(C_k − B_k Γ B_kᵀ) + B Γ Bᵀ ⪯ blockdiag(C_k) + (m − 1)/m · B G Bᵀ
 
@@ -884,7 +884,7 @@ def _peer_noise(Cs: list[np.ndarray], Bs: list[np.ndarray], mode: str, m_all: in
         return D
     try:
         G = float(m) * np.linalg.inv(sum(B.T @ np.linalg.solve(C, B) for C, B in zip(Cs, Bs)))
-    except np.linalg.LinAlgError:  # the common part not bounded by the messages (equal levers): for any correlation
+    except np.linalg.LinAlgError:  # a singular message covariance: bound for any correlation instead
         return float(m) * D
     B = np.vstack(Bs)
     return D + (m - 1) / m * (B @ G @ B.T)
