@@ -22,7 +22,8 @@ RMS over it (own and relative position, "RMS / bound"), errors of its estimate o
 tracked peer relative to itself (and, per (filter, peer) pair, their second-half squares,
 so that the paired ratio of relative errors to the reference is taken over the pairs both
 estimate: :func:`same_pairs_ratio`), NEES of both against what the estimator claims, bytes
-each satellite put on its radio per second, median filter step CPU time. Writes ``results.jsonl`` (as runs finish), ``compare_estimators.json``,
+each satellite put on its radio per second, median filter step CPU time. Writes
+``results.jsonl`` (as runs finish), ``compare_estimators.json``,
 ``compare_estimators.md`` and ``estimators.png`` into OUT. Runs on the local pool or a Dask
 cluster (:mod:`swarm.studies.executor`).
 """
@@ -171,6 +172,17 @@ def _reference(estimators: Sequence[str]) -> str:
     return next((e for e in ("central", "full") if e in estimators), estimators[0])
 
 
+#: The relative errors, compared on the pairs both estimators estimate (:func:`same_pairs_ratio`).
+_SAME_PAIRS = {"rel_pos": "pos_m2", "rel_att": "att_rad2"}
+
+
+def _paired_ratio(run: dict, ref: dict, key: str) -> float:
+    """One seed's ratio of ``key`` to the reference's (relative errors: on the same pairs)."""
+    if key in _SAME_PAIRS:
+        return same_pairs_ratio(run, ref, _SAME_PAIRS[key])
+    return run[key] / ref[key] if ref[key] else float("nan")
+
+
 def _nanmean(x: list[float]) -> float:
     a = np.asarray(x, float)
     return float(a[np.isfinite(a)].mean()) if np.isfinite(a).any() else float("nan")
@@ -288,11 +300,7 @@ def run_compare_estimators(sc: Scenario, runs: int, out: Path, *, estimators: Se
             sm: dict[str, Any] = {key: _stats(rows, key) for key, _, _ in METRICS}
             if e != ref and rows:
                 refs = [st.results[f"{c}/{ref}@{s}"] for s in ok]
-                sm["vs_ref"] = {key: _nanmean([r[key] / q[key] if q[key] else np.nan for r, q in zip(rows, refs)])
-                                for key, _, _ in METRICS}
-                # The relative errors on the pairs both estimate (module docstring).
-                for key, pk in (("rel_pos", "pos_m2"), ("rel_att", "att_rad2")):
-                    sm["vs_ref"][key] = _nanmean([same_pairs_ratio(r, q, pk) for r, q in zip(rows, refs)])
+                sm["vs_ref"] = {key: _nanmean([_paired_ratio(r, q, key) for r, q in zip(rows, refs)]) for key, _, _ in METRICS}
             summary[c][e] = sm
     doc = {"scenario": sc.name, "n_sats": sc.n_sats, "duration_s": sc.duration_s, "estimators": list(estimators),
            "conditions": list(conditions), "seeds": seeds, "cap_Bps": cap_Bps, "overrides": overs, "summary": summary,

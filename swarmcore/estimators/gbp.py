@@ -104,8 +104,8 @@ cavities carry less of i's own information than the beliefs ``ci`` fuses (no dir
 echo of ``f_ij``): what ``gbp`` can gain over ``ci`` (measured: docs/estimators.md). The loops correlate
 the neighbours' cavities with each other as well, which CI between the belief and their
 stack does not cover: ``peers: bound`` (``auto``'s choice for the filter forms) bounds the
-stacked covariance of the m neighbours' cavities by ``m · blockdiag(P_1, …, P_m)`` (for any correlation,
-``Var(Σ x_k) ≤ m Σ Var(x_k)``; as ``ci`` does), i.e. ``C(ω) = R + m H_j P_j H_jᵀ/(1 − ω)``;
+stacked covariance of the m neighbours' cavities by ``m · blockdiag(P_1, …, P_m)`` (for any
+correlation, ``Var(Σ x_k) ≤ m Σ Var(x_k)``; as ``ci`` does), i.e. ``C(ω) = R + m H_j P_j H_jᵀ/(1 − ω)``;
 ``peers: sequential`` fuses one neighbour at a time, each by its own CI (consistent too,
 less accurate on the study's graph); ``peers: independent`` takes them as independent of
 each other, GBP's own assumption — consistent on the sparse study graph (NEES/dof 0.68)
